@@ -1,0 +1,1 @@
+"""motiond: the daemon and the command line that wire the layers together."""

@@ -1,0 +1,77 @@
+"""The ``canon`` command line.
+
+Each sub-command lives in its own module ``motiond.cmd_<name>`` with two functions:
+``add_arguments(parser)`` and ``run(args) -> int``. They are imported only when used, so
+``canon check`` does not pay for importing the fieldbus stack.
+
+User mistakes (bad G-code, a bad configuration, a missing file) are printed to stderr as one line,
+``FILE:LINE: message`` where there is a line, and give exit status 1; no traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+
+from gcode_canon.errors import GCodeError
+from motiond.configkit import ConfigError
+
+# name -> (module, one-line help). Add a line here for a new sub-command.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "check": ("motiond.cmd_check", "interpret a program without a machine and print its canonical commands"),
+}
+
+
+class UserError(Exception):
+    """A mistake the user can fix (wrong option, missing file): printed as one line, exit 1."""
+
+
+def add_common(parser: argparse.ArgumentParser, *, program: bool = True) -> None:
+    """Options that mean the same for check, plan and run."""
+    parser.add_argument("--config", metavar="machine.toml", help="machine configuration file")
+    parser.add_argument("--tool-table", metavar="FILE", help="LinuxCNC-format tool table (as rs274 -t)")
+    parser.add_argument("--var", metavar="FILE", help="parameter file (as rs274 -v)")
+    parser.add_argument("--json", action="store_true", help="machine-readable output")
+    if program:
+        parser.add_argument("file", metavar="FILE.ngc", help="G-code program")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="canon", description="canon: G-code to CiA 402 servo drives")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name, (module, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(_module=module)
+        importlib.import_module(module).add_arguments(p)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.WARNING - 10 * min(args.verbose, 2),
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    module = importlib.import_module(args._module)
+    try:
+        return int(module.run(args) or 0)
+    except (GCodeError, ConfigError, UserError) as exc:
+        print(f"canon {args.command}: {exc}" if isinstance(exc, UserError) else str(exc), file=sys.stderr)
+        return 1
+    except BrokenPipeError:
+        # `canon check big.ngc | head`: not an error.
+        sys.stderr.close()
+        return 0
+    except KeyboardInterrupt:
+        print("canon: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

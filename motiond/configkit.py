@@ -1,0 +1,137 @@
+"""Small helpers to read a TOML machine file with errors that name the file and the key.
+
+Each layer keeps its own typed configuration dataclasses; the ``motiond.config*`` modules read the
+TOML tables into them with these helpers, so that every mistake reads like
+``machine.toml: axes.x.max_velocity: must be > 0, got -5``.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any, TypeVar
+
+T = TypeVar("T")
+
+_MISSING = object()
+
+
+class ConfigError(ValueError):
+    """A problem in a configuration file: which file, which key, what is wrong."""
+
+    def __init__(self, file: str, key: str, message: str) -> None:
+        self.file = file
+        self.key = key
+        self.message = message
+        where = f"{file}: " if file else ""
+        super().__init__(f"{where}{key + ': ' if key else ''}{message}")
+
+
+def load_toml(path: str | Path) -> dict[str, Any]:
+    """Read a TOML file; syntax errors become :class:`ConfigError` with the line TOML reports."""
+    p = Path(path)
+    try:
+        with p.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(str(p), "", "no such file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(str(p), "", f"not valid TOML: {exc}") from None
+    except OSError as exc:
+        raise ConfigError(str(p), "", f"cannot read: {exc.strerror}") from None
+
+
+class Table:
+    """A TOML table with its dotted path, for reading values with precise errors.
+
+    Keys that are read are remembered; :meth:`check_unknown` then reports any key nobody read, which
+    catches typos such as ``max_velocty`` instead of silently using a default.
+    """
+
+    def __init__(self, data: dict[str, Any], file: str = "", path: str = "") -> None:
+        if not isinstance(data, dict):
+            raise ConfigError(file, path, f"must be a table, got {type(data).__name__}")
+        self.data = data
+        self.file = file
+        self.path = path
+        self._seen: set[str] = set()
+
+    def key(self, name: str) -> str:
+        return f"{self.path}.{name}" if self.path else name
+
+    def error(self, name: str, message: str) -> ConfigError:
+        return ConfigError(self.file, self.key(name), message)
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.data
+
+    def get(self, name: str, kind: type[T], default: Any = _MISSING,
+            check: Callable[[T], str | None] | None = None) -> T:
+        """Value of ``name`` as ``kind`` (int accepted for float); ``check`` returns a complaint."""
+        self._seen.add(name)
+        if name not in self.data:
+            if default is _MISSING:
+                raise self.error(name, "missing (required)")
+            return default
+        value = self.data[name]
+        if kind is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if not isinstance(value, kind) or (kind is not bool and isinstance(value, bool)):
+            raise self.error(name, f"must be {kind.__name__}, got {type(value).__name__} {value!r}")
+        if kind is float and not math.isfinite(value):
+            raise self.error(name, f"must be a finite number, got {value!r}")
+        if check is not None:
+            complaint = check(value)
+            if complaint:
+                raise self.error(name, f"{complaint}, got {value!r}")
+        return value
+
+    def table(self, name: str, required: bool = False) -> Table:
+        self._seen.add(name)
+        if name not in self.data:
+            if required:
+                raise self.error(name, "missing table (required)")
+            return Table({}, self.file, self.key(name))
+        return Table(self.data[name], self.file, self.key(name))
+
+    def tables(self, name: str) -> Iterator[tuple[str, Table]]:
+        """Sub-tables of table ``name`` (``[axes.x]``, ``[axes.y]`` ...) in file order."""
+        outer = self.table(name)
+        for sub in list(outer.data):
+            yield sub, outer.table(sub)
+
+    def array_of_tables(self, name: str) -> list[Table]:
+        self._seen.add(name)
+        items = self.data.get(name, [])
+        if not isinstance(items, list):
+            raise self.error(name, "must be an array of tables ([[...]])")
+        return [Table(item, self.file, f"{self.key(name)}[{i}]") for i, item in enumerate(items)]
+
+    def check_unknown(self) -> None:
+        unknown = sorted(set(self.data) - self._seen)
+        if unknown:
+            raise self.error(unknown[0], "unknown key (misspelt?)")
+
+
+def positive(v: float) -> str | None:
+    return None if v > 0 else "must be > 0"
+
+
+def non_negative(v: float) -> str | None:
+    return None if v >= 0 else "must be >= 0"
+
+
+def one_of(*choices: Any) -> Callable[[Any], str | None]:
+    def check(v: Any) -> str | None:
+        return None if v in choices else f"must be one of {', '.join(map(str, choices))}"
+
+    return check
+
+
+def in_range(lo: float, hi: float) -> Callable[[float], str | None]:
+    def check(v: float) -> str | None:
+        return None if lo <= v <= hi else f"must be between {lo} and {hi}"
+
+    return check

@@ -1,0 +1,1 @@
+"""planner: canonical commands in, timed jerk-limited setpoints out (ruckig). No I/O."""

@@ -1,0 +1,1 @@
+"""telemetry: LCM types (telemetry/*.lcm), their generated code, and the publishers."""
