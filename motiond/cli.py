@@ -22,6 +22,7 @@ from motiond.configkit import ConfigError
 # name -> (module, one-line help). Add a line here for a new sub-command.
 COMMANDS: dict[str, tuple[str, str]] = {
     "check": ("motiond.cmd_check", "interpret a program without a machine and print its canonical commands"),
+    "sim": ("motiond.cmd_sim", "run simulated drives or I/O as a separate process"),
 }
 
 
@@ -45,9 +46,15 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name, (module, help_text) in COMMANDS.items():
+        try:
+            mod = importlib.import_module(module)
+        except ModuleNotFoundError as exc:
+            if exc.name != module:
+                raise
+            continue  # a sub-command still being built in this tree
         p = sub.add_parser(name, help=help_text, description=help_text)
         p.set_defaults(_module=module)
-        importlib.import_module(module).add_arguments(p)
+        mod.add_arguments(p)
     return parser
 
 
