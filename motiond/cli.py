@@ -22,7 +22,11 @@ from motiond.configkit import ConfigError
 # name -> (module, one-line help). Add a line here for a new sub-command.
 COMMANDS: dict[str, tuple[str, str]] = {
     "check": ("motiond.cmd_check", "interpret a program without a machine and print its canonical commands"),
+    "plan": ("motiond.cmd_plan", "plan a program without a machine: setpoints checked against the limits"),
     "sim": ("motiond.cmd_sim", "run simulated drives or I/O as a separate process"),
+    "can-dump": ("motiond.cmd_can_dump", "watch a CAN bus with CANopen frames named and decoded"),
+    "spy": ("motiond.cmd_spy", "watch the machine's LCM traffic in lcm-spy, canon's types decoded"),
+    "log": ("motiond.cmd_log", "record the machine's LCM traffic into a log file (lcm-logger)"),
 }
 
 
@@ -81,4 +85,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # `python -m motiond.cli`: run the copy imported as motiond.cli, so that sub-commands which
+    # raise motiond.cli.UserError are caught as the same class.
+    from motiond.cli import main as _main
+
+    sys.exit(_main())

@@ -1,0 +1,179 @@
+"""Commands over LCM: the verbs, their arguments, and a server that checks and answers them.
+
+A client publishes a ``canon.command`` on ``CANON_COMMAND``; :class:`CommandServer` decodes it,
+refuses it if :func:`telemetry.publisher.authorize` or :func:`check_command` says so, else passes it
+to the daemon's handler, and publishes one ``canon.reply`` with the same ``request_id`` and ``sender``
+on ``CANON_REPLY``. The handler runs on the LCM thread: it should queue the work and return at once.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from telemetry.publisher import CANON_COMMAND, CANON_REPLY, authorize, now_utime
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Verb:
+    strings: tuple[int, int]   # allowed number of text arguments (min, max)
+    values: tuple[int, int]    # allowed number of numeric arguments (min, max)
+    help: str
+
+
+_SWITCH = "values[0]: 1 on, 0 off"
+VERBS: dict[str, Verb] = {
+    "run": Verb((1, 1), (0, 1), "strings[0]: program file; values[0]: line to start at (optional)"),
+    "mdi": Verb((1, 1), (0, 0), "strings[0]: one line of G-code"),
+    "pause": Verb((0, 0), (0, 0), "feed hold"),
+    "resume": Verb((0, 0), (0, 0), "continue after pause or a single-block stop"),
+    "feed_override": Verb((0, 0), (1, 1), "values[0]: factor, 1.0 = 100 %"),
+    "abort": Verb((0, 0), (0, 0), "stop the program with a controlled stop"),
+    "estop": Verb((0, 0), (0, 0), "emergency stop: quick stop on every drive"),
+    "estop_reset": Verb((0, 0), (0, 0), "leave emergency stop (drives stay disabled)"),
+    "enable": Verb((0, 0), (0, 0), "enable the drives (operation enabled)"),
+    "disable": Verb((0, 0), (0, 0), "disable the drives"),
+    "home": Verb((0, 9), (0, 0), "strings: axis letters to home (none: all)"),
+    "jog": Verb((1, 1), (1, 2), "strings[0]: axis; values[0]: velocity (signed, units/s); "
+                                "values[1]: distance (optional; none or 0: until a jog with velocity 0)"),
+    "single_block": Verb((0, 0), (1, 1), _SWITCH),
+    "optional_stop": Verb((0, 0), (1, 1), _SWITCH),
+    "block_delete": Verb((0, 0), (1, 1), _SWITCH),
+    "reset": Verb((0, 0), (0, 0), "clear faults and the last error"),
+}
+
+
+def _count(lo: int, hi: int) -> str:
+    if lo == hi:
+        return str(lo)
+    return f"{lo} to {hi}"
+
+
+def check_command(command: Any) -> str | None:
+    """Whether ``command``'s verb and arguments are well formed: None, or what is wrong."""
+    verb = VERBS.get(command.verb)
+    if verb is None:
+        return f"unknown verb {command.verb!r} (known: {', '.join(VERBS)})"
+    if command.num_strings != len(command.strings) or command.num_values != len(command.values):
+        return "num_strings/num_values do not match the arrays"
+    for what, n, (lo, hi) in (("text", command.num_strings, verb.strings),
+                              ("numeric", command.num_values, verb.values)):
+        if not lo <= n <= hi:
+            return f"{command.verb} takes {_count(lo, hi)} {what} argument(s), got {n} ({verb.help})"
+    if not all(math.isfinite(v) for v in command.values):
+        return f"{command.verb}: numeric arguments must be finite numbers"
+    return None
+
+
+def make_command(verb: str, strings: tuple[str, ...] | list[str] = (),
+                 values: tuple[float, ...] | list[float] = (), *, request_id: int = 0,
+                 sender: str = "", token: str = "") -> Any:
+    """A ``canon.command`` filled in (``utime`` now)."""
+    from telemetry.lcmtypes.canon import command
+
+    cmd = command()
+    cmd.utime = now_utime()
+    cmd.request_id = request_id
+    cmd.sender = sender
+    cmd.token = token
+    cmd.verb = verb
+    cmd.strings = list(strings)
+    cmd.num_strings = len(cmd.strings)
+    cmd.values = [float(v) for v in values]
+    cmd.num_values = len(cmd.values)
+    return cmd
+
+
+Handler = Callable[[Any], "str | None"]
+
+
+class CommandServer:
+    """Answers ``canon.command`` messages: authorize, check, call ``handler``, publish the reply.
+
+    ``handler(command)`` returns None when the command is accepted, or the reason it is not. Call
+    :meth:`subscribe` if the daemon runs its own ``lc.handle()`` loop, or :meth:`start` for a thread
+    that does. ``replies`` / ``refused`` / ``bad_messages`` count what happened.
+    """
+
+    def __init__(self, lc: Any, handler: Handler, *, url: str, token: str = "",
+                 channel: str = CANON_COMMAND, reply_channel: str = CANON_REPLY) -> None:
+        self.lc = lc
+        self.handler = handler
+        self.url = url
+        self.token = token
+        self.channel = channel
+        self.reply_channel = reply_channel
+        self.replies = 0
+        self.refused = 0
+        self.bad_messages = 0
+        self._subscription: Any = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def subscribe(self) -> None:
+        if self._subscription is None:
+            self._subscription = self.lc.subscribe(self.channel, self.on_message)
+
+    def on_message(self, channel: str, data: bytes) -> None:
+        from telemetry.lcmtypes.canon import command
+
+        try:
+            cmd = command.decode(data)
+        except Exception as exc:  # a foreign type on our channel: nothing to answer
+            self.bad_messages += 1
+            log.warning("ignoring a message on %s that is not a canon.command: %s", channel, exc)
+            return
+        self.answer(cmd)
+
+    def answer(self, cmd: Any) -> Any:
+        """Decide on ``cmd`` and publish the reply; returns the reply."""
+        from telemetry.lcmtypes.canon import reply
+
+        error = authorize(cmd, self.url, self.token) or check_command(cmd)
+        if error is None:
+            try:
+                error = self.handler(cmd)
+            except Exception as exc:
+                log.exception("command %s from %r failed", cmd.verb, cmd.sender)
+                error = f"internal error: {type(exc).__name__}: {exc}"
+        else:
+            self.refused += 1
+            log.warning("command %s from %r refused: %s", cmd.verb, cmd.sender, error)
+        rep = reply()
+        rep.utime = now_utime()
+        rep.request_id = cmd.request_id
+        rep.sender = cmd.sender
+        rep.verb = cmd.verb
+        rep.ok = error is None
+        rep.error = error or ""
+        self.lc.publish(self.reply_channel, rep.encode())
+        self.replies += 1
+        return rep
+
+    def start(self) -> CommandServer:
+        """Subscribe and handle LCM traffic on a thread of our own."""
+        self.subscribe()
+        if self._thread is None:
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._run, name="canon-command-server", daemon=True)
+            self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 2.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            self._thread = None
+        if self._subscription is not None:
+            self.lc.unsubscribe(self._subscription)
+            self._subscription = None
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.lc.handle_timeout(50)

@@ -1,0 +1,416 @@
+"""Publishers, URL rules, the command token rule and the command server, on memq:// (no network)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+import lcm
+import pytest
+
+from telemetry import publisher
+from telemetry.commands import VERBS, CommandServer, check_command, make_command
+from telemetry.config import TelemetryConfig
+from telemetry.lcmtypes.canon import event, reply, status
+from telemetry.publisher import (
+    CANON_COMMAND,
+    CANON_EVENT,
+    CANON_REPLY,
+    CANON_STATUS,
+    EventPublisher,
+    StatusPublisher,
+    TelemetryUnavailable,
+    authorize,
+    open_lcm,
+)
+from telemetry.url import DEFAULT_URL, parse_url, url_leaves_host
+
+REAL_LCM = lcm.LCM
+LOCAL = "udpm://239.255.76.67:7667?ttl=0"
+REMOTE = "udpm://239.255.76.67:7667?ttl=1"
+
+
+# ---- URLs ---------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize(("url", "leaves"), [
+    (DEFAULT_URL, False),
+    ("udpm://239.255.76.67:7667", False),          # LCM's TTL defaults to 0
+    ("udpm://239.255.76.67:7667?ttl=0&recv_buf_size=2097152", False),
+    ("udpm://239.255.76.67:7667?recv_buf_size=2097152&ttl=1", True),
+    ("udpm://239.1.2.3:7000?ttl=32", True),
+    ("mpudpm://239.255.76.67:7667?ttl=0", False),
+    ("mpudpm://239.255.76.67:7667?ttl=2", True),
+    ("memq://", False),
+    ("file:///tmp/x.log?mode=r", False),
+    ("tcpq://127.0.0.1:7700", True),                # the hub may take other hosts
+    ("tcpq://10.0.0.5:7700", True),
+])
+def test_url_leaves_host(url: str, leaves: bool) -> None:
+    assert url_leaves_host(url) is leaves
+
+
+@pytest.mark.parametrize(("url", "complaint"), [
+    ("239.255.76.67:7667", "not an LCM URL"),
+    ("udp://239.255.76.67:7667", "unknown LCM provider 'udp'"),
+    ("udpm://10.1.2.3:7667?ttl=0", "not a multicast address"),
+    ("udpm://239.255.76.300:7667", "not an IPv4 address"),
+    ("udpm://239.255.76.67:port", "port must be a number"),
+    ("udpm://239.255.76.67:7667?ttl=256", "ttl must be a number from 0 to 255"),
+    ("udpm://239.255.76.67:7667?ttl=-1", "ttl must be a number from 0 to 255"),
+])
+def test_bad_urls_say_what_is_wrong(url: str, complaint: str) -> None:
+    with pytest.raises(ValueError, match=complaint):
+        parse_url(url)
+
+
+def test_empty_url_means_lcm_default_url_env_then_ours(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("LCM_DEFAULT_URL", raising=False)
+    assert parse_url("").url == DEFAULT_URL
+    monkeypatch.setenv("LCM_DEFAULT_URL", "udpm://239.9.9.9:9999?ttl=3")
+    parsed = parse_url("")
+    assert (parsed.group, parsed.port, parsed.ttl, parsed.leaves_host) == ("239.9.9.9", 9999, 3, True)
+
+
+def test_config_checks_its_keys() -> None:
+    assert TelemetryConfig().url == DEFAULT_URL and TelemetryConfig().status_hz == 50
+    assert TelemetryConfig(url=REMOTE, token="t").leaves_host
+    with pytest.raises(ValueError, match=r"telemetry\.url: unknown LCM provider"):
+        TelemetryConfig(url="udp://x")
+    with pytest.raises(ValueError, match=r"telemetry\.status_hz: must be > 0"):
+        TelemetryConfig(status_hz=0)
+
+
+# ---- authorize ----------------------------------------------------------------------------------
+
+def test_local_url_accepts_commands_without_token() -> None:
+    assert authorize(make_command("pause"), LOCAL, "") is None
+    assert authorize(make_command("pause"), "memq://", "configured") is None
+
+
+def test_remote_url_needs_the_configured_token() -> None:
+    assert authorize(make_command("pause", token="s3cret"), REMOTE, "s3cret") is None
+    missing = authorize(make_command("pause"), REMOTE, "s3cret")
+    wrong = authorize(make_command("pause", token="guess"), REMOTE, "s3cret")
+    assert missing and "must carry the token" in missing
+    assert wrong and "wrong token" in wrong
+    assert "s3cret" not in missing + wrong
+
+
+def test_remote_url_without_configured_token_refuses_everything() -> None:
+    reason = authorize(make_command("estop", token="anything"), "tcpq://127.0.0.1:7700", "")
+    assert reason and "no [telemetry] token is configured" in reason
+    assert authorize(make_command("estop", token=""), REMOTE, "") is not None
+
+
+def test_unparsable_url_counts_as_leaving_the_host() -> None:
+    assert authorize(make_command("run", ["a.ngc"]), "nonsense", "tok") is not None
+
+
+# ---- command arguments --------------------------------------------------------------------------
+
+def test_every_verb_of_the_issue_is_known() -> None:
+    assert set(VERBS) == {"run", "mdi", "pause", "resume", "feed_override", "abort", "estop", "estop_reset",
+                          "enable", "disable", "home", "jog", "single_block", "optional_stop",
+                          "block_delete", "reset"}
+
+
+@pytest.mark.parametrize(("verb", "strings", "values", "ok"), [
+    ("run", ["part.ngc"], [], True),
+    ("run", [], [], False),
+    ("mdi", ["G0 X1"], [], True),
+    ("feed_override", [], [1.5], True),
+    ("feed_override", [], [], False),
+    ("feed_override", [], [float("nan")], False),
+    ("jog", ["x"], [-5.0], True),
+    ("jog", ["x"], [-5.0, 1.0], True),
+    ("jog", [], [1.0], False),
+    ("home", [], [], True),
+    ("home", ["x", "y"], [], True),
+    ("single_block", [], [1], True),
+    ("pause", ["now"], [], False),
+    ("fly", [], [], False),
+])
+def test_check_command(verb: str, strings: list[str], values: list[float], ok: bool) -> None:
+    assert (check_command(make_command(verb, strings, values)) is None) is ok
+
+
+# ---- open_lcm -----------------------------------------------------------------------------------
+
+def test_open_lcm_memq() -> None:
+    assert isinstance(open_lcm("memq://"), lcm.LCM)
+
+
+def _lcm_fails(monkeypatch: pytest.MonkeyPatch) -> None:
+    """As on a host without a multicast route, seen past our own route check."""
+    real = lcm.LCM
+
+    def fake(url: str | None = None) -> lcm.LCM:
+        if url and url.startswith("udpm"):
+            raise RuntimeError("Couldn't create LCM")
+        return real(url)
+
+    monkeypatch.setattr(publisher.lcm, "LCM", fake)
+    monkeypatch.setattr(publisher, "_multicast_route_problem", lambda parsed: None)
+
+
+def test_lcm_runtime_error_becomes_a_clear_message_with_the_fix(monkeypatch: pytest.MonkeyPatch) -> None:
+    _lcm_fails(monkeypatch)
+    with pytest.raises(TelemetryUnavailable) as info:
+        open_lcm(DEFAULT_URL)
+    text = str(info.value)
+    assert DEFAULT_URL in text
+    assert "ip link set lo multicast on" in text and "ip route add 224.0.0.0/4 dev lo" in text
+    assert 'url = "memq://"' in text
+
+
+def test_fallbacks_for_canon_run(monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    _lcm_fails(monkeypatch)
+    with caplog.at_level("WARNING"):
+        memq = open_lcm(DEFAULT_URL, fallback="memq")
+        none = open_lcm(DEFAULT_URL, fallback="none")
+    assert isinstance(memq, REAL_LCM) and none is None
+    assert "ip route add 224.0.0.0/4 dev lo" in caplog.text and "memq://" in caplog.text
+    assert "without telemetry" in caplog.text
+
+
+def test_bad_url_is_telemetry_unavailable_naming_the_problem() -> None:
+    with pytest.raises(TelemetryUnavailable, match="not a multicast address"):
+        open_lcm("udpm://127.0.0.1:7667")
+    assert open_lcm("udpm://127.0.0.1:7667", fallback="none") is None
+
+
+# ---- status publisher ---------------------------------------------------------------------------
+
+class Receiver:
+    """Subscribes on a memq:// instance and handles it on a thread, collecting decoded messages."""
+
+    def __init__(self, lc: lcm.LCM, channel: str, cls: Any) -> None:
+        self.lc, self.cls = lc, cls
+        self.messages: list[Any] = []
+        self.times: list[float] = []
+        self.sub = lc.subscribe(channel, self._on)
+        self.sub.set_queue_capacity(10_000)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._thread.start()
+
+    def _on(self, channel: str, data: bytes) -> None:
+        self.messages.append(self.cls.decode(data))
+        self.times.append(time.monotonic())
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            self.lc.handle_timeout(20)
+
+    def wait_for(self, n: int, timeout: float = 5.0) -> None:
+        end = time.monotonic() + timeout
+        while len(self.messages) < n and time.monotonic() < end:
+            time.sleep(0.01)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+
+
+@pytest.fixture
+def memq() -> lcm.LCM:
+    return lcm.LCM("memq://")
+
+
+def snapshot(seq: int) -> status:
+    s = status()
+    s.seq = seq
+    s.state = "running"
+    return s
+
+
+@pytest.mark.parametrize("rate_hz", [10.0, 50.0])
+def test_status_published_at_the_configured_rate(memq: lcm.LCM, rate_hz: float) -> None:
+    rx = Receiver(memq, CANON_STATUS, status)
+    pub = StatusPublisher(memq, rate_hz)
+    pub.update(snapshot(1))
+    try:
+        with pub:
+            time.sleep(1.0)
+    finally:
+        rx.wait_for(pub.published, 1.0)
+        rx.close()
+    n = len(rx.messages)
+    # a generous band: the machine is shared; what matters is that the count follows the rate
+    assert 0.5 * rate_hz <= n <= 1.2 * rate_hz + 2, n
+    assert all(m.seq == 1 for m in rx.messages)
+    gaps = [b - a for a, b in zip(rx.times, rx.times[1:], strict=False)]
+    assert sorted(gaps)[len(gaps) // 2] == pytest.approx(1 / rate_hz, rel=0.5)
+
+
+def test_nothing_published_before_the_first_snapshot(memq: lcm.LCM) -> None:
+    rx = Receiver(memq, CANON_STATUS, status)
+    with StatusPublisher(memq, 100) as pub:
+        time.sleep(0.2)
+    rx.close()
+    assert pub.published == 0 and rx.messages == []
+
+
+def test_latest_snapshot_wins(memq: lcm.LCM) -> None:
+    rx = Receiver(memq, CANON_STATUS, status)
+    with StatusPublisher(memq, 100) as pub:
+        for seq in range(1, 2001):
+            pub.update(snapshot(seq))
+        deadline = time.monotonic() + 3
+        while (not rx.messages or rx.messages[-1].seq != 2000) and time.monotonic() < deadline:
+            time.sleep(0.01)
+    rx.close()
+    seqs = [m.seq for m in rx.messages]
+    assert seqs and seqs[-1] == 2000
+    assert seqs == sorted(seqs)         # never an older snapshot after a newer one
+    assert len(seqs) < 2000             # snapshots between two periods are skipped, not queued
+
+
+class BlockingLCM:
+    """An LCM stand-in whose publish hangs until released: a stalled network."""
+
+    def __init__(self) -> None:
+        self.release = threading.Event()
+        self.calls = 0
+
+    def publish(self, channel: str, data: bytes) -> None:
+        self.calls += 1
+        self.release.wait(5)
+
+
+def test_update_never_blocks_even_when_publishing_hangs() -> None:
+    lc = BlockingLCM()
+    pub = StatusPublisher(lc, 200)  # type: ignore[arg-type]
+    pub.update(snapshot(0))
+    pub.start()
+    try:
+        deadline = time.monotonic() + 2
+        while lc.calls == 0 and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert lc.calls == 1  # the thread is stuck in publish
+        t0 = time.perf_counter()
+        for seq in range(1, 10_001):
+            pub.update(snapshot(seq))
+        elapsed = time.perf_counter() - t0
+        assert elapsed < 1.0  # 10,000 swaps; a blocking update would take 10,000 x 5 s
+        assert pub.latest.seq == 10_000
+    finally:
+        lc.release.set()
+        pub.stop()
+
+
+def test_a_bad_snapshot_is_counted_and_the_thread_goes_on(memq: lcm.LCM,
+                                                         caplog: pytest.LogCaptureFixture) -> None:
+    rx = Receiver(memq, CANON_STATUS, status)
+    bad = snapshot(1)
+    bad.num_axes = 2  # arrays are empty
+    with caplog.at_level("ERROR"), StatusPublisher(memq, 100) as pub:
+        pub.update(bad)
+        time.sleep(0.1)
+        pub.update(snapshot(2))
+        rx.wait_for(1, 2.0)
+    rx.close()
+    assert pub.errors >= 1 and caplog.text.count("cannot publish status") == 1
+    assert rx.messages and rx.messages[-1].seq == 2
+
+
+def test_rate_is_checked() -> None:
+    with pytest.raises(ValueError, match="status rate"):
+        StatusPublisher(None, 0)
+
+
+def test_publishers_without_lcm_do_nothing() -> None:
+    with StatusPublisher(None) as sp, EventPublisher(None) as ep:
+        sp.update(snapshot(1))
+        assert ep.emit(event.INFO, "hello") is False
+    assert sp.published == 0 and ep.published == 0
+
+
+# ---- event publisher ----------------------------------------------------------------------------
+
+def test_events_published_in_order_with_seq_and_source_line(memq: lcm.LCM) -> None:
+    rx = Receiver(memq, CANON_EVENT, event)
+    with EventPublisher(memq) as pub:
+        for i in range(1, 51):
+            assert pub.emit(event.WARNING, f"event {i}", kind="message", source="gcode", file="a.ngc", line=i)
+        rx.wait_for(50)
+    rx.close()
+    assert [m.seq for m in rx.messages] == list(range(1, 51))
+    last = rx.messages[-1]
+    assert (last.severity, last.kind, last.source, last.file, last.line, last.text) == (
+        event.WARNING, "message", "gcode", "a.ngc", 50, "event 50")
+    assert abs(last.utime / 1e6 - time.time()) < 60
+
+
+def test_full_event_queue_drops_and_counts_without_blocking() -> None:
+    lc = BlockingLCM()
+    pub = EventPublisher(lc, maxsize=10).start()  # type: ignore[arg-type]
+    try:
+        t0 = time.perf_counter()
+        results = [pub.emit(event.INFO, f"e{i}") for i in range(100)]
+        elapsed = time.perf_counter() - t0
+    finally:
+        lc.release.set()
+        pub.stop()
+    assert elapsed < 1.0
+    # one event is held by the stuck publish call, ten wait in the queue, the rest are dropped
+    assert pub.dropped == results.count(False)
+    assert 100 - 11 <= pub.dropped <= 100 - 10
+
+
+# ---- command server -----------------------------------------------------------------------------
+
+def test_command_server_answers_on_memq(memq: lcm.LCM) -> None:
+    seen: list[str] = []
+
+    def handler(cmd: Any) -> str | None:
+        seen.append(cmd.verb)
+        return "not homed" if cmd.verb == "run" else None
+
+    replies = Receiver(memq, CANON_REPLY, reply)
+    replies.close()  # the server's thread handles this instance
+    server = CommandServer(memq, handler, url="memq://").start()
+    try:
+        for i, (verb, strings, values) in enumerate([("pause", [], []), ("run", ["p.ngc"], []),
+                                                     ("fly", [], []), ("feed_override", [], [0.5])]):
+            cmd = make_command(verb, strings, values, request_id=i + 1, sender="t")
+            memq.publish(CANON_COMMAND, cmd.encode())
+        replies.wait_for(4)
+    finally:
+        server.stop()
+    got = {r.request_id: (r.verb, r.ok, r.error, r.sender) for r in replies.messages}
+    assert got[1] == ("pause", True, "", "t")
+    assert got[2] == ("run", False, "not homed", "t")
+    assert got[3][1] is False and "unknown verb" in got[3][2]
+    assert got[4][:2] == ("feed_override", True)
+    assert seen == ["pause", "run", "feed_override"]
+
+
+def test_command_server_refuses_without_token_on_a_url_that_leaves_the_host(memq: lcm.LCM) -> None:
+    calls: list[Any] = []
+    server = CommandServer(memq, calls.append, url=REMOTE, token="s3cret")
+    refused = server.answer(make_command("estop", request_id=5))
+    accepted = server.answer(make_command("estop", request_id=6, token="s3cret"))
+    assert (refused.ok, accepted.ok) == (False, True)
+    assert "token" in refused.error and server.refused == 1
+    assert len(calls) == 1
+
+
+def test_command_server_ignores_foreign_messages(memq: lcm.LCM) -> None:
+    server = CommandServer(memq, lambda c: None, url="memq://")
+    server.on_message(CANON_COMMAND, reply().encode())
+    assert server.bad_messages == 1 and server.replies == 0
+
+
+def test_config_from_a_table_names_file_and_key() -> None:
+    from motiond.configkit import ConfigError, Table
+
+    cfg = TelemetryConfig.from_table(Table({"url": "memq://", "status_hz": 20, "token": "t"}, "m.toml",
+                                           "telemetry"))
+    assert (cfg.url, cfg.status_hz, cfg.token, cfg.event_queue) == ("memq://", 20.0, "t", 1000)
+    assert TelemetryConfig.from_table(Table({}, "m.toml", "telemetry")) == TelemetryConfig()
+    with pytest.raises(ConfigError, match=r"^m\.toml: telemetry\.status_hz: must be > 0"):
+        TelemetryConfig.from_table(Table({"status_hz": -1}, "m.toml", "telemetry"))
+    with pytest.raises(ConfigError, match=r"^m\.toml: telemetry\.rate: unknown key"):
+        TelemetryConfig.from_table(Table({"rate": 5}, "m.toml", "telemetry"))
