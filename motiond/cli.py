@@ -27,6 +27,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "can-dump": ("motiond.cmd_can_dump", "watch a CAN bus with CANopen frames named and decoded"),
     "spy": ("motiond.cmd_spy", "watch the machine's LCM traffic in lcm-spy, canon's types decoded"),
     "log": ("motiond.cmd_log", "record the machine's LCM traffic into a log file (lcm-logger)"),
+    "ctl": ("motiond.cmd_ctl", "send one command to the running daemon over LCM and print its reply"),
+    "status": ("motiond.cmd_status", "watch the machine's status and events from LCM (live table or --once)"),
 }
 
 

@@ -1,0 +1,157 @@
+"""``canon ctl VERB [ARGS...]``: send one command to the running daemon over LCM and print its reply.
+
+The arguments after the verb are split as the verb takes them (docs/telemetry.md): its text
+arguments first (program file, MDI line, axis letters), then its numbers. ``canon ctl mdi G0 X10``
+joins the words into one MDI line. The command is checked here before it is sent, so a typo gets the
+list of verbs at once rather than a refusal from the daemon.
+
+Exit status: 0 the daemon accepted the command, 1 it refused it (or the command line is wrong), 3 no
+reply within ``--timeout`` (the daemon is not running, or listens on another URL).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+
+from telemetry.commands import VERBS
+from telemetry.url import DEFAULT_URL
+
+EXIT_OK = 0
+EXIT_REFUSED = 1
+EXIT_NO_REPLY = 3
+
+# How each verb is written on the command line (telemetry.commands.VERBS holds the rules).
+SYNOPSIS: dict[str, str] = {
+    "run": "FILE [LINE]",
+    "mdi": "'G-CODE LINE'",
+    "feed_override": "FACTOR",
+    "home": "[AXIS ...]",
+    "jog": "AXIS VELOCITY [DISTANCE]",
+    "single_block": "1|0",
+    "optional_stop": "1|0",
+    "block_delete": "1|0",
+}
+_SWITCH_WORDS = {"on": 1.0, "off": 0.0, "true": 1.0, "false": 0.0, "yes": 1.0, "no": 0.0}
+
+
+def synopsis(verb: str) -> str:
+    """``VERB ARGS`` as typed after ``canon ctl``."""
+    if verb in SYNOPSIS:
+        return f"{verb} {SYNOPSIS[verb]}"
+    spec = VERBS[verb]
+    words = ["TEXT"] * spec.strings[0] + ["[TEXT]"] * (spec.strings[1] - spec.strings[0])
+    words += ["NUMBER"] * spec.values[0] + ["[NUMBER]"] * (spec.values[1] - spec.values[0])
+    return " ".join([verb, *words])
+
+
+def verbs_table() -> str:
+    """Every verb with its arguments and what it does, one per line."""
+    rows = [(synopsis(v), spec.help) for v, spec in VERBS.items()]
+    width = max(len(s) for s, _ in rows)
+    return "\n".join(f"  {s:<{width}}  {h}" for s, h in rows)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = ("verbs:\n" + verbs_table() + "\n\nexit status: 0 accepted, 1 refused or a wrong "
+                     "command line, 3 no reply within --timeout")
+    parser.add_argument("verb", nargs="?", metavar="VERB", help="what to do (listed below)")
+    parser.add_argument("arguments", nargs="*", metavar="ARGS", help="the verb's arguments")
+    parser.add_argument("--config", metavar="machine.toml",
+                        help="take the URL and the token from its [telemetry] table")
+    parser.add_argument("--url", help=f"LCM URL of the daemon (default: [telemetry] url, else {DEFAULT_URL})")
+    parser.add_argument("--token", help="the daemon's [telemetry] token, needed when its URL leaves this "
+                                        "host (default: from --config; note that other users see "
+                                        "command lines)")
+    parser.add_argument("--timeout", type=float, default=5.0, metavar="S",
+                        help="seconds to wait for the reply (default 5)")
+    parser.add_argument("--json", action="store_true", help="print the reply as JSON")
+
+
+def _usage_error(message: str, verb: str | None = None) -> Exception:
+    from motiond.cli import UserError
+
+    if verb in VERBS:
+        return UserError(f"{message}\nusage: canon ctl {synopsis(verb)}   ({VERBS[verb].help})")
+    return UserError(f"{message}\nusage: canon ctl VERB [ARGS...]; verbs:\n{verbs_table()}")
+
+
+def split_arguments(verb: str, words: list[str]) -> tuple[list[str], list[float]]:
+    """The command-line words after ``verb`` as the command's ``strings`` and ``values``.
+
+    Raises ``UserError`` (with the verb's usage) for an unknown verb, a word that should be a number
+    and is not, or the wrong number of arguments.
+    """
+    spec = VERBS.get(verb)
+    if spec is None:
+        raise _usage_error(f"unknown verb {verb!r}", verb)
+    if verb == "mdi":
+        return ([" ".join(words)] if words else []), []
+    n_strings = min(len(words), spec.strings[1])
+    strings, rest = words[:n_strings], words[n_strings:]
+    values: list[float] = []
+    for word in rest:
+        if verb in ("single_block", "optional_stop", "block_delete") and word.lower() in _SWITCH_WORDS:
+            values.append(_SWITCH_WORDS[word.lower()])
+            continue
+        try:
+            value = float(word)
+        except ValueError:
+            raise _usage_error(f"{verb}: {word!r} is not a number", verb) from None
+        if not math.isfinite(value):
+            raise _usage_error(f"{verb}: {word!r} is not a finite number", verb)
+        values.append(value)
+    lo, hi = spec.strings
+    if not lo <= len(strings) <= hi or not spec.values[0] <= len(values) <= spec.values[1]:
+        raise _usage_error(f"{verb}: wrong number of arguments ({len(words)} given)", verb)
+    return strings, values
+
+
+def resolve(args: argparse.Namespace) -> tuple[str, str]:
+    """The URL and the token: ``--url`` / ``--token``, else the ``--config`` file's, else defaults."""
+    url, token = args.url, args.token
+    if getattr(args, "config", None) and (url is None or token is None):
+        from motiond.config import load_machine
+        from telemetry.config import TelemetryConfig
+
+        cfg = TelemetryConfig.from_table(load_machine(args.config).telemetry)
+        url = url if url is not None else cfg.url
+        token = token if token is not None else cfg.token
+    return (url or DEFAULT_URL), (token or "")
+
+
+def run(args: argparse.Namespace) -> int:
+    from motiond.cli import UserError
+    from motiond.control_client import CommandError, NoReply, client_lcm, no_answer_message, send_command
+    from telemetry.publisher import TelemetryUnavailable
+
+    if args.verb is None:
+        raise _usage_error("which verb?")
+    strings, values = split_arguments(args.verb, list(args.arguments))
+    if not (math.isfinite(args.timeout) and args.timeout > 0):
+        raise UserError(f"--timeout must be a number of seconds > 0, got {args.timeout:g}")
+    url, token = resolve(args)
+    try:
+        lc = client_lcm(url)
+    except TelemetryUnavailable as exc:
+        raise UserError(str(exc)) from None
+    try:
+        reply = send_command(lc, args.verb, strings, values, token, args.timeout)
+    except CommandError as exc:
+        raise _usage_error(str(exc), args.verb) from None
+    except NoReply:
+        print(f"canon ctl: {no_answer_message(f'reply to {args.verb!r}', url, args.timeout)}",
+              file=sys.stderr)
+        return EXIT_NO_REPLY
+    if args.json:
+        print(json.dumps(reply.to_dict()))
+    elif reply.ok:
+        print(f"{reply.verb}: ok")
+    if not reply.ok:
+        if not args.json:
+            print(f"canon ctl: {reply.verb}: {reply.error}", file=sys.stderr)
+        return EXIT_REFUSED
+    return EXIT_OK
