@@ -29,3 +29,14 @@ def test_console_script_entry_point_runs() -> None:
     )
     assert out.returncode == 0
     assert "usage: canon" in out.stdout
+
+
+def test_user_error_is_one_line_under_python_m(tmp_path) -> None:
+    # `canon sim io` may be absent in a partial build; use a sub-command that raises UserError.
+    out = subprocess.run(
+        [sys.executable, "-m", "motiond.cli", "check", str(tmp_path / "missing.ngc")],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert out.returncode == 1
+    assert "Traceback" not in out.stderr
+    assert "missing.ngc" in out.stderr

@@ -1,0 +1,122 @@
+"""Interpreter throughput: lines per second and peak memory on generated 1,000,000-line programs.
+
+Two programs are written to a temporary directory and interpreted through ``Interpreter.run_file``
+(lazily, as ``canon check`` does):
+
+* plain: only ``G1 X.. Y.. Z..`` lines with an occasional F (the fast path);
+* mixed: G1 moves, arcs (IJK and R), parameter assignments, expressions, comments, G0.
+
+Peak memory is the process's maximum resident set (``resource``) and the peak of Python allocations
+during the run (``tracemalloc``, measured on a shorter run because tracing slows Python down); the
+second must not grow with the program's length, so it is printed for two lengths.
+
+Usage: ``python bench/interpreter.py [LINES]`` (default 1,000,000).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import resource
+import sys
+import tempfile
+import time
+import tracemalloc
+from pathlib import Path
+
+from gcode_canon.interpreter import Interpreter
+from gcode_canon.settings import InterpreterSettings
+
+
+def write_plain(path: Path, n: int) -> None:
+    with open(path, "w") as f:
+        f.write("G21 G90 G17 G94 F1000\n")
+        for i in range(n - 2):
+            x = 50.0 + 40.0 * math.cos(i * 0.001)
+            y = 50.0 + 40.0 * math.sin(i * 0.001)
+            if i % 1000 == 0:
+                f.write(f"G1 X{x:.4f} Y{y:.4f} Z{-(i % 7) * 0.1:.3f} F{800 + i % 400}\n")
+            else:
+                f.write(f"G1 X{x:.4f} Y{y:.4f} Z{-(i % 7) * 0.1:.3f}\n")
+        f.write("M2\n")
+
+
+def write_mixed(path: Path, n: int) -> None:
+    lines = [
+        "G1 X{a:.3f} Y{b:.3f} F600",
+        "G2 X{c:.3f} Y{b:.3f} I{r:.3f} J0",
+        "G3 X{a:.3f} Y{b:.3f} R{r:.3f}",
+        "#1 = [#1 + 0.5] #<depth> = [-[#1 MOD 3] * 0.25]",
+        "G1 Z#<depth> (plunge)",
+        "G1 X[{a:.3f} + SIN[#1] * 2] Y[{b:.3f} * COS[30]]",
+        "G0 Z5",
+        "X{a:.3f} Y[{b:.3f} + 1]",
+    ]
+    with open(path, "w") as f:
+        f.write("G21 G90 G17 G94 #1=0 #<depth>=0 F600\n")
+        written = 1
+        i = 0
+        while written < n - 1:
+            a = 10.0 + (i % 50)
+            b = 20.0 + (i % 30)
+            r = 2.5
+            for t in lines:
+                f.write(t.format(a=a, b=b, c=a + 2 * r, r=r) + "\n")
+            written += len(lines)
+            i += 1
+        f.write("M2\n")
+
+
+def run(path: Path) -> tuple[float, float, int]:
+    """Wall seconds, CPU seconds of this process, commands produced."""
+    interp = Interpreter(InterpreterSettings(dry_run=True))
+    count = 0
+    c0 = time.process_time()
+    t0 = time.perf_counter()
+    for _ in interp.run_file(path):
+        count += 1
+    return time.perf_counter() - t0, time.process_time() - c0, count
+
+
+def lines_of(path: Path) -> int:
+    with open(path, "rb") as f:
+        return sum(1 for _ in f)
+
+
+def traced_peak(path: Path) -> int:
+    tracemalloc.start()
+    run(path)
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    return peak
+
+
+def main() -> None:
+    n = int(sys.argv[1]) if len(sys.argv) > 1 else 1_000_000
+    # The figures depend on what else runs: say so next to them.
+    print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
+    with tempfile.TemporaryDirectory() as tmp:
+        plain = Path(tmp) / "plain.ngc"
+        mixed = Path(tmp) / "mixed.ngc"
+        write_plain(plain, n)
+        write_mixed(mixed, n)
+        for name, path in (("plain G1", plain), ("mixed", mixed)):
+            nlines = lines_of(path)
+            seconds, cpu, count = run(path)
+            print(f"{name:9s}: {nlines:>9,d} lines in {seconds:6.2f} s = {nlines / seconds:>9,.0f} lines/s "
+                  f"wall, {nlines / cpu:>9,.0f} lines/s CPU ({count:,d} commands)")
+        print(f"max RSS after both runs: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.1f} MiB")
+        small = Path(tmp) / "small.ngc"
+        big = Path(tmp) / "big.ngc"
+        write_mixed(small, 20_000)
+        write_mixed(big, 100_000)
+        p1, p2 = traced_peak(small), traced_peak(big)
+        print(f"peak traced Python allocations: {p1 / 1024:.0f} KiB for 20,000 lines, "
+              f"{p2 / 1024:.0f} KiB for 100,000 lines (must not grow with length)")
+        print(f"load average after: {os.getloadavg()[0]:.2f}")
+        print("reference (same kind of machine, from the project notes): pygcode ~30,000 lines/s, "
+              "LinuxCNC rs274 (C++) ~135,000 lines/s")
+
+
+if __name__ == "__main__":
+    main()

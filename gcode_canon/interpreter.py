@@ -1,0 +1,1344 @@
+"""The RS274/NGC interpreter: lines in, canonical commands out, lazily.
+
+Each line goes through :func:`~gcode_canon.lexer.parse_line` (values evaluated as read), the modal
+checks of :mod:`gcode_canon.modal`, then the parameter settings of the line, then ``self.steps``: one
+method per item of LinuxCNC's order of execution. A later module (canned cycles, cutter compensation,
+o-words) adds or replaces a step instead of rewriting the loop.
+
+Plain ``G0``/``G1`` lines of literal X/Y/Z/F words take a fast path (one regular expression, no
+Block) while the modal state allows it (G94/G95, no rotation): the bulk of CAM output.
+
+Sync points: a :class:`~gcode_canon.commands.WaitInput`, :class:`~gcode_canon.commands.Probe`, stop
+or tool change is yielded first; the machine callback is asked for the answer when the consumer
+resumes the generator, before the next line is read. The machine position is also asked for at the
+start of every program and MDI line (the machine may have been jogged), so the first move starts from
+where the machine really is.
+
+Public API (for the planner, the daemon and ``canon check``):
+
+* ``Interpreter(settings, machine)``; ``run_file(path)`` / ``run_string(text, name)`` return lazy
+  iterators of :class:`~gcode_canon.commands.Canon`; ``execute_mdi(line)`` returns a list (its sync
+  callbacks are called before it returns); ``shutdown()`` writes the parameter file.
+* State, read-only by convention: ``position`` (machine Pose), ``program_position()``,
+  ``active_gcodes()``, ``active_mcodes()``, ``file``/``line``, ``current_tool``, ``selected_tool``,
+  ``parameter(5221)`` / ``parameter("_x")``, ``params`` (the store), ``frames`` (offsets).
+* Errors: only :class:`~gcode_canon.errors.GCodeError`, always with file and line.
+
+Decisions a machine builder should know:
+
+* Output positions include every offset, the tool length offset too (machine = rotate(program + G92)
+  + G5x + tool); G28/G30/G53 positions are machine positions without the tool offset, as LinuxCNC.
+* Offsets in the numbered parameters (#5161-#5390) and the tool table are in mm/deg whatever G20/G21
+  says (LinuxCNC's "user units" on a millimetre machine); #5061-#5069 and #5420-#5428 are in program
+  units.
+* Parameter settings on a line take effect after the whole line is read and before it is executed
+  (LinuxCNC copies them just before ``execute_block``).
+* F is read in the units in force after the line's G20/G21 and kept physically (mm/min): a later
+  G20/G21 does not change the feed. SET_FEED_RATE is emitted when the rate changes (LinuxCNC repeats it
+  for every F word); in G93 it is emitted for every F.
+* Mode commands (SELECT_PLANE, USE_LENGTH_UNITS, SET_G5X_OFFSET ...) are emitted on change only; no
+  preamble at start: the planner starts from G17 G21 G90 G94 G54 G64 (P0), motion mode G80.
+* M2/M30 reset what LinuxCNC's convert_stop resets (G54, G17, G90, G94 with F0, feed/spindle
+  overrides on, spindle and coolant off, motion mode G1); G92 offsets and G20/G21 persist.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+from gcode_canon.arcs import MM_PER_INCH, centre_ijk, centre_r
+from gcode_canon.commands import (
+    AXES,
+    AnalogOutput,
+    ArcFeed,
+    Canon,
+    Comment,
+    Coolant,
+    DigitalOutput,
+    Dwell,
+    FeedMode,
+    InputKind,
+    Message,
+    MotionControlMode,
+    PalletShuttle,
+    Plane,
+    Pose,
+    Probe,
+    ProbeMode,
+    ProgramEnd,
+    ProgramStop,
+    SelectPlane,
+    SelectTool,
+    SetFeedMode,
+    SetFeedRate,
+    SetG5xOffset,
+    SetG92Offset,
+    SetMotionControlMode,
+    SetOverrides,
+    SetSpindleSpeed,
+    SetToolNumber,
+    SpindleDirection,
+    SpindleOff,
+    SpindleOn,
+    StraightFeed,
+    StraightTraverse,
+    ToolChange,
+    UseLengthUnits,
+    UseToolLengthOffset,
+    WaitInput,
+    WaitMode,
+)
+from gcode_canon.errors import GCodeError
+from gcode_canon.expressions import ExpressionReader, near_int
+from gcode_canon.lexer import AXIS_LETTERS, FAST_LINE, Block, parse_line
+from gcode_canon.machine import DryRunMachine, MachineCallbacks
+from gcode_canon.messages import LogFiles, classify, expand
+from gcode_canon.modal import G_AXIS_USERS_GROUP0, ModalLine, gname, sort_codes
+from gcode_canon.offsets import N_AXES, Frames, system_base
+from gcode_canon.parameters import Parameters
+from gcode_canon.settings import InterpreterSettings
+from gcode_canon.source import LineSource
+
+log = logging.getLogger(__name__)
+
+ROTARY_INDEXES = frozenset((3, 4, 5))
+_PLANE_BY_CODE = {170: Plane.XY, 180: Plane.XZ, 190: Plane.YZ}
+_CODE_BY_PLANE = {v: k for k, v in _PLANE_BY_CODE.items()}
+_FEED_MODES = {930: FeedMode.INVERSE_TIME, 940: FeedMode.UNITS_PER_MINUTE, 950: FeedMode.UNITS_PER_REV}
+_PROBE_MODES = {382: ProbeMode.TOWARD_ERROR, 383: ProbeMode.TOWARD, 384: ProbeMode.AWAY_ERROR,
+                385: ProbeMode.AWAY}
+_IJK = "ijk"
+_PERSISTENT_FALLBACK = range(5161, 5391)
+_isfinite = math.isfinite
+_new_pose = tuple.__new__
+_AXIS_INDEX = {letter: k for k, letter in enumerate(AXIS_LETTERS)}
+
+
+class _Resume:
+    """Placeholder in the output of a line: run ``fn`` when the consumer asks for what follows."""
+
+    __slots__ = ("fn",)
+
+    def __init__(self, fn: Callable[[], None]) -> None:
+        self.fn = fn
+
+
+class Interpreter:
+    """One interpreter, one machine state; run programs one after another (state carries over)."""
+
+    def __init__(self, settings: InterpreterSettings | None = None,
+                 machine: MachineCallbacks | None = None) -> None:
+        self.settings = settings or InterpreterSettings()
+        self.machine: MachineCallbacks = machine if machine is not None else DryRunMachine()
+        self.params = Parameters()
+        self.reader = ExpressionReader(self.params, self.settings.max_expression_depth)
+        self.frames = Frames()
+        self.logs = LogFiles(self.settings.log_dir)
+        self.probe_log = LogFiles(self.settings.log_dir)
+        self.file = ""
+        self.line = 0
+        self._out: list[Canon | _Resume] = []
+        self._persist_keys: set[int] = set()
+        self._missing_axes = frozenset(AXIS_LETTERS) - frozenset((self.settings.axes or AXIS_LETTERS).lower())
+        self._reset_modes()
+        self._load_var_file()
+        self._load_tool_table()
+        self._install_predefined()
+        self.steps: list[Callable[[Block, ModalLine], None]] = [
+            self._step_comment,
+            self._step_feed_mode,
+            self._step_feed,
+            self._step_speed,
+            self._step_select_tool,
+            self._step_io,
+            self._step_tool_change,
+            self._step_spindle,
+            self._step_state,
+            self._step_coolant,
+            self._step_overrides,
+            self._step_dwell,
+            self._step_plane,
+            self._step_units,
+            self._step_cutter_comp,
+            self._step_tool_length,
+            self._step_coord_system,
+            self._step_path_control,
+            self._step_distance,
+            self._step_retract,
+            self._step_group0,
+            self._step_motion,
+            self._step_stop,
+        ]
+        """The order of execution (LinuxCNC's list); later modules insert their own steps."""
+
+    # --- set-up -----------------------------------------------------------------------------------
+
+    def _reset_modes(self) -> None:
+        self.prog = [0.0] * N_AXES
+        self.pos = Pose()
+        self.motion: int = 800  # G80: no motion mode until a program sets one
+        self.plane = Plane.XY
+        self.inch = False
+        self.scale = 1.0
+        self.absolute = True
+        self.ijk_absolute = False
+        self.feed_mode = FeedMode.UNITS_PER_MINUTE
+        self.feed = 0.0  # mm/min (G94), mm/rev (G95), 1/min (G93)
+        self.speed = 0.0
+        self.spindle: SpindleDirection | None = None
+        self.mist = False
+        self.flood = False
+        self.overrides = {"feed": True, "spindle": True, "adaptive_feed": False, "feed_hold": True}
+        self.control = (MotionControlMode.CONTINUOUS, 0.0, 0.0)
+        self.tool_length_mode = 490
+        self.retract = 980
+        self.current_tool = 0
+        self.current_pocket = 0
+        self.selected_tool = -1
+        self.selected_pocket = -1
+        self.saved_state: dict | None = None
+        self.ended = False
+        self._fast_ok = True
+        self._tail: tuple[float, ...] | None = None
+
+    def _load_var_file(self) -> None:
+        path = self.settings.var_file
+        if path is None:
+            return
+        from gcode_canon import paramfile
+
+        if Path(path).exists():
+            values = paramfile.read_parameter_file(path)
+            self.params.load(values)
+            self._persist_keys.update(values)
+        index = round(self.params.numbered[5220])
+        if not 1 <= index <= 9:
+            index = 1
+        self.params.set_system(5220, float(index))
+        self.frames.load_system(self.params, index)
+        if self.params.numbered[5210] == 1.0:
+            self.frames.g92 = [self.params.numbered[5211 + k] for k in range(N_AXES)]
+            self.frames.refresh()
+        self.pos = self.frames.to_machine(self.prog)
+        self.prog = self.frames.machine_to_program(self.pos)
+
+    def _load_tool_table(self) -> None:
+        self.tool_table = None
+        if self.settings.tool_table is not None:
+            from gcode_canon import tooltable
+
+            self.tool_table = tooltable.read_tool_table(self.settings.tool_table)
+
+    def _install_predefined(self) -> None:
+        p = self.params.predefined
+        b = float
+
+        def axis_getter(k: int) -> Callable[[], float]:
+            return lambda: self.prog[k] / (1.0 if k in ROTARY_INDEXES else self.scale)
+
+        for k, name in enumerate(AXES):
+            p[f"_{name}"] = axis_getter(k)
+            self.params.dynamic_numbered[5420 + k] = axis_getter(k)
+        p.update({
+            "_vmajor": lambda: 2.9,
+            "_vminor": lambda: 0.0,
+            "_line": lambda: b(self.line),
+            "_motion_mode": lambda: b(self.motion),
+            "_plane": lambda: b(_CODE_BY_PLANE[self.plane]),
+            "_ccomp": lambda: 400.0,
+            "_metric": lambda: b(not self.inch),
+            "_imperial": lambda: b(self.inch),
+            "_absolute": lambda: b(self.absolute),
+            "_incremental": lambda: b(not self.absolute),
+            "_inverse_time": lambda: b(self.feed_mode is FeedMode.INVERSE_TIME),
+            "_units_per_minute": lambda: b(self.feed_mode is FeedMode.UNITS_PER_MINUTE),
+            "_units_per_rev": lambda: b(self.feed_mode is FeedMode.UNITS_PER_REV),
+            "_coord_system": lambda: b(self.frames.g5x_index - 1),
+            "_tool_offset": lambda: b(self.tool_length_mode != 490),
+            "_retract_r_plane": lambda: b(self.retract == 980),
+            "_retract_old_z": lambda: b(self.retract == 990),
+            "_spindle_rpm_mode": lambda: 1.0,
+            "_spindle_css_mode": lambda: 0.0,
+            "_ijk_absolute_mode": lambda: b(self.ijk_absolute),
+            "_lathe_diameter_mode": lambda: 0.0,
+            "_lathe_radius_mode": lambda: 0.0,
+            "_spindle_on": lambda: b(self.spindle is not None),
+            "_spindle_cw": lambda: b(self.spindle is SpindleDirection.CW),
+            "_mist": lambda: b(self.mist),
+            "_flood": lambda: b(self.flood),
+            "_speed_override": lambda: b(self.overrides["spindle"]),
+            "_feed_override": lambda: b(self.overrides["feed"]),
+            "_adaptive_feed": lambda: b(self.overrides["adaptive_feed"]),
+            "_feed_hold": lambda: b(self.overrides["feed_hold"]),
+            "_feed": lambda: self._feed_in_program_units(),
+            "_rpm": lambda: self.speed,
+            "_current_tool": lambda: b(self.current_tool),
+            "_current_pocket": lambda: b(self.current_pocket),
+            "_selected_tool": lambda: b(self.selected_tool),
+            "_selected_pocket": lambda: b(self.selected_pocket),
+            "_value": lambda: 0.0,
+            "_value_returned": lambda: 0.0,
+            "_task": lambda: b(not isinstance(self.machine, DryRunMachine)),
+            "_call_level": lambda: b(self.params.call_level),
+            "_remap_level": lambda: 0.0,
+        })
+
+    def _feed_in_program_units(self) -> float:
+        if self.feed_mode is FeedMode.INVERSE_TIME:
+            return self.feed
+        return self.feed / self.scale
+
+    # --- public API ---------------------------------------------------------------------------------
+
+    def run_file(self, path: Path | str) -> Iterator[Canon]:
+        """Interpret a program file lazily (the file is read one line at a time)."""
+        return self._run_source(lambda: LineSource.from_file(path, self.settings.max_line_length))
+
+    def run_string(self, text: str, name: str = "<string>") -> Iterator[Canon]:
+        return self._run_source(lambda: LineSource.from_string(text, name, self.settings.max_line_length))
+
+    def execute_mdi(self, line: str) -> list[Canon]:
+        """Execute one MDI line and return its commands. Sync callbacks (M66, probe) are called before
+        this returns, i.e. the caller must have executed earlier commands already."""
+        self.file, self.line = "<mdi>", 1
+        self.ended = False
+        self._tail = None
+        try:
+            self._resync()
+            out = self._execute_line(line)
+            result: list[Canon] = []
+            for item in out:
+                if isinstance(item, _Resume):
+                    item.fn()
+                else:
+                    result.append(item)
+            return result
+        except GCodeError as exc:
+            raise exc.located(self.file, self.line) from None
+        except Exception as exc:  # a bug must not take the daemon down without a place
+            log.exception("internal error in MDI line")
+            raise GCodeError(f"internal error: {exc!r}", self.file, self.line) from exc
+
+    @property
+    def position(self) -> Pose:
+        """Where the last command leaves the machine (machine coordinates, mm/deg)."""
+        return self.pos
+
+    def program_position(self) -> Pose:
+        """The same point in the active program frame and units (what #5420-#5428 read)."""
+        return Pose(*(v if k in ROTARY_INDEXES else v / self.scale for k, v in enumerate(self.prog)))
+
+    def parameter(self, key: int | str) -> float:
+        """Read a parameter as a program would: ``parameter(5221)`` or ``parameter("_x")``."""
+        if isinstance(key, str):
+            return self.params.get_named("".join(key.split()).lower().lstrip("#<").rstrip(">"))
+        return self.params.get_numbered(key)
+
+    def active_gcodes(self) -> tuple[str, ...]:
+        codes = [
+            gname(self.motion), gname(_CODE_BY_PLANE[self.plane]), "G20" if self.inch else "G21",
+            "G90" if self.absolute else "G91", "G90.1" if self.ijk_absolute else "G91.1",
+            f"G{self.feed_mode.value}", "G40", gname(self.tool_length_mode),
+            gname(self.retract), _G5X_NAMES[self.frames.g5x_index],
+            {MotionControlMode.EXACT_PATH: "G61", MotionControlMode.EXACT_STOP_MODAL: "G61.1"}.get(
+                self.control[0], "G64"),
+            "G97", "G8",
+        ]
+        return tuple(codes)
+
+    def active_mcodes(self) -> tuple[str, ...]:
+        spindle = {SpindleDirection.CW: "M3", SpindleDirection.CCW: "M4", None: "M5"}[self.spindle]
+        coolant = ["M7"] if self.mist else []
+        if self.flood:
+            coolant.append("M8")
+        return (spindle, *(coolant or ["M9"]), "M48" if self.overrides["feed"] and
+                self.overrides["spindle"] else "M49")
+
+    def shutdown(self) -> None:
+        """Write the parameter file (unless dry run) and close LOG files."""
+        self.logs.close()
+        self.probe_log.close()
+        self._write_var_file()
+
+    # --- the loop -----------------------------------------------------------------------------------
+
+    def _run_source(self, open_source: Callable[[], LineSource]) -> Iterator[Canon]:
+        source = open_source()  # open errors surface at the call, not at first next()
+        return self._run(source)
+
+    def _run(self, source: LineSource) -> Iterator[Canon]:
+        self.file = source.name
+        self.line = 0
+        self.ended = False
+        self._resync()  # the machine may have been jogged or homed since the last program
+        self._fast_ok = self.fast_path_allowed()
+        fast_match = FAST_LINE.match
+        fast = self._fast
+        self._tail = None
+        settings = self.settings
+        percent_open = False
+        seen_content = False
+        try:
+            for raw in source:
+                self.line = source.line
+                if self._fast_ok:
+                    m = fast_match(raw)
+                    if m is not None:
+                        cmds = fast(m)
+                        if cmds is not None:
+                            seen_content = True
+                            yield from cmds
+                            continue
+                self._tail = None
+                stripped = raw.strip()
+                if not stripped:
+                    continue
+                if stripped == "%":
+                    if not seen_content:
+                        seen_content = True
+                        percent_open = True
+                        continue
+                    self._end_program(None)
+                    yield from self._drain()
+                    return
+                seen_content = True
+                try:
+                    out = self._execute_line(raw)
+                except GCodeError as exc:
+                    raise exc.located(self.file, self.line) from None
+                except RecursionError:
+                    raise GCodeError("Expression nested too deeply", self.file, self.line) from None
+                except Exception as exc:
+                    log.exception("internal error")
+                    raise GCodeError(f"internal error: {exc!r}", self.file, self.line) from exc
+                for item in out:
+                    if type(item) is _Resume:
+                        try:
+                            item.fn()
+                        except GCodeError as exc:
+                            raise exc.located(self.file, self.line) from None
+                    else:
+                        yield item
+                if self.ended:
+                    return
+            if settings.require_program_end:
+                last = max(source.line, 1)
+                if percent_open:
+                    raise GCodeError("File ended with no closing percent sign", self.file, last)
+                raise GCodeError("File ended with no percent sign or program end (M2, M30)", self.file, last)
+        finally:
+            source.close()
+
+    def _drain(self) -> Iterator[Canon]:
+        out, self._out = self._out, []
+        for item in out:
+            if isinstance(item, _Resume):
+                item.fn()
+            else:
+                yield item
+
+    def _fast(self, m) -> tuple[Canon, ...] | None:
+        """A plain G0/G1 line of literal X Y Z F words; None sends the line the general way."""
+        g, xs, ys, zs, fs = m.groups()
+        has_axes = xs is not None or ys is not None or zs is not None
+        if g is None:
+            if not has_axes and fs is None:
+                return None
+            motion = self.motion
+        else:
+            motion = 0 if g == "0" else 10
+        scale = self.scale
+        feed = self.feed
+        if fs is not None:
+            feed = float(fs) * scale
+            if feed < 0.0 or not math.isfinite(feed):
+                return None
+        if has_axes and ((motion == 10 and feed == 0.0) or motion not in (0, 10)):
+            return None
+        file, line = self.file, self.line
+        end = None
+        if has_axes:
+            prog = self.prog
+            x, y, z = prog[0], prog[1], prog[2]
+            if self.absolute:
+                if xs is not None:
+                    x = float(xs) * scale
+                if ys is not None:
+                    y = float(ys) * scale
+                if zs is not None:
+                    z = float(zs) * scale
+            else:
+                if xs is not None:
+                    x += float(xs) * scale
+                if ys is not None:
+                    y += float(ys) * scale
+                if zs is not None:
+                    z += float(zs) * scale
+            s = self.frames.sum
+            mx, my, mz = x + s[0], y + s[1], z + s[2]
+            if not (_isfinite(mx) and _isfinite(my) and _isfinite(mz)):
+                return None  # the general path reports it
+            prog[0], prog[1], prog[2] = x, y, z
+            tail = self._tail
+            if tail is None:  # A B C U V W do not change on fast lines: computed once per run of them
+                tail = self._tail = (prog[3] + s[3], prog[4] + s[4], prog[5] + s[5], prog[6] + s[6],
+                                     prog[7] + s[7], prog[8] + s[8])
+            end = _new_pose(Pose, (mx, my, mz, *tail))
+            self.pos = end
+            if motion:
+                cmd: Canon = StraightFeed(end, file=file, line=line)
+            else:
+                cmd = StraightTraverse(end, file=file, line=line)
+            self.motion = motion
+            if feed != self.feed:
+                self.feed = feed
+                return (SetFeedRate(feed, file=file, line=line), cmd)
+            return (cmd,)
+        self.motion = motion
+        if feed != self.feed:
+            self.feed = feed
+            return (SetFeedRate(feed, file=file, line=line),)
+        return ()
+
+    def _emit(self, cmd: Canon | _Resume) -> None:
+        self._out.append(cmd)
+
+    def _execute_line(self, raw: str) -> list[Canon | _Resume]:
+        self._out = []
+        block = parse_line(raw, self.reader)
+        if block.deleted and self.settings.block_delete:
+            return []
+        if block.o_text is not None:
+            self._o_word(block)
+            return self._drain_list()
+        ml = sort_codes(block)
+        self._check_words(block, ml)
+        for key, _ in block.assigns:
+            self.params.check_assignable(key)
+        for key, value in block.assigns:
+            self.params.assign(key, value)
+        units = ml.g.get(6)
+        if units is not None:
+            self.scale = MM_PER_INCH if units == 200 else 1.0
+        for step in self.steps:
+            step(block, ml)
+        self._fast_ok = self.fast_path_allowed()
+        return self._drain_list()
+
+    def fast_path_allowed(self) -> bool:
+        """Whether plain G0/G1 lines may skip the general machinery in the current modal state.
+
+        Asked after every general line. A module that changes what a straight move produces (cutter
+        compensation, scaling, mirroring ...) must extend this to return False while it is active.
+        """
+        return (self.feed_mode is not FeedMode.INVERSE_TIME and self.frames.rotation == 0.0
+                and not self._missing_axes & {"x", "y", "z"})
+
+    def _drain_list(self) -> list[Canon | _Resume]:
+        out, self._out = self._out, []
+        return out
+
+    def _o_word(self, block: Block) -> None:
+        """Hook for flow control (o-words): a later issue."""
+        raise GCodeError("O-word flow control (subroutines, loops, conditionals) is not supported yet")
+
+    # --- checks ---------------------------------------------------------------------------------------
+
+    def _effective_motion(self, ml: ModalLine) -> int | None:
+        """The motion code that uses this line's axis words, or None when something else takes them."""
+        g0 = ml.g.get(0)
+        if g0 in G_AXIS_USERS_GROUP0 or ml.g.get(8) == 431:
+            return None
+        motion = ml.g.get(1)
+        return self.motion if motion is None else motion
+
+    def _check_words(self, block: Block, ml: ModalLine) -> None:
+        w = block.words
+        g0 = ml.g.get(0)
+        g1 = ml.g.get(1)
+        has_axes = block.has_axes()
+        if has_axes and self._missing_axes:
+            for letter in w:
+                if letter in self._missing_axes or (letter in "@^" and self._missing_axes & {"x", "y"}):
+                    axis = letter.upper() if letter not in "@^" else "X or Y"
+                    raise GCodeError(f"{letter.upper()} word used, but the machine has no {axis} axis")
+        axis_user0 = g0 in G_AXIS_USERS_GROUP0 or ml.g.get(8) == 431
+        if has_axes:
+            if axis_user0 and g1 is not None and g1 != 800:
+                raise GCodeError("Cannot use two G codes that both use axis values: "
+                                 f"{gname(g0 if g0 is not None else 431)} and {gname(g1)}")
+            if not axis_user0:
+                motion = self.motion if g1 is None else g1
+                if motion == 800:
+                    if g1 == 800:
+                        raise GCodeError("Cannot use axis values with G80")
+                    raise GCodeError("Cannot use axis values without a G code that uses them")
+        if g0 == 530:
+            motion = self.motion if g1 is None else g1
+            if motion not in (0, 10):
+                raise GCodeError("Must use G0 or G1 with G53")
+            if (not self.absolute and ml.g.get(3) != 900) or ml.g.get(3) == 910:
+                raise GCodeError("Cannot use G53 incremental (G91)")
+        motion = self._effective_motion(ml)
+        arc = motion in (20, 30)
+        if "@" in w or "^" in w:
+            if "x" in w or "y" in w:
+                raise GCodeError("Cannot mix polar coordinates (@ ^) with X or Y words")
+            if axis_user0 or g0 == 530:
+                raise GCodeError(f"Polar coordinates (@ ^) cannot be used with {gname(g0 or 431)}")
+        ms = set(block.m)
+        for letter in "ijk":
+            if letter in w and not arc:
+                raise GCodeError(f"{letter.upper()} word with no G2 or G3 to use it")
+        if "r" in w and not arc and g0 != 100:
+            raise GCodeError("R word with no G code that uses it")
+        if "p" in w and not (arc or g0 in (40, 100) or ml.g.get(13) == 640
+                             or ms & {50, 51, 52, 53, 62, 63, 64, 65, 66}):
+            raise GCodeError("P word with no G or M code that uses it")
+        if "q" in w and not (ml.g.get(13) == 640 or ms & {61, 66, 67, 68}):
+            raise GCodeError("Q word with no G or M code that uses it")
+        if "l" in w and not (g0 == 100 or 66 in ms):
+            raise GCodeError("L word with no G10 or M66 to use it")
+        if "e" in w and not ms & {66, 67, 68}:
+            raise GCodeError("E word with no M66, M67 or M68 to use it")
+        if "h" in w and ml.g.get(8) != 430:
+            raise GCodeError("H word with no G43 to use it")
+        if "d" in w:
+            raise GCodeError("D word with no G code that uses it (cutter compensation is not supported yet)")
+        if g0 == 100 and "l" not in w:
+            raise GCodeError("Line with G10 does not have an L word")
+
+    # --- helpers ------------------------------------------------------------------------------------
+
+    def _length(self, value: float) -> float:
+        return value * self.scale
+
+    def _int_word(self, block: Block, letter: str, what: str, minimum: int = 0) -> int | None:
+        value = block.take(letter)
+        if value is None:
+            return None
+        n = near_int(value, f"{letter.upper()} word of {what}")
+        if n < minimum:
+            raise GCodeError(f"{letter.upper()} word of {what} must be at least {minimum}, not {n}")
+        return n
+
+    def _offsets_changed(self) -> None:
+        """Keep the machine where it is: its program coordinates change instead."""
+        self.frames.refresh()
+        self.prog = self.frames.machine_to_program(self.pos)
+
+    def _target(self, block: Block, prog: list[float] | None = None) -> list[float]:
+        """End point in the program frame (mm) from the line's axis words and polar words."""
+        target = list(self.prog if prog is None else prog)
+        scale = self.scale
+        absolute = self.absolute
+        words = block.words
+        for letter, value in words.items():
+            k = _AXIS_INDEX.get(letter)
+            if k is not None:
+                if k < 3 or k > 5:
+                    value *= scale
+                target[k] = value if absolute else target[k] + value
+        r_word = words.get("@")
+        a_word = words.get("^")
+        if r_word is not None or a_word is not None:
+            cur_r = math.hypot(target[0], target[1])
+            cur_a = math.degrees(math.atan2(target[1], target[0]))
+            if absolute:
+                radius = r_word * scale if r_word is not None else cur_r
+                angle = a_word if a_word is not None else cur_a
+            else:
+                if cur_r < 1e-9:
+                    raise GCodeError("Incremental polar move (G91 @ ^) from the origin is indeterminate")
+                radius = cur_r + (r_word * scale if r_word is not None else 0.0)
+                angle = cur_a + (a_word if a_word is not None else 0.0)
+            target[0] = radius * math.cos(math.radians(angle))
+            target[1] = radius * math.sin(math.radians(angle))
+        return target
+
+    def _set_feed(self, rate: float) -> None:
+        if rate != self.feed:
+            self.feed = rate
+            self._emit(SetFeedRate(rate, file=self.file, line=self.line))
+
+    # --- steps, in LinuxCNC's order of execution --------------------------------------------------
+
+    def _step_comment(self, block: Block, ml: ModalLine) -> None:
+        if not block.comments:
+            return
+        keyword, text = classify(block.comments[-1])
+        f, n = self.file, self.line
+        if keyword == "":
+            self._emit(Comment(text, file=f, line=n))
+        elif keyword == "msg":
+            self._emit(Message(text, file=f, line=n))
+        elif keyword == "debug":
+            if self.params.numbered[5599] != 0.0:
+                self._emit(Message(expand(text, self.params), debug=True, file=f, line=n))
+        elif keyword == "print":
+            self.machine.print_text(expand(text, self.params))
+        elif keyword == "logopen":
+            self.logs.open(text, append=False)
+        elif keyword == "logappend":
+            self.logs.open(text, append=True)
+        elif keyword == "logclose":
+            self.logs.close()
+        elif keyword == "log":
+            self.logs.write(expand(text, self.params))
+        elif keyword == "probeopen":
+            self.probe_log.open(text, append=False)
+        elif keyword == "probeclose":
+            self.probe_log.close()
+
+    def _step_feed_mode(self, block: Block, ml: ModalLine) -> None:
+        code = ml.g.get(5)
+        if code is None:
+            return
+        mode = _FEED_MODES[code]
+        if mode is not self.feed_mode:
+            was_inverse = self.feed_mode is FeedMode.INVERSE_TIME
+            self.feed_mode = mode
+            self._emit(SetFeedMode(mode, file=self.file, line=self.line))
+            if was_inverse or mode is FeedMode.INVERSE_TIME:
+                self._set_feed(0.0)  # a rate in the other meaning must not carry over
+
+    def _step_feed(self, block: Block, ml: ModalLine) -> None:
+        value = block.take("f")
+        if value is None:
+            return
+        if value < 0.0:
+            raise GCodeError(f"Negative F word used: F{value:g}")
+        if self.feed_mode is FeedMode.INVERSE_TIME:
+            self.feed = value  # every inverse-time move states its own rate: always emitted
+            self._emit(SetFeedRate(value, file=self.file, line=self.line))
+        else:
+            self._set_feed(value * self.scale)
+
+    def _step_speed(self, block: Block, ml: ModalLine) -> None:
+        value = block.take("s")
+        if value is None:
+            return
+        if value < 0.0:
+            raise GCodeError(f"Negative spindle speed used: S{value:g}")
+        self.speed = value
+        self._emit(SetSpindleSpeed(value, file=self.file, line=self.line))
+
+    def _tool(self, number: int):
+        if number == 0 or self.tool_table is None:
+            return None
+        tool = self.tool_table.get(number)
+        if tool is None:
+            raise GCodeError(f"Tool {number} is not in the tool table")
+        return tool
+
+    def _step_select_tool(self, block: Block, ml: ModalLine) -> None:
+        number = self._int_word(block, "t", "a tool selection")
+        if number is None:
+            return
+        tool = self._tool(number)
+        self.selected_tool = number
+        self.selected_pocket = tool.pocket if tool is not None else number
+        self._emit(SelectTool(number, file=self.file, line=self.line))
+
+    def _step_io(self, block: Block, ml: ModalLine) -> None:
+        code = ml.m.get(5)
+        if code is None:
+            return
+        f, n = self.file, self.line
+        if code in (62, 63, 64, 65):
+            index = self._int_word(block, "p", f"M{code}")
+            if index is None:
+                raise GCodeError(f"M{code} needs a P word (the output number)")
+            self._emit(DigitalOutput(index, code in (62, 64), code in (62, 63), file=f, line=n))
+        elif code in (67, 68):
+            index = self._int_word(block, "e", f"M{code}")
+            value = block.take("q")
+            if index is None or value is None:
+                raise GCodeError(f"M{code} needs an E word (output number) and a Q word (value)")
+            self._emit(AnalogOutput(index, value, code == 67, file=f, line=n))
+        else:
+            self._m66(block)
+
+    def _m66(self, block: Block) -> None:
+        p = self._int_word(block, "p", "M66")
+        e = self._int_word(block, "e", "M66")
+        if (p is None) == (e is None):
+            raise GCodeError("M66 needs exactly one of P (digital input) or E (analog input)")
+        mode_n = self._int_word(block, "l", "M66") or 0
+        if mode_n > 4:
+            raise GCodeError(f"M66 L{mode_n}: wait modes are L0 to L4")
+        timeout = block.take("q")
+        if e is not None and mode_n != 0:
+            raise GCodeError("M66 with an analog input (E) allows only L0 (immediate)")
+        if mode_n != 0 and timeout is None:
+            raise GCodeError(f"M66 L{mode_n} needs a Q word (timeout in seconds)")
+        if timeout is not None and timeout < 0:
+            raise GCodeError("M66 Q (timeout) must not be negative")
+        cmd = WaitInput(InputKind.DIGITAL if p is not None else InputKind.ANALOG,
+                        p if p is not None else e, WaitMode(mode_n), timeout or 0.0,
+                        file=self.file, line=self.line)
+        self._emit(cmd)
+
+        def answer() -> None:
+            value = float(self.machine.wait_input(cmd))
+            self.params.set_system(5399, value)
+
+        self._emit(_Resume(answer))
+
+    def _set_tool_parameters(self, number: int) -> None:
+        tool = self._tool(number) if number else None
+        self.params.set_system(5400, float(number))
+        offset = list(tool.offset) if tool is not None else [0.0] * N_AXES
+        for k in range(N_AXES):
+            self.params.set_system(5401 + k, offset[k])
+        values = (0, 0, 0, 0)
+        if tool is not None:
+            values = (tool.diameter, tool.front_angle, tool.back_angle, tool.orientation)
+        for k, v in enumerate(values):
+            self.params.set_system(5410 + k, float(v))
+        self.current_pocket = tool.pocket if tool is not None else number
+
+    def _step_tool_change(self, block: Block, ml: ModalLine) -> None:
+        code = ml.m.get(6)
+        if code is None:
+            return
+        if code == 6:
+            if self.selected_tool < 0:
+                raise GCodeError("M6 with no tool selected (give a T word first)")
+            number = self.selected_tool
+            self._emit(ToolChange(number, file=self.file, line=self.line))
+            self._emit(_Resume(self._resync))
+        else:
+            q = block.take("q")
+            if q is None:
+                raise GCodeError("M61 needs a Q word (the tool number)")
+            number = near_int(q, "Q word of M61")
+            if number < 0:
+                raise GCodeError(f"M61 Q{number}: negative tool number")
+            self._tool(number)
+            self._emit(SetToolNumber(number, file=self.file, line=self.line))
+        self.current_tool = number
+        self._set_tool_parameters(number)
+
+    def _resync(self) -> None:
+        where = self.machine.current_position()
+        if where is not None:
+            self.pos = Pose(*where)
+            self.prog = self.frames.machine_to_program(self.pos)
+
+    def _step_spindle(self, block: Block, ml: ModalLine) -> None:
+        code = ml.m.get(7)
+        if code is None or code >= 70:
+            return
+        if code == 5:
+            self.spindle = None
+            self._emit(SpindleOff(file=self.file, line=self.line))
+            return
+        self.spindle = SpindleDirection.CW if code == 3 else SpindleDirection.CCW
+        self._emit(SpindleOn(self.spindle, self.speed, file=self.file, line=self.line))
+
+    def _modal_snapshot(self) -> dict:
+        return {
+            "inch": self.inch, "absolute": self.absolute, "ijk_absolute": self.ijk_absolute,
+            "feed_mode": self.feed_mode, "plane": self.plane, "control": self.control,
+            "g5x": self.frames.g5x_index, "feed": self.feed, "speed": self.speed,
+            "spindle": self.spindle, "mist": self.mist, "flood": self.flood,
+            "overrides": dict(self.overrides),
+        }
+
+    def _step_state(self, block: Block, ml: ModalLine) -> None:
+        code = ml.m.get(7)
+        if code is None or code < 70:
+            return
+        if code in (70, 73):
+            self.saved_state = self._modal_snapshot()
+        elif code == 71:
+            self.saved_state = None
+        else:
+            if self.saved_state is None:
+                raise GCodeError("M72: no saved modal state to restore (M70 first)")
+            self._restore(self.saved_state)
+
+    def _restore(self, s: dict) -> None:
+        f, n = self.file, self.line
+        if s["inch"] != self.inch:
+            self.inch = s["inch"]
+            self.scale = MM_PER_INCH if self.inch else 1.0
+            self._emit(UseLengthUnits(not self.inch, file=f, line=n))
+        self.absolute = s["absolute"]
+        self.ijk_absolute = s["ijk_absolute"]
+        if s["feed_mode"] is not self.feed_mode:
+            self.feed_mode = s["feed_mode"]
+            self._emit(SetFeedMode(self.feed_mode, file=f, line=n))
+        if s["plane"] is not self.plane:
+            self.plane = s["plane"]
+            self._emit(SelectPlane(self.plane, file=f, line=n))
+        if s["control"] != self.control:
+            self.control = s["control"]
+            self._emit(SetMotionControlMode(*self.control, file=f, line=n))
+        if s["g5x"] != self.frames.g5x_index:
+            self._select_system(s["g5x"])
+        self._set_feed(s["feed"])
+        if s["speed"] != self.speed:
+            self.speed = s["speed"]
+            self._emit(SetSpindleSpeed(self.speed, file=f, line=n))
+        if s["spindle"] is not self.spindle:
+            self.spindle = s["spindle"]
+            if self.spindle is None:
+                self._emit(SpindleOff(file=f, line=n))
+            else:
+                self._emit(SpindleOn(self.spindle, self.speed, file=f, line=n))
+        if (s["mist"], s["flood"]) != (self.mist, self.flood):
+            self.mist, self.flood = s["mist"], s["flood"]
+            self._emit(Coolant(self.mist, self.flood, file=f, line=n))
+        if s["overrides"] != self.overrides:
+            self.overrides = dict(s["overrides"])
+            self._emit(SetOverrides(**self.overrides, file=f, line=n))
+
+    def _step_coolant(self, block: Block, ml: ModalLine) -> None:
+        codes = [c for c in block.m if c in (7, 8, 9)]
+        if not codes:
+            return
+        for code in codes:
+            if code == 7:
+                self.mist = True
+            elif code == 8:
+                self.flood = True
+            else:
+                self.mist = self.flood = False
+        self._emit(Coolant(self.mist, self.flood, file=self.file, line=self.line))
+
+    def _step_overrides(self, block: Block, ml: ModalLine) -> None:
+        code = ml.m.get(9)
+        if code is None:
+            return
+        if code in (48, 49):
+            on = code == 48
+            self.overrides["feed"] = self.overrides["spindle"] = on
+            self._emit(SetOverrides(feed=on, spindle=on, file=self.file, line=self.line))
+            return
+        p = block.take("p")
+        on = True if p is None else p != 0.0
+        key = {50: "feed", 51: "spindle", 52: "adaptive_feed", 53: "feed_hold"}[code]
+        self.overrides[key] = on
+        self._emit(SetOverrides(**{key: on}, file=self.file, line=self.line))
+
+    def _step_dwell(self, block: Block, ml: ModalLine) -> None:
+        if ml.g.get(0) != 40:
+            return
+        p = block.take("p")
+        if p is None:
+            raise GCodeError("Dwell time P word missing with G4")
+        if p < 0:
+            raise GCodeError(f"Negative dwell time with G4: P{p:g}")
+        self._emit(Dwell(p, file=self.file, line=self.line))
+
+    def _step_plane(self, block: Block, ml: ModalLine) -> None:
+        code = ml.g.get(2)
+        if code is None:
+            return
+        plane = _PLANE_BY_CODE[code]
+        if plane is not self.plane:
+            self.plane = plane
+            self._emit(SelectPlane(plane, file=self.file, line=self.line))
+
+    def _step_units(self, block: Block, ml: ModalLine) -> None:
+        code = ml.g.get(6)
+        if code is None:
+            return
+        inch = code == 200
+        if inch != self.inch:
+            self.inch = inch
+            self._emit(UseLengthUnits(not inch, file=self.file, line=self.line))
+
+    def _step_cutter_comp(self, block: Block, ml: ModalLine) -> None:
+        pass  # G40 is the only member accepted so far (G41/G42: a later module)
+
+    def _step_tool_length(self, block: Block, ml: ModalLine) -> None:
+        code = ml.g.get(8)
+        if code is None:
+            return
+        offset = [0.0] * N_AXES
+        if code == 430:
+            h = self._int_word(block, "h", "G43")
+            number = self.current_tool if h is None else h
+            tool = self._tool(number)
+            if tool is not None:
+                offset = [float(v) for v in tool.offset]
+        elif code == 431:
+            for k, letter in enumerate(AXIS_LETTERS):
+                value = block.take(letter)
+                if value is not None:
+                    offset[k] = value if k in ROTARY_INDEXES else value * self.scale
+        self.tool_length_mode = code
+        self.frames.tool = offset
+        self._offsets_changed()
+        self._emit(UseToolLengthOffset(Pose(*offset), file=self.file, line=self.line))
+
+    def _select_system(self, index: int) -> None:
+        self.params.set_system(5220, float(index))
+        self.frames.load_system(self.params, index)
+        self._offsets_changed()
+        self._emit(SetG5xOffset(index, Pose(*self.frames.g5x), self.frames.rotation,
+                                file=self.file, line=self.line))
+
+    def _step_coord_system(self, block: Block, ml: ModalLine) -> None:
+        code = ml.g.get(12)
+        if code is None:
+            return
+        index = _G5X_INDEX[code]
+        if index != self.frames.g5x_index:
+            self._select_system(index)
+
+    def _step_path_control(self, block: Block, ml: ModalLine) -> None:
+        code = ml.g.get(13)
+        if code is None:
+            return
+        if code == 640:
+            p = block.take("p")
+            q = block.take("q")
+            if q is not None and p is None:
+                raise GCodeError("G64 Q (naive CAM tolerance) needs a P word too")
+            if (p is not None and p < 0) or (q is not None and q < 0):
+                raise GCodeError("G64 P and Q must not be negative")
+            control = (MotionControlMode.CONTINUOUS, (p or 0.0) * self.scale, (q or 0.0) * self.scale)
+        elif code == 610:
+            control = (MotionControlMode.EXACT_PATH, 0.0, 0.0)
+        else:
+            control = (MotionControlMode.EXACT_STOP_MODAL, 0.0, 0.0)
+        if control != self.control:
+            self.control = control
+            self._emit(SetMotionControlMode(*control, file=self.file, line=self.line))
+
+    def _step_distance(self, block: Block, ml: ModalLine) -> None:
+        code = ml.g.get(3)
+        if code is not None:
+            self.absolute = code == 900
+        code = ml.g.get(4)
+        if code is not None:
+            self.ijk_absolute = code == 901
+
+    def _step_retract(self, block: Block, ml: ModalLine) -> None:
+        code = ml.g.get(10)
+        if code is not None:
+            self.retract = code
+
+    # --- group 0: G10, G28/G30, G92 ---------------------------------------------------------------
+
+    def _step_group0(self, block: Block, ml: ModalLine) -> None:
+        code = ml.g.get(0)
+        if code is None or code in (40, 530):
+            return
+        if code == 100:
+            self._g10(block)
+        elif code in (280, 300):
+            self._go_home(block, 5161 if code == 280 else 5181)
+        elif code in (281, 301):
+            base = 5161 if code == 281 else 5181
+            absolute = [m - t for m, t in zip(self.pos, self.frames.tool, strict=True)]
+            for k in range(N_AXES):
+                self.params.set_system(base + k, absolute[k])
+        elif code == 920:
+            self._g92(block)
+        elif code == 921 or code == 922:
+            if code == 921:
+                for k in range(N_AXES):
+                    self.params.set_system(5211 + k, 0.0)
+            self.params.set_system(5210, 0.0)
+            self._set_g92([0.0] * N_AXES)
+        elif code == 923:
+            self.params.set_system(5210, 1.0)
+            self._set_g92([self.params.numbered[5211 + k] for k in range(N_AXES)])
+
+    def _set_g92(self, values: list[float]) -> None:
+        self.frames.g92 = values
+        self._offsets_changed()
+        self._emit(SetG92Offset(Pose(*values), file=self.file, line=self.line))
+
+    def _g92(self, block: Block) -> None:
+        if not block.has_axes():
+            raise GCodeError("All axes missing with G92")
+        current = [p + o for p, o in zip(self.prog, self.frames.g92, strict=True)]
+        values = list(self.frames.g92)
+        for k, letter in enumerate(AXIS_LETTERS):
+            value = block.take(letter)
+            if value is not None:
+                if k not in ROTARY_INDEXES:
+                    value *= self.scale
+                values[k] = current[k] - value
+        if "@" in block.words or "^" in block.words:
+            raise GCodeError("Polar coordinates (@ ^) cannot be used with G92")
+        for k in range(N_AXES):
+            self.params.set_system(5211 + k, values[k])
+        self.params.set_system(5210, 1.0)
+        self._set_g92(values)
+
+    def _go_home(self, block: Block, base: int) -> None:
+        f, n = self.file, self.line
+        given = [k for k, letter in enumerate(AXIS_LETTERS) if letter in block.words]
+        if given or "@" in block.words or "^" in block.words:
+            target = self._target(block)
+            self.prog = target
+            self.pos = self.frames.to_machine(target)
+            self._emit(StraightTraverse(self.pos, file=f, line=n))
+        else:
+            given = list(range(N_AXES))
+        tool = self.frames.tool
+        end = list(self.pos)
+        for k in given:
+            end[k] = self.params.numbered[base + k] + tool[k]
+        self.pos = Pose(*end)
+        self.prog = self.frames.machine_to_program(self.pos)
+        self._emit(StraightTraverse(self.pos, file=f, line=n))
+
+    def _g10(self, block: Block) -> None:
+        level = self._int_word(block, "l", "G10")
+        if level in (1, 3, 10, 11):
+            raise GCodeError(f"G10 L{level} (tool table data) is not supported yet")
+        if level not in (2, 20):
+            raise GCodeError(f"Invalid L word with G10: L{level} (L2 or L20 for coordinate systems)")
+        p = self._int_word(block, "p", f"G10 L{level}")
+        if p is None:
+            raise GCodeError(f"G10 L{level} needs a P word (coordinate system 1-9, 0 for the active one)")
+        if p > 9:
+            raise GCodeError(f"G10 L{level} P{p}: coordinate system number out of range (0-9)")
+        if "@" in block.words or "^" in block.words:
+            raise GCodeError("Polar coordinates (@ ^) cannot be used with G10")
+        index = p or self.frames.g5x_index
+        base = system_base(index)
+        nums = self.params.numbered
+        old = [nums[base + k] for k in range(N_AXES)]
+        rotation = nums[base + 9]
+        r = block.take("r")
+        if r is not None:
+            if level == 20:
+                raise GCodeError("R not allowed in G10 L20")
+            rotation = r  # G91 has no effect on G10 L2 (LinuxCNC)
+        new = list(old)
+        if level == 2:
+            for k, letter in enumerate(AXIS_LETTERS):
+                value = block.take(letter)
+                if value is not None:
+                    if k not in ROTARY_INDEXES:
+                        value *= self.scale
+                    new[k] = value
+        else:
+            # L20: the current point gets the given coordinates in system `index` (G91 or not).
+            absolute = [m - t for m, t in zip(self.pos, self.frames.tool, strict=True)]
+            g92 = self.frames.g92
+            c, s = math.cos(math.radians(rotation)), math.sin(math.radians(rotation))
+            # the current point as system `index` calls it now; axes not given keep that
+            dx, dy = absolute[0] - old[0], absolute[1] - old[1]
+            current = [a - o - g for a, o, g in zip(absolute, old, g92, strict=True)]
+            current[0] = dx * c + dy * s - g92[0]
+            current[1] = -dx * s + dy * c - g92[1]
+            desired = list(current)
+            for k, letter in enumerate(AXIS_LETTERS):
+                value = block.take(letter)
+                if value is not None:
+                    desired[k] = value if k in ROTARY_INDEXES else value * self.scale
+            px, py = desired[0] + g92[0], desired[1] + g92[1]
+            new[0] = absolute[0] - (px * c - py * s)
+            new[1] = absolute[1] - (px * s + py * c)
+            for k in range(2, N_AXES):
+                new[k] = absolute[k] - (desired[k] + g92[k])
+        for k in range(N_AXES):
+            self.params.set_system(base + k, new[k])
+        self.params.set_system(base + 9, rotation)
+        if index == self.frames.g5x_index:
+            self._select_system(index)
+
+    # --- motion -------------------------------------------------------------------------------------
+
+    def _step_motion(self, block: Block, ml: ModalLine) -> None:
+        g0 = ml.g.get(0)
+        explicit = ml.g.get(1)
+        if g0 in G_AXIS_USERS_GROUP0 or ml.g.get(8) == 431:
+            if explicit is not None:
+                self.motion = explicit
+            return
+        motion = self.motion if explicit is None else explicit
+        self.motion = motion
+        w = block.words
+        has_axes = block.has_axes()
+        if motion in (20, 30):
+            if has_axes or "i" in w or "j" in w or "k" in w or "r" in w:
+                self._arc(block, motion == 20)
+            return
+        if not has_axes:
+            return
+        f, n = self.file, self.line
+        if g0 == 530:
+            tool = self.frames.tool
+            end = list(self.pos)
+            for k, letter in enumerate(AXIS_LETTERS):
+                value = block.take(letter)
+                if value is not None:
+                    if k not in ROTARY_INDEXES:
+                        value *= self.scale
+                    end[k] = value + tool[k]
+            target = self.frames.machine_to_program(end)
+        else:
+            target = self._target(block)
+        end_pose = self.frames.to_machine(target)
+        if not _isfinite(sum(end_pose)):  # also refuses sums beyond 1e308: no machine is that big
+            raise GCodeError("Coordinate out of range")
+        if motion == 0:
+            cmd: Canon = StraightTraverse(end_pose, file=f, line=n)
+        elif motion == 10:
+            self._require_feed(block, "G1")
+            cmd = StraightFeed(end_pose, file=f, line=n)
+        elif motion in _PROBE_MODES:
+            self._require_feed(block, gname(motion))
+            if math.dist(end_pose, self.pos) < 1e-9:
+                raise GCodeError(f"{gname(motion)}: probe move has zero length")
+            self._probe(Probe(end_pose, _PROBE_MODES[motion], file=f, line=n))
+            return
+        else:  # pragma: no cover (other motion codes are refused by modal.sort_codes)
+            raise GCodeError(f"{gname(motion)} is not supported yet")
+        self.prog = target
+        self.pos = end_pose
+        self._emit(cmd)
+
+    def _require_feed(self, block: Block, what: str) -> None:
+        if self.feed_mode is FeedMode.INVERSE_TIME:
+            if "f" not in block.words:
+                raise GCodeError(f"F word missing with inverse time {what} move")
+        elif self.feed == 0.0:
+            raise GCodeError(f"Cannot do {what} with zero feed rate")
+
+    def _probe(self, cmd: Probe) -> None:
+        self._emit(cmd)
+
+        def answer() -> None:
+            where, tripped = self.machine.probe(cmd)
+            where = Pose(*where) if tripped else cmd.end
+            self.pos = where
+            self.prog = self.frames.machine_to_program(where)
+            for k in range(N_AXES):
+                scale = 1.0 if k in ROTARY_INDEXES else self.scale
+                self.params.set_system(5061 + k, self.prog[k] / scale)
+            self.params.set_system(5070, 1.0 if tripped else 0.0)
+            if tripped and self.probe_log.stream is not None:
+                self.probe_log.write(" ".join(f"{self.params.numbered[5061 + k]:.6f}" for k in range(N_AXES)))
+            if not tripped and cmd.mode.error_on_miss:
+                raise GCodeError(f"G{cmd.mode.value} move finished without making contact")
+
+        self._emit(_Resume(answer))
+
+    def _arc(self, block: Block, clockwise: bool) -> None:
+        name = "G2" if clockwise else "G3"
+        first, second, normal = self.plane.value
+        if self.frames.rotation != 0.0 and self.plane is not Plane.XY:
+            raise GCodeError(f"{name} in {self.plane.gcode}: arcs out of the XY plane with a rotated "
+                             "coordinate system are not supported")
+        letters = {first: _IJK[first], second: _IJK[second]}
+        normal_letter = _IJK[normal]
+        if normal_letter in block.words:
+            raise GCodeError(f"{normal_letter.upper()} word given for arc in {self.plane.gcode} plane")
+        turns = self._int_word(block, "p", name, minimum=1)
+        turns = 1 if turns is None else turns
+        self._require_feed(block, name)
+        start = self.prog
+        radius = block.take("r")
+        has_ijk = any(letter in block.words for letter in letters.values())
+        if radius is not None and has_ijk:
+            raise GCodeError("Mixed radius-ijk format for arc")
+        target = self._target(block)
+        s2 = (start[first], start[second])
+        e2 = (target[first], target[second])
+        inch = self.inch
+        if radius is not None:
+            cx, cy, rot = centre_r(clockwise, s2, e2, radius * self.scale, turns)
+        elif has_ijk:
+            off1 = (block.take(letters[first]) or 0.0) * self.scale
+            off2 = (block.take(letters[second]) or 0.0) * self.scale
+            if self.ijk_absolute:
+                centre = (off1, off2)
+            else:
+                centre = (s2[0] + off1, s2[1] + off2)
+            cx, cy, rot = centre_ijk(clockwise, s2, e2, centre, turns, inch)
+        else:
+            raise GCodeError(f"R, I, J or K words missing for arc ({name})")
+        centre_prog = list(start)
+        centre_prog[first] = cx
+        centre_prog[second] = cy
+        end_pose = self.frames.to_machine(target)
+        centre_pose = self.frames.to_machine(centre_prog)
+        if not (_isfinite(sum(end_pose)) and _isfinite(sum(centre_pose))):
+            raise GCodeError("Coordinate out of range")
+        self.prog = target
+        self.pos = end_pose
+        self._emit(ArcFeed(end_pose, centre_pose, self.plane, rot, file=self.file, line=self.line))
+
+    # --- stops and the end ------------------------------------------------------------------------
+
+    def _step_stop(self, block: Block, ml: ModalLine) -> None:
+        code = ml.m.get(4)
+        if code is None:
+            return
+        f, n = self.file, self.line
+        if code in (0, 1):
+            self._emit(ProgramStop(code == 1, file=f, line=n))
+            self._emit(_Resume(self._resync))
+        elif code == 60:
+            self._emit(PalletShuttle(file=f, line=n))
+            self._emit(_Resume(self._resync))
+        else:
+            self._end_program(code)
+
+    def _end_program(self, code: int | None) -> None:
+        """M2/M30 (code) or a closing % (None): LinuxCNC's resets (G54, G17, G90, G94 with feed 0,
+        overrides on, spindle and coolant off, motion mode G1; G92 offsets persist), then PROGRAM_END,
+        then the parameter file is written."""
+        f, n = self.file, self.line
+        if code is not None:
+            if self.frames.g5x_index != 1:
+                self._select_system(1)
+            if self.plane is not Plane.XY:
+                self.plane = Plane.XY
+                self._emit(SelectPlane(Plane.XY, file=f, line=n))
+            self.absolute = True
+            if self.feed_mode is not FeedMode.UNITS_PER_MINUTE:
+                self.feed_mode = FeedMode.UNITS_PER_MINUTE
+                self._emit(SetFeedMode(self.feed_mode, file=f, line=n))
+            self._set_feed(0.0)
+            if not (self.overrides["feed"] and self.overrides["spindle"]):
+                self.overrides["feed"] = self.overrides["spindle"] = True
+                self._emit(SetOverrides(feed=True, spindle=True, file=f, line=n))
+            if self.spindle is not None:
+                self.spindle = None
+                self._emit(SpindleOff(file=f, line=n))
+            if self.mist or self.flood:
+                self.mist = self.flood = False
+                self._emit(Coolant(False, False, file=f, line=n))
+            self.motion = 10
+        self._emit(ProgramEnd(code == 30, file=f, line=n))
+        self.ended = True
+        self._fast_ok = False
+        self.logs.close()
+        self.probe_log.close()
+        self._write_var_file()
+
+    def _write_var_file(self) -> None:
+        path = self.settings.var_file
+        if path is None or self.settings.dry_run:
+            return
+        from gcode_canon import paramfile
+
+        keys = set(getattr(paramfile, "PERSISTENT", _PERSISTENT_FALLBACK)) | self._persist_keys
+        keys.update(i for i in range(31, 5001) if self.params.numbered[i] != 0.0)
+        paramfile.write_parameter_file(path, self.params.snapshot(keys))
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self.logs.close()
+            self.probe_log.close()
+
+
+_G5X_INDEX = {540: 1, 550: 2, 560: 3, 570: 4, 580: 5, 590: 6, 591: 7, 592: 8, 593: 9}
+_G5X_NAMES = {v: gname(k) for k, v in _G5X_INDEX.items()}

@@ -1,0 +1,37 @@
+"""Interpreter settings: what the machine side decides before a program runs.
+
+Kept apart from the interpreter so the daemon can build them from the machine configuration and
+``canon check`` from its command line, without importing the interpreter.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+
+@dataclass(slots=True)
+class InterpreterSettings:
+    var_file: Path | str | None = None
+    """LinuxCNC parameter file: read at start, written at program end / shutdown (unless dry_run)."""
+    tool_table: Path | str | None = None
+    """LinuxCNC-format tool table; None means an empty table (any tool number, zero offsets)."""
+    block_delete: bool = False
+    """When True, lines starting with ``/`` are skipped."""
+    dry_run: bool = False
+    """Never write the parameter file (``canon check``)."""
+    log_dir: Path | str | None = None
+    """Directory for (LOGOPEN,...) files; None refuses LOG files."""
+    subroutine_path: list[Path] = field(default_factory=list)
+    """Directories searched for ``o<name> call`` files (o-words: a later issue)."""
+    dialect: str = "linuxcnc"
+    max_line_length: int = 256
+    max_call_depth: int = 10
+    max_loop_iterations: int = 1_000_000
+    max_expression_depth: int = 64
+    """Bracket / function / indirection nesting refused beyond this (protects the recursion limit)."""
+    axes: str | None = None
+    """The machine's axis letters (e.g. "xyz"); None accepts all nine. A word for an axis the machine
+    does not have is an error."""
+    require_program_end: bool = True
+    """A program (file or string) must end with M2/M30 or a closing ``%`` (LinuxCNC's rule)."""

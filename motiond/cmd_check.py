@@ -1,0 +1,152 @@
+"""``canon check``: interpret a program without a machine and print its canonical commands.
+
+A check is a dry run: the machine starts at zero with every offset zero (or as a ``--var`` parameter
+file says), inputs read 0, probes trip at their end point, and no parameter file is ever written.
+Text output names each command as LinuxCNC's canonical function (``STRAIGHT_FEED(...)``) with its
+source line, so it can be set beside ``rs274`` output; ``--json`` prints one object per command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from motiond.cli import UserError, add_common
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_common(parser)
+    parser.add_argument("--block-delete", action="store_true", help="skip lines that start with '/'")
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from gcode_canon.interpreter import Interpreter
+    from gcode_canon.machine import DryRunMachine
+    from gcode_canon.settings import InterpreterSettings
+
+    for option, value in (("--var", args.var), ("--tool-table", args.tool_table)):
+        if value is not None and not Path(value).is_file():
+            raise UserError(f"{option} {value}: no such file")
+    if not Path(args.file).is_file():
+        raise UserError(f"{args.file}: no such file")
+    axes = None
+    if args.config is not None:  # only the axis names matter to a check: words for others are errors
+        from motiond.config import load_machine
+
+        axes = "".join(axis.name for axis in load_machine(args.config).limits.axes)
+    settings = InterpreterSettings(
+        var_file=args.var, tool_table=args.tool_table, block_delete=args.block_delete, dry_run=True,
+        axes=axes,
+    )
+    interp = Interpreter(settings, DryRunMachine())
+    out = sys.stdout
+    write = out.write
+    if args.json:
+        import json
+
+        dumps = json.dumps
+        for cmd in interp.run_file(args.file):
+            write(dumps(to_json(cmd)) + "\n")
+    else:
+        for cmd in interp.run_file(args.file):
+            write(f"{cmd.line:>6} {format_text(cmd)}\n")
+    out.flush()
+    return 0
+
+
+def _num(v: float) -> str:
+    """Four decimals as rs274 prints, without "-0.0000" for rounding noise around zero."""
+    return f"{v:.4f}" if abs(v) >= 0.00005 else "0.0000"
+
+
+def _pose_text(p) -> str:
+    values = list(p[:6])
+    if any(p[6:]):
+        values += list(p[6:])
+    return ", ".join(_num(v) for v in values)
+
+
+def _value_text(v: object) -> str:
+    import enum
+
+    from gcode_canon.commands import Pose
+
+    if isinstance(v, Pose):
+        return _pose_text(v)
+    if isinstance(v, bool):
+        return str(v).upper()
+    if isinstance(v, float):
+        return _num(v)
+    if isinstance(v, enum.Enum):
+        return v.name
+    if isinstance(v, str):
+        return repr(v)
+    return str(v)
+
+
+def format_text(cmd) -> str:
+    """``NAME(args)``: moves give x, y, z, a, b, c (u, v, w when used); ARC_FEED as LinuxCNC orders
+    its arguments (first end, second end, first centre, second centre, rotation, normal end, a, b, c:
+    the plane is the last SELECT_PLANE's); units, planes, path modes and texts as rs274 writes them."""
+    import dataclasses
+
+    from gcode_canon.commands import ArcFeed
+
+    name = cmd.NAME
+    if name == "STRAIGHT_FEED" or name == "STRAIGHT_TRAVERSE":  # the bulk: no introspection
+        e = cmd.end
+        if e[6] or e[7] or e[8]:
+            return f"{name}({_pose_text(e)})"
+        return f"{name}({_num(e[0])}, {_num(e[1])}, {_num(e[2])}, {_num(e[3])}, {_num(e[4])}, {_num(e[5])})"
+    if isinstance(cmd, ArcFeed):
+        f, s, n = cmd.plane.value
+        e, c = cmd.end, cmd.center
+        args = [e[f], e[s], c[f], c[s]]
+        text = ", ".join(_num(v) for v in args) + f", {cmd.turns}, {_num(e[n])}, " + ", ".join(
+            _num(v) for v in e[3:6])
+        if any(e[6:]):
+            text += ", " + ", ".join(_num(v) for v in e[6:])
+        return f"{cmd.NAME}({text})"
+    special = _LINUXCNC_STYLE.get(cmd.NAME)
+    if special is not None:
+        return f"{cmd.NAME}({special(cmd)})"
+    fields = [fl.name for fl in dataclasses.fields(cmd) if fl.name not in ("file", "line")]
+    return f"{cmd.NAME}({', '.join(_value_text(getattr(cmd, name)) for name in fields)})"
+
+
+# Arguments written as LinuxCNC's rs274 writes them, where canon's command carries the same thing.
+_LINUXCNC_STYLE = {
+    "USE_LENGTH_UNITS": lambda c: "CANON_UNITS_MM" if c.metric else "CANON_UNITS_INCHES",
+    "SELECT_PLANE": lambda c: f"CANON_PLANE_{c.plane.name}",
+    "MESSAGE": lambda c: f'"{c.text}"',
+    "COMMENT": lambda c: f'"{c.text}"',
+    "SET_MOTION_CONTROL_MODE": lambda c: (
+        {"EXACT_PATH": "CANON_EXACT_PATH", "EXACT_STOP_MODAL": "CANON_EXACT_STOP"}.get(
+            c.mode.name, "CANON_CONTINUOUS") + f", {c.tolerance:.6f}, {c.naive_cam_tolerance:.6f}"
+    ),
+}
+
+
+def to_json(cmd) -> dict:
+    """``line``, ``file``, ``command`` (NAME), the end point as x..w for moves, then the fields."""
+    import dataclasses
+    import enum
+
+    from gcode_canon.commands import AXES, Pose
+
+    obj: dict = {"line": cmd.line, "file": cmd.file, "command": cmd.NAME}
+    end = getattr(cmd, "end", None)
+    if cmd.MOVES and end is not None:
+        obj.update(zip(AXES, end, strict=True))
+    for fl in dataclasses.fields(cmd):
+        if fl.name in ("file", "line", "end"):
+            continue
+        v = getattr(cmd, fl.name)
+        if isinstance(v, Pose):
+            v = dict(zip(AXES, v, strict=True))
+        elif isinstance(v, enum.Enum):
+            v = v.name
+        obj[fl.name] = v
+    return obj

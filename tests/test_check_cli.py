@@ -1,0 +1,108 @@
+"""``canon check``: text and JSON output, options, and FILE:LINE errors with a non-zero exit."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from gcode_canon.paramfile import write_parameter_file
+from motiond.cli import main
+
+PROGRAMS = Path(__file__).resolve().parent / "programs"
+
+
+def write(tmp_path: Path, text: str, name: str = "p.ngc") -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_text_output_names_and_lines(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = write(tmp_path, "G0 X1 Y2\nF50\nG1 Z-1\nG2 X3 Y2 I1\nG4 P0.5\nM2\n")
+    assert main(["check", str(path)]) == 0
+    lines = capsys.readouterr().out.split("\n")
+    body = [line.split(None, 1) for line in lines if line]
+    assert body == [
+        ["1", "STRAIGHT_TRAVERSE(1.0000, 2.0000, 0.0000, 0.0000, 0.0000, 0.0000)"],
+        ["2", "SET_FEED_RATE(50.0000)"],
+        ["3", "STRAIGHT_FEED(1.0000, 2.0000, -1.0000, 0.0000, 0.0000, 0.0000)"],
+        ["4", "ARC_FEED(3.0000, 2.0000, 2.0000, 2.0000, -1, -1.0000, 0.0000, 0.0000, 0.0000)"],
+        ["5", "DWELL(0.5000)"],
+        ["6", "SET_FEED_RATE(0.0000)"],
+        ["6", "PROGRAM_END(FALSE)"],
+    ]
+
+
+def test_json_output(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = write(tmp_path, "G20 G0 X1 A10\nG1 F2 Y1\n(MSG,hi)\nM2\n")
+    assert main(["check", "--json", str(path)]) == 0
+    objs = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert objs[0] == {"line": 1, "file": str(path), "command": "USE_LENGTH_UNITS", "metric": False}
+    move = objs[1]
+    assert move["command"] == "STRAIGHT_TRAVERSE" and move["line"] == 1
+    assert (move["x"], move["y"], move["z"], move["a"], move["b"], move["c"]) == (25.4, 0, 0, 10, 0, 0)
+    assert objs[2] == {"line": 2, "file": str(path), "command": "SET_FEED_RATE", "rate": 50.8}
+    assert objs[3]["y"] == 25.4
+    assert objs[4]["command"] == "MESSAGE" and objs[4]["text"] == "hi"
+
+
+def test_error_exit_with_file_and_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = write(tmp_path, "G0 X1\nG1 X[SQRT[-4]]\nM2\n")
+    assert main(["check", str(path)]) == 1
+    captured = capsys.readouterr()
+    assert captured.err.strip() == f"{path}:2: Negative argument to SQRT: -4"
+    assert "Traceback" not in captured.err
+
+
+def test_missing_program_end_is_an_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = write(tmp_path, "G0 X1\n")
+    assert main(["check", str(path)]) == 1
+    assert "no percent sign or program end" in capsys.readouterr().err
+
+
+def test_var_and_tool_table_and_block_delete(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    var = tmp_path / "p.var"
+    write_parameter_file(var, {5221: 100.0})
+    before = var.read_bytes()
+    path = write(tmp_path, "T1 M6 G43\nG0 X0 Z0\n/G0 X5\nG10 L2 P1 X1\nM2\n")
+    args = ["check", "--var", str(var), "--tool-table", str(PROGRAMS / "tools.tbl"), str(path)]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "STRAIGHT_TRAVERSE(100.0000, 0.0000, 10.0000" in out
+    assert "STRAIGHT_TRAVERSE(105.0000" in out
+    assert var.read_bytes() == before  # a check never writes the parameter file
+    assert main([*args[:-1], "--block-delete", str(path)]) == 0
+    assert "STRAIGHT_TRAVERSE(105.0000" not in capsys.readouterr().out
+
+
+def test_missing_files_are_user_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["check", str(tmp_path / "none.ngc")]) == 1
+    assert "no such file" in capsys.readouterr().err
+    path = write(tmp_path, "M2\n")
+    assert main(["check", "--var", str(tmp_path / "none.var"), str(path)]) == 1
+
+
+def test_canon_check_as_a_process(tmp_path: Path) -> None:
+    path = write(tmp_path, "G0 X1\nG0 Q1\nM2\n")
+    proc = subprocess.run([sys.executable, "-m", "motiond.cli", "check", str(path)],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1
+    assert proc.stdout.strip() == "1 STRAIGHT_TRAVERSE(1.0000, 0.0000, 0.0000, 0.0000, 0.0000, 0.0000)"
+    assert proc.stderr.strip() == f"{path}:2: Q word with no G or M code that uses it"
+
+
+def test_config_restricts_the_axes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    config = tmp_path / "mill.toml"
+    config.write_text(
+        '[machine]\nname = "three axes"\n'
+        + "".join(f"[axes.{a}]\nmax_velocity = 100.0\nmax_acceleration = 1000.0\nmax_jerk = 10000.0\n"
+                  for a in "xyz")
+    )
+    path = write(tmp_path, "G0 X1 Y2 Z3\nG0 A90\nM2\n")
+    assert main(["check", "--config", str(config), str(path)]) == 1
+    assert capsys.readouterr().err.strip() == f"{path}:2: A word used, but the machine has no A axis"
+    assert main(["check", str(path)]) == 0  # without a configuration all nine axes are accepted
