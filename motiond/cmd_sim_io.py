@@ -1,0 +1,172 @@
+"""``canon sim io``: run the simulated Modbus TCP I/O module(s) on 127.0.0.1 until SIGINT/SIGTERM.
+
+Without ``--config`` it serves the demo machine's module on port 5020; with a machine file, one module
+per ``[[modbus.devices]]`` with ``simulate = true`` (each on its configured port and unit).
+``--port`` overrides the port when there is one module (0 picks a free one; the line
+``listening on 127.0.0.1:PORT`` says which). ``--script FILE`` gives the inputs a behaviour:
+
+```toml
+[[rule]]                 # 0.3 s after coil 0 is written on, discrete input 0 goes on
+on = "coil"              # coil or holding_register
+address = 0
+equals = 1
+after_s = 0.3
+set = "discrete_input"   # coil, discrete_input, holding_register, input_register
+set_address = 0
+value = 1
+# device = "io"          # optional: only that module
+
+[[at]]                   # 1 s after start, input register 2 becomes 1234
+after_s = 1.0
+set = "input_register"
+set_address = 2
+value = 1234
+```
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import queue
+import signal
+import threading
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # heavy imports stay inside run(): `canon check` builds this parser too
+    from fieldbus.modbus.config import ModbusConfig
+    from fieldbus.modbus.sim import Rule
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", metavar="machine.toml", help="machine file (default: the demo machine)")
+    parser.add_argument("--port", type=int, metavar="N", help="TCP port (one module only; 0: any free port)")
+    parser.add_argument("--script", metavar="FILE", help="TOML file of rules and timed input changes")
+    parser.add_argument("--size", type=int, default=256, metavar="N",
+                        help="entries in each table (coils, inputs, registers); default 256")
+    parser.add_argument("--log-writes", action="store_true", help="print every write the module receives")
+
+
+def run(args: argparse.Namespace) -> int:
+    # Every line goes through one printer thread: whole lines in order, and a reader that falls
+    # behind on the pipe never stalls a module's event loop (which logs its writes).
+    lines: queue.SimpleQueue[str | None] = queue.SimpleQueue()
+
+    def printer() -> None:
+        while (text := lines.get()) is not None:
+            with contextlib.suppress(BrokenPipeError, ValueError):  # reader gone: keep draining
+                print(text, flush=True)
+
+    say = lines.put
+    printer_thread = threading.Thread(target=printer, name="sim-io-log", daemon=True)
+    printer_thread.start()
+    try:
+        return _serve(args, say)
+    finally:
+        lines.put(None)
+        printer_thread.join(5.0)
+
+
+def _serve(args: argparse.Namespace, say: Callable[[str], None]) -> int:
+    from fieldbus.modbus.sim import SimIoModule, size_for
+    from motiond.cli import UserError
+    from motiond.config_modbus import demo_modbus, read_modbus
+    from motiond.configkit import Table, load_toml
+
+    cfg: ModbusConfig | None = None
+    if args.config:
+        cfg = read_modbus(Table(load_toml(args.config), args.config))
+        if cfg is None:
+            raise UserError(f"{args.config}: no [[modbus.devices]] to simulate")
+        devices = [d for d in cfg.devices if d.simulate]
+        if not devices:
+            raise UserError(f"{args.config}: no [[modbus.devices]] has simulate = true")
+    else:
+        devices = list(demo_modbus().devices)
+    if args.port is not None:
+        if len(devices) != 1:
+            raise UserError("--port needs exactly one simulated device")
+        if not 0 <= args.port <= 65535:
+            raise UserError(f"--port must be 0..65535, got {args.port}")
+    if not 1 <= args.size <= 4096:
+        raise UserError(f"--size must be 1..4096, got {args.size}")
+    rules, timed = _read_script(args.script) if args.script else ([], [])
+    for _dev, rule in rules:
+        if max(rule.when_address, rule.set_address) >= args.size:
+            raise UserError(f"{args.script}: a rule uses an address beyond --size {args.size}")
+    for _dev, item in timed:
+        if item[2] >= args.size:
+            raise UserError(f"{args.script}: an [[at]] entry uses an address beyond --size {args.size}")
+
+    modules: list[tuple[str, SimIoModule]] = []
+    for dev in devices:
+        port = args.port if args.port is not None else dev.port
+        mine = [r for name, r in rules if name in ("", dev.name)]
+        size = size_for(cfg, dev.name, args.size) if cfg is not None else args.size
+        modules.append((dev.name, SimIoModule(host="127.0.0.1", port=port, unit=dev.unit, size=size,
+                                              rules=mine)))
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        for name, mod in modules:
+            if args.log_writes:  # one flushed line per write, for tests reading a pipe
+                mod.add_listener(lambda rec, name=name: say(
+                    f"{rec.t:.6f} {name}: write {rec.table} {rec.address} = "
+                    f"{' '.join(map(str, rec.values))}"))
+            try:
+                mod.start()
+            except OSError as exc:
+                raise UserError(str(exc)) from None
+            for dev_name, (after_s, table, address, value) in timed:
+                if dev_name in ("", name):
+                    mod.schedule(after_s, table, address, value)
+            say(f"simulated I/O module {name!r} (unit {mod.unit}) listening on {mod.host}:{mod.port}")
+        say("stop with Ctrl-C")
+        while not stop.wait(0.5):
+            pass
+    finally:
+        for _name, mod in modules:
+            mod.stop()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    say("stopped")
+    return 0
+
+
+def _read_script(path: str) -> tuple[list[tuple[str, Rule]], list[tuple[str, tuple[float, str, int, int]]]]:
+    """Rules and timed changes from a script file; errors name the file and the key."""
+    from fieldbus.modbus.sim import TABLES, WRITABLE, Rule
+    from motiond.configkit import Table, load_toml, non_negative, one_of
+
+    root = Table(load_toml(path), path)
+    rules: list[tuple[str, Rule]] = []
+    timed: list[tuple[str, tuple[float, str, int, int]]] = []
+    for t in root.array_of_tables("rule"):
+        rule = Rule(
+            when_table=t.get("on", str, check=one_of(*WRITABLE)),
+            when_address=t.get("address", int, check=_addr),
+            equals=int(t.get("equals", int)),
+            after_s=t.get("after_s", float, 0.0, check=non_negative),
+            set_table=t.get("set", str, check=one_of(*TABLES)),
+            set_address=t.get("set_address", int, check=_addr),
+            value=t.get("value", int, check=_value),
+        )
+        rules.append((t.get("device", str, ""), rule))
+        t.check_unknown()
+    for t in root.array_of_tables("at"):
+        item = (t.get("after_s", float, check=non_negative), t.get("set", str, check=one_of(*TABLES)),
+                t.get("set_address", int, check=_addr), t.get("value", int, check=_value))
+        timed.append((t.get("device", str, ""), item))
+        t.check_unknown()
+    root.check_unknown()
+    return rules, timed
+
+
+def _addr(v: int) -> str | None:
+    return None if 0 <= v <= 4095 else "must be an address 0..4095"
+
+
+def _value(v: int) -> str | None:
+    return None if 0 <= v <= 65535 else "must be 0..65535 (a bit is 0 or 1)"
+
