@@ -1,0 +1,86 @@
+"""The machine file: ``[machine]`` and ``[axes.*]`` read into the planner's dataclasses.
+
+The other top-level tables (``[canopen]``, ``[modbus]``, ``[telemetry]``) belong to later layers; they
+are kept as :class:`~motiond.configkit.Table` objects for their own readers (``motiond.config_canopen``,
+``motiond.config_modbus`` ...), which validate them. Unknown top-level tables are rejected here, so a
+typo such as ``[axis.x]`` is an error rather than a silently ignored section.
+
+With no file, :data:`planner.machine.DEMO_MACHINE` is the machine and the other sections are empty
+(each layer then uses its built-in demo defaults).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from gcode_canon.commands import AXES
+from motiond.configkit import ConfigError, Table, in_range, load_toml, positive
+from planner.machine import DEMO_MACHINE, AxisLimits, MachineError, MachineLimits
+
+TOP_LEVEL = ("machine", "axes", "canopen", "modbus", "telemetry")
+
+
+@dataclass(frozen=True)
+class MachineConfig:
+    """Everything the machine file says; ``path`` is None for the built-in demo machine."""
+
+    limits: MachineLimits
+    path: str | None
+    canopen: Table
+    modbus: Table
+    telemetry: Table
+    root: Table | None = None
+    """The whole file, for readers that take it (``read_canopen(root, ...)``); empty for the demo."""
+
+    @property
+    def name(self) -> str:
+        return self.limits.name
+
+
+AXIS_KEYS = ("max_velocity", "max_acceleration", "max_jerk", "min_position", "max_position",
+             "quick_stop_deceleration")
+
+
+def _axis(name: str, t: Table) -> AxisLimits:
+    if name not in AXES:
+        raise ConfigError(t.file, t.path, f"not an axis name (one of {' '.join(AXES)})")
+    for key in t.data:
+        if key not in AXIS_KEYS:  # before the required keys: a misspelt key is the likelier mistake
+            raise t.error(key, "unknown key (misspelt?)")
+    velocity = t.get("max_velocity", float, check=positive)
+    acceleration = t.get("max_acceleration", float, check=positive)
+    jerk = t.get("max_jerk", float, check=positive)
+    lo = t.get("min_position", float, default=None)
+    hi = t.get("max_position", float, default=None)
+    quick = t.get("quick_stop_deceleration", float, default=None, check=positive)
+    if lo is not None and hi is not None and lo >= hi:
+        raise t.error("min_position", f"must be below max_position ({hi:g}), got {lo:g}")
+    t.check_unknown()
+    return AxisLimits(name, velocity, acceleration, jerk, lo, hi, quick)
+
+
+def load_machine(path: str | None) -> MachineConfig:
+    """Read and check the machine file (None: the demo machine). Errors name the file and the key."""
+    if path is None:
+        return MachineConfig(DEMO_MACHINE, None, Table({}, "", "canopen"), Table({}, "", "modbus"),
+                             Table({}, "", "telemetry"), Table({}, ""))
+    file = str(path)
+    root = Table(load_toml(path), file)
+    for key in root.data:
+        if key not in TOP_LEVEL:
+            raise root.error(key, f"unknown table (expected one of {', '.join(TOP_LEVEL)})")
+    machine = root.table("machine")
+    name = machine.get("name", str, default="machine")
+    cycle_ms = machine.get("cycle_ms", float, default=2.0, check=in_range(1.0, 10.0))
+    machine.check_unknown()
+    if "axes" not in root:
+        raise root.error("axes", "missing: the machine needs at least one [axes.NAME] table")
+    axes = [_axis(axis_name, t) for axis_name, t in root.tables("axes")]
+    if not axes:
+        raise root.error("axes", "empty: the machine needs at least one [axes.NAME] table")
+    try:
+        limits = MachineLimits(tuple(axes), cycle_s=cycle_ms / 1000.0, name=name)
+    except MachineError as exc:
+        raise root.error("axes", str(exc)) from None
+    return MachineConfig(limits, file, root.table("canopen"), root.table("modbus"), root.table("telemetry"),
+                         Table(root.data, file))

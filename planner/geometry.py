@@ -1,0 +1,177 @@
+"""Path geometry along one parameter ``s``: lines, arcs/helices and corner blends.
+
+Every piece maps ``s`` in ``[0, length]`` to the positions of the configured axes (a list in the
+machine's axis order) and knows bounds on the first three derivatives of each axis with respect to
+``s``. Those bounds are all the planner needs to turn axis limits into limits along the path: with
+path speed v, acceleration a and jerk j, axis i moves with
+
+    velocity     q' v
+    acceleration q'' v^2 + q' a
+    jerk         q''' v^3 + 3 q'' v a + q' j
+
+``s`` is the length over the linear axes X Y Z (or U V W, or the rotary axes when nothing else moves),
+so that a feed in units per minute is a speed along ``s``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+Vec = tuple[float, ...]
+
+# Quintic smoothstep sigma(x) = 10x^3 - 15x^4 + 6x^5 and its integral; its first derivative peaks at
+# 15/8, its second at 10/sqrt(3). A blend built on it has zero curvature at both ends.
+SIGMA1_MAX = 15.0 / 8.0
+SIGMA2_MAX = 10.0 / math.sqrt(3.0)
+SIGMA_INT_HALF = 0.078125  # integral of sigma from 0 to 1/2
+
+
+def path_length(delta: Sequence[float], groups: Sequence[Sequence[int]]) -> float:
+    """Length of a move ``delta`` (per configured axis) measured over the first group that moves."""
+    for group in groups:
+        length = math.sqrt(sum(delta[i] * delta[i] for i in group))
+        if length > 0.0:
+            return length
+    return 0.0
+
+
+@dataclass(slots=True)
+class Piece:
+    """Common data: the derivative bounds (per axis) and the end tangents/curvatures."""
+
+    length: float
+    start: Vec
+    end: Vec
+    d1_start: Vec
+    d1_end: Vec
+    d2_start: Vec
+    d2_end: Vec
+    d1_max: Vec
+    d2_max: Vec
+    d3_max: Vec
+
+    def pos(self, s: float) -> list[float]:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+
+class Line(Piece):
+    """A straight move from ``start`` to ``end``; ``s`` runs over ``length``."""
+
+    __slots__ = ("_dir",)
+
+    def __init__(self, start: Vec, end: Vec, length: float) -> None:
+        n = len(start)
+        d = tuple((end[i] - start[i]) / length for i in range(n))
+        zero = (0.0,) * n
+        super().__init__(length, tuple(start), tuple(end), d, d, zero, zero,
+                         tuple(abs(x) for x in d), zero, zero)
+        self._dir = d
+
+    def pos(self, s: float) -> list[float]:
+        if s >= self.length:
+            return list(self.end)
+        if s <= 0.0:
+            return list(self.start)
+        st, d = self.start, self._dir
+        return [st[i] + d[i] * s for i in range(len(st))]
+
+
+class Arc(Piece):
+    """An arc or helix: in-plane angle linear in ``s``, radius linear in angle (start and end radii may
+    differ by the interpreter's tolerance), every other axis linear in angle."""
+
+    __slots__ = ("_c0", "_c1", "_dr", "_i0", "_i1", "_k", "_lin", "_r0", "_th0")
+
+    def __init__(self, start: Vec, end: Vec, i0: int, i1: int, c0: float, c1: float,
+                 sweep: float, length: float) -> None:
+        n = len(start)
+        self._i0, self._i1, self._c0, self._c1 = i0, i1, c0, c1
+        r0 = math.hypot(start[i0] - c0, start[i1] - c1)
+        r1 = math.hypot(end[i0] - c0, end[i1] - c1)
+        self._r0, self._dr = r0, (r1 - r0) / length  # radius per unit s
+        self._th0 = math.atan2(start[i1] - c1, start[i0] - c0)
+        self._k = sweep / length  # radians per unit s
+        self._lin = tuple(
+            (end[i] - start[i]) / length if i not in (i0, i1) else 0.0 for i in range(n))
+        k, dr, rmax = abs(self._k), abs(self._dr), max(r0, r1)
+        d1 = [abs(x) for x in self._lin]
+        d2 = [0.0] * n
+        d3 = [0.0] * n
+        for i in (i0, i1):
+            d1[i] = rmax * k + dr
+            d2[i] = rmax * k * k + 2.0 * dr * k
+            d3[i] = rmax * k ** 3 + 3.0 * dr * k * k
+        super().__init__(length, tuple(start), tuple(end), self._deriv(0.0, 1), self._deriv(length, 1),
+                         self._deriv(0.0, 2), self._deriv(length, 2), tuple(d1), tuple(d2), tuple(d3))
+
+    def _deriv(self, s: float, order: int) -> Vec:
+        th = self._th0 + self._k * s
+        r = self._r0 + self._dr * s
+        k, dr = self._k, self._dr
+        c, sn = math.cos(th), math.sin(th)
+        out = list(self._lin) if order == 1 else [0.0] * len(self._lin)
+        if order == 1:
+            out[self._i0] = dr * c - r * k * sn
+            out[self._i1] = dr * sn + r * k * c
+        else:
+            out[self._i0] = -2.0 * dr * k * sn - r * k * k * c
+            out[self._i1] = 2.0 * dr * k * c - r * k * k * sn
+        return tuple(out)
+
+    def pos(self, s: float) -> list[float]:
+        if s >= self.length:
+            return list(self.end)
+        if s <= 0.0:
+            return list(self.start)
+        st, lin = self.start, self._lin
+        out = [st[i] + lin[i] * s for i in range(len(st))]
+        th = self._th0 + self._k * s
+        r = self._r0 + self._dr * s
+        out[self._i0] = self._c0 + r * math.cos(th)
+        out[self._i1] = self._c1 + r * math.sin(th)
+        return out
+
+
+class Blend(Piece):
+    """A corner blend between two lines: ``P(s) = A + 2d [w1 x + (w2 - w1) Sigma(x)]``, ``x = s / 2d``.
+
+    ``w1`` and ``w2`` are the lines' ``dq/ds``; the blend starts ``d`` before the corner on the first
+    line and ends ``d`` after it on the second, tangent to both with zero curvature at both ends, so
+    neither velocity nor acceleration steps where it meets the lines. Its farthest point from the
+    corner is ``2d * SIGMA_INT_HALF * |w2 - w1|`` away. ``s`` is not arc length here: the
+    Cartesian speed is at most the path speed (the chord of the turn).
+    """
+
+    __slots__ = ("_a", "_dw", "_span", "_w1")
+
+    def __init__(self, corner: Vec, w1: Vec, w2: Vec, d: float) -> None:
+        n = len(corner)
+        span = 2.0 * d
+        self._a = tuple(corner[i] - d * w1[i] for i in range(n))
+        self._w1 = tuple(w1)
+        self._dw = tuple(w2[i] - w1[i] for i in range(n))
+        self._span = span
+        end = tuple(corner[i] + d * w2[i] for i in range(n))
+        zero = (0.0,) * n
+        d1 = tuple(max(abs(w1[i]), abs(w2[i])) for i in range(n))
+        d2 = tuple(abs(x) * SIGMA1_MAX / span for x in self._dw)
+        d3 = tuple(abs(x) * SIGMA2_MAX / span ** 2 for x in self._dw)
+        super().__init__(span, self._a, end, tuple(w1), tuple(w2), zero, zero, d1, d2, d3)
+
+    def pos(self, s: float) -> list[float]:
+        if s >= self.length:
+            return list(self.end)
+        if s <= 0.0:
+            return list(self.start)
+        x = s / self._span
+        x3 = x * x * x
+        big = x3 * x * (2.5 + x * (-3.0 + x))  # integral of the smoothstep: 2.5x^4 - 3x^5 + x^6
+        a, w1, dw, span = self._a, self._w1, self._dw, self._span
+        return [a[i] + span * (w1[i] * x + dw[i] * big) for i in range(len(a))]
+
+
+def deviation_of_blend(w1: Vec, w2: Vec, d: float, linear: Sequence[int]) -> float:
+    """Distance of a blend's middle from its corner, over the ``linear`` axes."""
+    return 2.0 * d * SIGMA_INT_HALF * math.sqrt(sum((w2[i] - w1[i]) ** 2 for i in linear))
