@@ -112,6 +112,7 @@ class CommandServer:
         self.replies = 0
         self.refused = 0
         self.bad_messages = 0
+        self.errors = 0
         self._subscription: Any = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -176,4 +177,11 @@ class CommandServer:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            self.lc.handle_timeout(50)
+            try:
+                self.lc.handle_timeout(50)
+            except Exception:
+                # An LCM error (a failed publish of a reply, a socket hiccup) must not end command
+                # handling for the life of the daemon: count it, log it, keep serving.
+                self.errors += 1
+                log.exception("command server: handling LCM traffic failed; still serving")
+                self._stop.wait(0.05)

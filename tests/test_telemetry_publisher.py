@@ -414,3 +414,39 @@ def test_config_from_a_table_names_file_and_key() -> None:
         TelemetryConfig.from_table(Table({"status_hz": -1}, "m.toml", "telemetry"))
     with pytest.raises(ConfigError, match=r"^m\.toml: telemetry\.rate: unknown key"):
         TelemetryConfig.from_table(Table({"rate": 5}, "m.toml", "telemetry"))
+
+
+def test_command_server_survives_an_lcm_error() -> None:
+    """A failure inside LCM handling is counted and logged; the server thread keeps serving."""
+    import time
+
+    from telemetry.commands import CommandServer
+
+    class FlakyLcm:
+        def __init__(self) -> None:
+            self.calls = 0
+
+        def subscribe(self, channel: str, callback: object) -> object:
+            return object()
+
+        def unsubscribe(self, sub: object) -> None:
+            pass
+
+        def handle_timeout(self, ms: int) -> int:
+            self.calls += 1
+            if self.calls == 1:
+                raise OSError("lcm_handle_timeout() returned -1")
+            time.sleep(ms / 1000)
+            return 0
+
+    lc = FlakyLcm()
+    server = CommandServer(lc, lambda cmd: None, url="memq://").start()
+    try:
+        deadline = time.monotonic() + 5
+        while lc.calls < 3 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert server.errors == 1
+        assert lc.calls >= 3
+        assert server._thread is not None and server._thread.is_alive()
+    finally:
+        server.stop()
