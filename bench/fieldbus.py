@@ -1,0 +1,198 @@
+"""Cycle timing of the CANopen master with simulated drives on python-can's virtual bus.
+
+For 3 and 6 drives at 4, 2 and 1 ms: the achieved period, the cycle start's lateness after its
+absolute deadline (p50, p99, p99.9, max: the jitter the drives see on SYNC), missed cycles (late by
+more than half a period, or skipped), the drives' missed setpoints, and the master's CPU use (its
+cycle thread, spinning included, and its bus reader thread). The reference row of each period is the
+same periodic thread with an empty step: the floor this machine's scheduler sets.
+
+The virtual bus has no bitrate: the bus load column is what the configuration would put on a
+1 Mbit/s bus (the master refuses over 70 % there; here it is only reported).
+
+    python bench/fieldbus.py              # 30 s per case
+    python bench/fieldbus.py --seconds 5
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+import numpy as np  # noqa: E402
+from rich.console import Console  # noqa: E402
+from rich.table import Table  # noqa: E402
+
+from fieldbus.canopen.clock import PeriodicRunner  # noqa: E402
+from fieldbus.canopen.config import CanBusConfig, CanopenConfig, DriveConfig  # noqa: E402
+from fieldbus.canopen.drive_sim import SimDrive  # noqa: E402
+from fieldbus.canopen.master import CanopenMaster  # noqa: E402
+from fieldbus.canopen.sim_process import SimBus  # noqa: E402
+
+
+def thread_cpu(thread) -> float:
+    try:
+        return time.clock_gettime(time.pthread_getcpuclockid(thread.ident))
+    except (OSError, AttributeError, TypeError):
+        return math.nan
+
+
+def row(label: str, runner: PeriodicRunner, seconds: float, extra: dict) -> dict:
+    st = runner.stats
+    late = np.array(st.lateness) * 1e6
+    return {
+        "case": label,
+        "period": f"{1000 * st.achieved_period_s:.4f}",
+        "p50": f"{np.percentile(late, 50):.0f}",
+        "p99": f"{np.percentile(late, 99):.0f}",
+        "p999": f"{np.percentile(late, 99.9):.0f}",
+        "max": f"{late.max():.0f}",
+        "missed": str(st.late + st.skipped),
+        **extra,
+    }
+
+
+RT = 0
+
+
+def reference(period: float, seconds: float) -> dict:
+    runner = PeriodicRunner(period, lambda k, t: None, cycles=round(seconds / period),
+                            realtime_priority=RT).start()
+    runner.join(seconds * 3 + 10)
+    return row(f"reference (empty step) {1000 * period:g} ms", runner, seconds,
+               {"setpoints": "-", "cpu": f"{100 * runner.stats.cpu_s / seconds:.0f}", "work": "-",
+                "load": "-"})
+
+
+class DriveProcess:
+    """``canon sim drives`` on udp_multicast in a child process (the master's process then holds only
+    the master); its report of missed setpoints is read when it ends."""
+
+    def __init__(self, n: int, group: str, tmp: Path) -> None:
+        text = "".join(f"[axes.{'xyzabc'[i]}]\n" for i in range(n))
+        text += f'[canopen]\ninterface = "udp_multicast"\nchannel = "{group}"\n'
+        text += "".join(f"[canopen.axes.{'xyzabc'[i]}]\nnode_id = {i + 1}\n" for i in range(n))
+        (tmp / "bench.toml").write_text(text)
+        self.proc = subprocess.Popen([sys.executable, "-m", "motiond.cli", "sim", "drives", "--config",
+                                      str(tmp / "bench.toml")], cwd=ROOT, stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True)
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline()
+        if not line.startswith("simulating"):
+            raise SystemExit(f"canon sim drives did not start: {line}{self.proc.stderr.read()}")
+
+    def close(self) -> int:
+        self.proc.terminate()
+        try:
+            _, err = self.proc.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            _, err = self.proc.communicate(timeout=10)
+        return sum(int(m) for m in re.findall(r"missed setpoints (\d+)", err))
+
+
+def case(n: int, period: float, seconds: float, interface: str = "virtual") -> dict:
+    drives = tuple(DriveConfig("xyzabc"[i], i + 1) for i in range(n))
+    if interface == "virtual":
+        bus = CanBusConfig("virtual", f"bench-{os.getpid()}-{n}-{period}")
+    else:
+        bus = CanBusConfig("udp_multicast", f"239.74.165.{1 + os.getpid() % 250}")
+    config = CanopenConfig(bus, drives, cycle_s=period, feedback_timeout_s=1.0, heartbeat_consumer_ms=2000)
+    tmp = tempfile.TemporaryDirectory()
+    sims: SimBus | DriveProcess
+    if interface == "virtual":
+        sims = SimBus([SimDrive(i + 1) for i in range(n)], config.bus)
+    else:
+        sims = DriveProcess(n, bus.channel, Path(tmp.name))
+    master = CanopenMaster(config, check_budget=False)
+    missed_setpoints = 0
+    try:
+        master.boot()
+        master.enable()
+        start = master.positions()
+
+        done = [0]  # setpoints sent: after a stall the trajectory continues, it does not jump
+
+        def step(k: int, t: float) -> None:
+            s = 10.0 * math.sin(2 * math.pi * 0.5 * done[0] * period)  # 10 mm amplitude, 0.5 Hz
+            done[0] += 1
+            master.cycle([p + s for p in start])
+
+        reader = master.network.notifier._readers[0]
+        cpu0 = thread_cpu(reader)
+        runner = PeriodicRunner(period, step, cycles=round(seconds / period), realtime_priority=RT).start()
+        runner.join(seconds * 3 + 10)
+        reader_cpu = thread_cpu(reader) - cpu0
+        if isinstance(sims, SimBus):
+            missed_setpoints = sum(d.missed_setpoints for d in sims.drives.values())
+        fault = master.fault
+        if fault is not None:
+            print(f"{n} drives, {1000 * period:g} ms: master fault: {fault}", file=sys.stderr)
+    finally:
+        master.shutdown()
+        if isinstance(sims, SimBus):
+            sims.close()
+        else:
+            missed_setpoints = sims.close()
+        tmp.cleanup()
+    st = runner.stats
+    return row(f"{n} drives, {1000 * period:g} ms", runner, seconds, {
+        "setpoints": str(missed_setpoints) + (" (fault)" if fault else ""),
+        "cpu": f"{100 * (st.cpu_s + reader_cpu) / seconds:.0f}",
+        "work": f"{1e6 * st.work_s / max(st.cycles, 1):.0f}",
+        "load": f"{100 * master.load.fraction:.0f}",
+    })
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seconds", type=float, default=30.0, help="length of each case (default 30)")
+    ap.add_argument("--drives", default="3,6", help="drive counts (default 3,6)")
+    ap.add_argument("--periods-ms", default="4,2,1", help="cycle periods (default 4,2,1)")
+    ap.add_argument("--rt-priority", type=int, default=0,
+                    help="SCHED_FIFO priority of the cycle thread (needs root; default 0: normal)")
+    ap.add_argument("--switch-interval-ms", type=float, default=0.5,
+                    help="the interpreter's thread switch interval (default 0.5; Python's own is 5)")
+    ap.add_argument("--bus", choices=("virtual", "udp_multicast"), default="virtual",
+                    help="udp_multicast: the drives in another process (`canon sim drives`); run it inside "
+                         "tests/netns-run")
+    args = ap.parse_args()
+    if args.bus == "udp_multicast" and os.environ.get("CANON_NETNS") != "1":
+        ap.error("--bus udp_multicast joins a multicast group: run it as tests/netns-run python "
+                 "bench/fieldbus.py --bus udp_multicast")
+    global RT
+    RT = args.rt_priority
+    sys.setswitchinterval(args.switch_interval_ms / 1000.0)
+    rows = []
+    for period_ms in (float(p) for p in args.periods_ms.split(",")):
+        rows.append(reference(period_ms / 1000.0, min(args.seconds, 10.0)))
+        for n in (int(x) for x in args.drives.split(",")):
+            rows.append(case(n, period_ms / 1000.0, args.seconds, args.bus))
+    where = "virtual bus, drives in this process" if args.bus == "virtual" else \
+        "udp_multicast, drives in another process"
+    table = Table(title=f"CANopen master, {where}, {args.seconds:g} s per case, {os.cpu_count()} CPUs, "
+                        f"load average {os.getloadavg()[0]:.1f}, SCHED_FIFO {RT or 'off'}, switch interval "
+                        f"{args.switch_interval_ms:g} ms")
+    cols = [("case", "case"), ("period", "period ms"), ("p50", "late p50 us"), ("p99", "p99 us"),
+            ("p999", "p99.9 us"), ("max", "max us"), ("missed", "missed cycles"),
+            ("setpoints", "drive missed setpoints"), ("cpu", "master CPU %"), ("work", "cycle work us"),
+            ("load", "bus load % at 1 Mbit/s")]
+    for _, title in cols:
+        table.add_column(title, justify="right")
+    for r in rows:
+        table.add_row(*(r[k] for k, _ in cols))
+    Console(width=170).print(table)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

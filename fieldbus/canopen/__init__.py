@@ -1,0 +1,11 @@
+"""CANopen side of ``fieldbus``: a CiA 402 master streaming CSP setpoints, and simulated drives.
+
+``config`` holds the typed configuration, ``cia402`` the drive state machine shared by master and
+simulator, ``busload`` the bus budget, ``master`` the master, ``clock`` the absolute-deadline periodic
+runner, ``drive_sim`` one simulated drive and ``sim_process`` several of them on one bus.
+"""
+
+from pathlib import Path
+
+#: The EDS of the simulated drive, used when a drive's configuration names none.
+SHIPPED_EDS = Path(__file__).resolve().parent / "eds" / "cia402_drive.eds"

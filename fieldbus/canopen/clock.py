@@ -1,0 +1,156 @@
+"""A periodic thread on absolute deadlines, which notices when it is late.
+
+``sleep(period)`` in a loop drifts by the work's duration and hides stalls; here the k-th cycle is due
+at ``t0 + k * period``: the thread sleeps until shortly before the deadline and spins the rest (Python's
+sleep overshoots by 50-100 us typically, by milliseconds under load). A cycle that starts later than
+``late_s`` after its deadline is *late*: counted, and reported to ``on_late`` (the daemon and
+:func:`stream` make it a master fault: a drive that missed its SYNC window is not safe to keep
+streaming to). Deadlines missed entirely are skipped, never made up in a burst.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class CycleStats:
+    """Per-cycle wake-up lateness (seconds after the deadline) and counts."""
+
+    period_s: float
+    cycles: int = 0
+    late: int = 0
+    skipped: int = 0
+    lateness: list[float] = field(default_factory=list)
+    started: float = 0.0
+    ended: float = 0.0
+    cpu_s: float = 0.0
+    work_s: float = 0.0  # time spent inside step (the rest is sleeping and spinning to the deadline)
+
+    @property
+    def achieved_period_s(self) -> float:
+        return (self.ended - self.started) / self.cycles if self.cycles else 0.0
+
+
+class PeriodicRunner:
+    """Call ``step(k, t)`` every ``period_s`` on its own thread (``k``: deadline number, ``t``: the
+    deadline, ``time.monotonic`` seconds) until :meth:`stop`, ``cycles`` steps are done, or ``step``
+    returns ``False``."""
+
+    def __init__(self, period_s: float, step: Callable[[int, float], bool | None], *,
+                 cycles: int | None = None, late_s: float | None = None,
+                 on_late: Callable[[int, float], None] | None = None, spin_s: float = 0.0003,
+                 keep_lateness: bool = True, name: str = "canopen-cycle",
+                 realtime_priority: int = 0) -> None:
+        if period_s <= 0:
+            raise ValueError("period must be > 0")
+        self.period_s = period_s
+        self.step = step
+        self.cycles = cycles
+        self.late_s = period_s / 2 if late_s is None else late_s
+        self.on_late = on_late
+        self.spin_s = spin_s
+        self.keep_lateness = keep_lateness
+        self.realtime_priority = realtime_priority
+        self.realtime = False  # True when the thread got SCHED_FIFO
+        self.stats = CycleStats(period_s)
+        self.error: BaseException | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+
+    def start(self) -> PeriodicRunner:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def join(self, timeout: float | None = None) -> bool:
+        """Wait for the end; True when the thread has ended."""
+        self._thread.join(timeout)
+        return not self._thread.is_alive()
+
+    def _set_realtime(self) -> None:
+        """SCHED_FIFO for this thread (Linux, root or CAP_SYS_NICE): the kernel then wakes it ahead
+        of ordinary threads; it still needs the interpreter lock (see ``sys.setswitchinterval``)."""
+        if not self.realtime_priority:
+            return
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.realtime_priority))
+            self.realtime = True
+        except (AttributeError, OSError) as exc:
+            log.warning("cycle thread stays at normal priority (SCHED_FIFO %d refused: %s)",
+                        self.realtime_priority, exc)
+
+    def _run(self) -> None:
+        self._set_realtime()
+        st = self.stats
+        period = self.period_s
+        cpu0 = time.thread_time()
+        t0 = time.monotonic() + period
+        st.started = t0
+        k = 0
+        try:
+            while not self._stop.is_set() and (self.cycles is None or st.cycles < self.cycles):
+                deadline = t0 + k * period
+                now = time.monotonic()
+                if deadline - now > self.spin_s:
+                    time.sleep(deadline - now - self.spin_s)
+                while (now := time.monotonic()) < deadline:
+                    pass
+                late = now - deadline
+                if self.keep_lateness:
+                    st.lateness.append(late)
+                if late > self.late_s:
+                    st.late += 1
+                    if self.on_late is not None:
+                        self.on_late(k, late)
+                st.cycles += 1
+                result = self.step(k, deadline)
+                st.work_s += time.monotonic() - now
+                if result is False:
+                    break
+                k += 1
+                behind = int((time.monotonic() - (t0 + k * period)) // period)
+                if behind > 0:  # deadlines already gone: late, and skipped (never a burst to catch up)
+                    st.late += 1
+                    st.skipped += behind
+                    if self.on_late is not None:
+                        self.on_late(k, time.monotonic() - (t0 + k * period))
+                    k += behind
+        except BaseException as exc:  # reported to the caller through .error
+            self.error = exc
+            log.exception("periodic step failed")
+        finally:
+            st.ended = time.monotonic()
+            st.cpu_s = time.thread_time() - cpu0
+
+
+def stream(master, trajectory: Callable[[float], Sequence[float]], seconds: float, *,
+           fault_on_late: bool = True, late_s: float | None = None) -> PeriodicRunner:
+    """Stream ``trajectory(t)`` (positions at ``t`` seconds from the start, ``t`` advancing one period per
+    executed cycle) to ``master`` for ``seconds`` worth of cycles on a :class:`PeriodicRunner`; started,
+    not joined. A late cycle is a master fault unless
+    ``fault_on_late`` is False."""
+    period = master.config.cycle_s
+    n = max(1, round(seconds / period))
+    sent = [0]
+
+    def step(k: int, deadline: float) -> None:
+        # one setpoint per executed cycle, as from the planner: after skipped deadlines the trajectory
+        # carries on from where it was (a jump would fault the drives)
+        master.cycle(trajectory(sent[0] * period))
+        sent[0] += 1
+
+    def late(k: int, by: float) -> None:
+        if fault_on_late:
+            master.raise_fault(0, f"cycle {k} late by {1000 * by:.2f} ms (period {1000 * period:g} ms)")
+
+    return PeriodicRunner(period, step, cycles=n, late_s=late_s, on_late=late).start()

@@ -1,0 +1,636 @@
+"""The CANopen CiA 402 master: boots the drives, streams a target per drive per cycle, stops on faults.
+
+Life of a master (the daemon's loop thread calls :meth:`CanopenMaster.cycle` once per cycle)::
+
+    master = CanopenMaster(config)          # refuses a bus load over config.max_bus_load
+    master.open(); master.boot(); master.enable()
+    fb = master.cycle(positions)            # RPDO per drive (target, controlword), then one SYNC
+    ...                                     # on a fault: master.fault, drives quick-stopped
+    master.reset_faults(); master.enable()  # and stream again from master.positions()
+    master.shutdown()
+
+Design choices:
+
+* Boot and enable use SDO (0x6040/0x6041) before streaming starts; once streaming, the controlword
+  travels in the RPDO with the target, so an SDO write could not override it.
+* All RPDOs of a cycle are sent before its SYNC, so the targets of every drive land in the same SYNC
+  period (the drive latches on SYNC).
+* Counts are converted from absolute positions each cycle (``AxisScale``): no drift.
+* Quick stop (on any fault, or asked for): every drive gets the CiA 402 quick-stop controlword at once
+  and no new target is streamed; the drives decelerate on their own 0x6085 ramp and, with quick-stop
+  option 6 that boot writes to 0x605A, stay in Quick stop active holding position (a vertical axis
+  does not drop). The master keeps the last commanded positions; the planner restarts from
+  :meth:`positions` after :meth:`reset_faults` and :meth:`enable`.
+* Faults are reported once (the first, which caused the stop) in :attr:`fault`; later ones go to
+  :attr:`fault_log`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import struct
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import can
+import canopen
+from canopen.sdo import SdoAbortedError, SdoCommunicationError
+
+from fieldbus.canopen import cia402
+from fieldbus.canopen.busload import BusLoad, bus_load
+from fieldbus.canopen.cia402 import State
+from fieldbus.canopen.config import AxisScale, CanopenConfig, DriveConfig
+
+log = logging.getLogger(__name__)
+
+_RPDO = struct.Struct("<iH")  # target position, controlword
+_TPDO1 = struct.Struct("<Hi")  # statusword, position actual
+_TPDO2 = struct.Struct("<i")  # following error actual
+
+
+class CanopenError(Exception):
+    """Boot, enable or homing failed; the message names the node, the axis and what went wrong."""
+
+
+class BusBudgetError(CanopenError):
+    """The configuration would load the bus beyond the allowed fraction."""
+
+
+@dataclass(frozen=True)
+class Fault:
+    node: int
+    axis: str
+    reason: str
+    time: float = field(default_factory=time.monotonic)
+
+    def __str__(self) -> str:
+        who = f"node {self.node} (axis {self.axis})" if self.node else "master"
+        return f"{who}: {self.reason}"
+
+
+@dataclass(frozen=True)
+class DriveState:
+    """What the master knows of one drive, from its latest TPDOs."""
+
+    axis: str
+    node: int
+    state: State
+    statusword: int
+    position: float  # actual, machine units
+    following_error: float  # machine units
+    actual_counts: int
+    commanded: float  # last commanded position, machine units
+
+
+@dataclass(frozen=True)
+class DriveFeedback:
+    """Returned by each :meth:`CanopenMaster.cycle`: the machine state the drives reported."""
+
+    cycle: int
+    positions: tuple[float, ...]
+    following_errors: tuple[float, ...]
+    states: tuple[State, ...]
+    fault: Fault | None
+
+
+class _Drive:
+    """The master's book-keeping for one drive."""
+
+    def __init__(self, cfg: DriveConfig, node: canopen.RemoteNode) -> None:
+        self.cfg = cfg
+        self.node = node
+        self.scale = AxisScale(cfg)
+        self.window = self.scale.distance_counts(cfg.following_error_window)
+        self.rpdo_id = 0x200 + cfg.node_id
+        self.controlword = cia402.CW_ENABLE_OPERATION
+        self.target = 0  # counts, last sent (held on a fault)
+        self.statusword = 0
+        self.actual = 0
+        self.following_error = 0
+        self.feedback_at = 0.0
+        self.heartbeat_at = 0.0
+        self.nmt_state = -1
+        self.enabled_at = math.inf  # TPDOs older than this predate the enable
+        self.booted = threading.Event()
+        self.homing = False
+
+    def describe(self) -> str:
+        return f"node {self.cfg.node_id} (axis {self.cfg.axis})"
+
+
+class CanopenMaster:
+    """Master of the configured drives on one bus. ``bus``: an open python-can bus to use (else one is
+    made from ``config.bus``). ``check_budget=False`` only reports the bus load (benchmarks on the
+    virtual bus, which has no bitrate)."""
+
+    def __init__(self, config: CanopenConfig, bus: can.BusABC | None = None, *,
+                 check_budget: bool = True) -> None:
+        self.config = config
+        self.load: BusLoad = bus_load(len(config.drives), config.cycle_s, config.bus.bitrate,
+                                      config.heartbeat_producer_ms, config.heartbeat_producer_ms)
+        if check_budget and self.load.fraction > config.max_bus_load:
+            raise BusBudgetError(
+                f"bus load {100 * self.load.fraction:.1f} % is over the {100 * config.max_bus_load:.0f} % "
+                f"allowed: {len(config.drives)} drives every {1000 * config.cycle_s:g} ms make "
+                f"{self.load.describe()}; lengthen the cycle or raise the bitrate")
+        log.info("CANopen bus load: %s", self.load.describe())
+        self._bus = bus
+        self._own_bus = bus is None
+        self.network: canopen.Network | None = None
+        self.drives: list[_Drive] = []
+        self.fault: Fault | None = None
+        self.fault_log: list[Fault] = []
+        self.cycles = 0
+        self.streaming = False
+        self._lock = threading.RLock()
+        self._heartbeat_task: canopen.network.PeriodicMessageTask | None = None
+        self._stream_t0 = 0.0  # first streaming cycle: TPDO ages count from there
+        self._fault_listeners: list[Callable[[Fault], None]] = []
+
+    # ------------------------------------------------------------------ set-up
+    def open(self) -> None:
+        """Connect to the bus, add the drives' nodes, start the master's heartbeat."""
+        if self.network is not None:
+            return
+        bus = self._bus or can.Bus(**self.config.bus.bus_kwargs())
+        self._bus = bus
+        net = canopen.Network(bus)
+        net.listeners.append(_ErrorFrameListener(self))
+        net.NOTIFIER_SHUTDOWN_TIMEOUT = 2.0
+        net.connect()
+        self.network = net
+        for cfg in self.config.drives:
+            node = canopen.RemoteNode(cfg.node_id, cfg.eds_path)
+            node.sdo.RESPONSE_TIMEOUT = self.config.sdo_timeout_s
+            node.sdo.MAX_RETRIES = 2  # one retry (0 would retry forever)
+            net.add_node(node)
+            d = _Drive(cfg, node)
+            self.drives.append(d)
+            node.nmt.add_heartbeat_callback(lambda state, d=d: self._on_heartbeat(d, state))
+            node.emcy.add_callback(lambda entry, d=d: self._on_emcy(d, entry))
+            net.subscribe(0x180 + cfg.node_id, lambda cid, data, ts, d=d: self._on_tpdo1(d, data))
+            net.subscribe(0x280 + cfg.node_id, lambda cid, data, ts, d=d: self._on_tpdo2(d, data))
+        if self.config.heartbeat_producer_ms > 0:
+            self._heartbeat_task = net.send_periodic(
+                0x700 + self.config.master_node_id, [0x05], self.config.heartbeat_producer_ms / 1000.0)
+
+    def add_fault_listener(self, callback: Callable[[Fault], None]) -> None:
+        """Called with the first fault after each reset, on the thread that found it (the reader
+        thread, the cycle thread inside :meth:`cycle`, with the master's lock held): keep it short,
+        post the fault somewhere, no SDO from it."""
+        self._fault_listeners.append(callback)
+
+    # ------------------------------------------------------------------ callbacks (reader thread)
+    def _on_heartbeat(self, d: _Drive, state: int) -> None:
+        d.heartbeat_at = time.monotonic()
+        d.nmt_state = state
+        if state == 0:
+            d.booted.set()
+
+    def _on_emcy(self, d: _Drive, entry: canopen.emcy.EmcyError) -> None:
+        if entry.code & 0xFF00 == 0:
+            return  # error reset
+        self.raise_fault(d.cfg.node_id, f"EMCY 0x{entry.code:04X} {entry.get_desc() or 'error'}".rstrip())
+
+    def _on_tpdo1(self, d: _Drive, data: bytearray) -> None:
+        if len(data) >= 6:
+            d.statusword, d.actual = _TPDO1.unpack_from(data)
+            d.feedback_at = time.monotonic()
+
+    def _on_tpdo2(self, d: _Drive, data: bytearray) -> None:
+        if len(data) >= 4:
+            d.following_error = _TPDO2.unpack_from(data)[0]
+
+    # ------------------------------------------------------------------ SDO helpers
+    def _sdo(self, d: _Drive, what: str, index: int, sub: int, fmt: str | None = None,
+             value: int | None = None) -> int:
+        where = f"0x{index:04X}:{sub:02X} ({what})"
+        try:
+            if fmt is not None and value is not None:
+                d.node.sdo.download(index, sub, struct.pack("<" + fmt, value))
+                return value
+            raw = d.node.sdo.upload(index, sub)
+        except SdoAbortedError as exc:
+            raise CanopenError(f"{d.describe()}: SDO {'write' if value is not None else 'read'} of {where} "
+                               f"aborted by the drive: 0x{exc.code:08X} {exc}") from None
+        except SdoCommunicationError:
+            raise CanopenError(f"{d.describe()}: SDO {'write' if value is not None else 'read'} of {where} "
+                               f"timed out: no answer in {self.config.sdo_timeout_s:g} s (twice)") from None
+        if fmt is None:
+            fmt = {1: "B", 2: "H", 4: "I"}.get(len(raw), "I")
+        return struct.unpack_from("<" + fmt, raw.ljust(struct.calcsize(fmt), b"\0"))[0]
+
+    def _statusword(self, d: _Drive) -> int:
+        return self._sdo(d, "statusword", 0x6041, 0, "H")
+
+    # ------------------------------------------------------------------ boot
+    def boot(self) -> None:
+        """Reset communication, check identity, configure by SDO, start: every drive, in order."""
+        self.open()
+        with self._lock:
+            self.streaming = False
+        for d in self.drives:
+            self._boot_drive(d)
+
+    def _boot_drive(self, d: _Drive) -> None:
+        cfg, conf = d.cfg, self.config
+        node = d.node
+        d.booted.clear()
+        node.nmt.send_command(0x82)  # reset communication
+        if not d.booted.wait(conf.boot_timeout_s):
+            raise CanopenError(f"{d.describe()}: no boot-up message within {conf.boot_timeout_s:g} s after "
+                               "NMT reset communication (drive off, wrong node id or bitrate?)")
+        # identity against the configuration (or, where it names none, against the EDS)
+        od = node.object_dictionary
+        for sub, name, want in ((1, "vendor id", cfg.vendor_id), (2, "product code", cfg.product_code)):
+            if want is None:
+                try:
+                    want = od[0x1018][sub].default
+                except KeyError:
+                    continue
+            got = self._sdo(d, f"identity {name}", 0x1018, sub, "I")
+            if want is not None and got != want:
+                raise CanopenError(f"{d.describe()}: identity 0x1018:{sub:02X} {name} is 0x{got:08X}, "
+                                   f"the configuration expects 0x{want:08X} (wrong drive on this node id?)")
+        cycle_us = round(conf.cycle_s * 1e6)
+        if cycle_us % 1000 == 0 and cycle_us // 1000 <= 255:
+            ip_value, ip_index = cycle_us // 1000, -3
+        else:
+            ip_value, ip_index = round(conf.cycle_s * 1e4), -4
+        vmax = math.ceil(cfg.max_velocity * abs(d.scale.scale) * conf.velocity_margin)
+        qsd = math.ceil(cfg.quick_stop_deceleration * abs(d.scale.scale))
+        steps: list[tuple[str, int, int, str, int]] = [
+            ("modes of operation", 0x6060, 0, "b", cia402.MODE_CSP),
+            ("interpolation period", 0x60C2, 1, "B", ip_value),
+            ("interpolation index", 0x60C2, 2, "b", ip_index),
+            ("communication cycle period", 0x1006, 0, "I", cycle_us),
+            ("following error window", 0x6065, 0, "I", d.window),
+            ("max profile velocity", 0x607F, 0, "I", vmax),
+            ("quick stop deceleration", 0x6085, 0, "I", qsd),
+            ("quick stop option", 0x605A, 0, "h", 6),
+            # RPDO1: target position + controlword, applied on SYNC
+            ("RPDO1 COB-ID (disable)", 0x1400, 1, "I", 0x80000000 | d.rpdo_id),
+            ("RPDO1 transmission type", 0x1400, 2, "B", 1),
+            ("RPDO1 mapping count", 0x1600, 0, "B", 0),
+            ("RPDO1 map target position", 0x1600, 1, "I", 0x607A0020),
+            ("RPDO1 map controlword", 0x1600, 2, "I", 0x60400010),
+            ("RPDO1 mapping count", 0x1600, 0, "B", 2),
+            ("RPDO1 COB-ID", 0x1400, 1, "I", d.rpdo_id),
+            ("RPDO2 COB-ID (disable)", 0x1401, 1, "I", 0x80000300 + cfg.node_id),
+            # TPDO1: statusword + position actual; TPDO2: following error; both on every SYNC
+            ("TPDO1 COB-ID (disable)", 0x1800, 1, "I", 0x80000180 + cfg.node_id),
+            ("TPDO1 transmission type", 0x1800, 2, "B", 1),
+            ("TPDO1 mapping count", 0x1A00, 0, "B", 0),
+            ("TPDO1 map statusword", 0x1A00, 1, "I", 0x60410010),
+            ("TPDO1 map position actual", 0x1A00, 2, "I", 0x60640020),
+            ("TPDO1 mapping count", 0x1A00, 0, "B", 2),
+            ("TPDO1 COB-ID", 0x1800, 1, "I", 0x180 + cfg.node_id),
+            ("TPDO2 COB-ID (disable)", 0x1801, 1, "I", 0x80000280 + cfg.node_id),
+            ("TPDO2 transmission type", 0x1801, 2, "B", 1),
+            ("TPDO2 mapping count", 0x1A01, 0, "B", 0),
+            ("TPDO2 map following error", 0x1A01, 1, "I", 0x60F40020),
+            ("TPDO2 mapping count", 0x1A01, 0, "B", 1),
+            ("TPDO2 COB-ID", 0x1801, 1, "I", 0x280 + cfg.node_id),
+            ("producer heartbeat time", 0x1017, 0, "H", conf.heartbeat_producer_ms),
+            ("consumer heartbeat time", 0x1016, 1, "I",
+             (conf.master_node_id << 16) | (conf.heartbeat_consumer_ms if conf.heartbeat_producer_ms else 0)),
+        ]
+        for what, index, sub, fmt, value in steps:
+            self._sdo(d, what, index, sub, fmt, value)
+        mode = self._sdo(d, "modes of operation display", 0x6061, 0, "b")
+        if mode != cia402.MODE_CSP:
+            raise CanopenError(f"{d.describe()}: modes of operation display is {mode}, not 8 (cyclic "
+                               "synchronous position) after writing 0x6060 = 8")
+        node.nmt.send_command(0x01)  # start
+        deadline = time.monotonic() + conf.boot_timeout_s
+        while d.nmt_state != 5:
+            if time.monotonic() > deadline:
+                raise CanopenError(f"{d.describe()}: did not report NMT Operational within "
+                                   f"{conf.boot_timeout_s:g} s after NMT start (heartbeat state "
+                                   f"{d.nmt_state})")
+            time.sleep(0.002)
+        d.heartbeat_at = time.monotonic()
+        log.info("%s booted", d.describe())
+
+    # ------------------------------------------------------------------ CiA 402 state machine
+    def enable(self) -> None:
+        """Walk every drive to Operation enabled (by SDO), hold the actual position, start streaming."""
+        with self._lock:
+            if self.fault is not None:
+                raise CanopenError(f"cannot enable with a fault standing ({self.fault}); "
+                                   "reset_faults() first")
+            self.streaming = False
+        for d in self.drives:
+            self._enable_drive(d)
+        with self._lock:
+            if self.fault is not None:
+                raise CanopenError(f"fault while enabling: {self.fault}")
+            now = time.monotonic()
+            for d in self.drives:
+                d.heartbeat_at = max(d.heartbeat_at, now)
+            self._stream_t0 = 0.0
+            self.streaming = True
+
+    def _wait_state(self, d: _Drive, want: State, timeout: float, doing: str) -> None:
+        deadline = time.monotonic() + timeout
+        while True:
+            sw = self._statusword(d)
+            state = cia402.decode(sw)
+            if state == want:
+                return
+            if time.monotonic() > deadline:
+                raise CanopenError(f"{d.describe()}: stuck in '{state}' (statusword 0x{sw:04X}) "
+                                   f"{timeout:g} s after {doing}, waiting for '{want}'")
+            time.sleep(0.002)
+
+    def _enable_drive(self, d: _Drive) -> None:
+        timeout = self.config.state_timeout_s
+        for _ in range(8):
+            sw = self._statusword(d)
+            state = cia402.decode(sw)
+            if state == State.OPERATION_ENABLED:
+                break
+            if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+                code = self._sdo(d, "error code", 0x603F, 0, "H")
+                raise CanopenError(f"{d.describe()}: in '{state}' (error code 0x{code:04X}): "
+                                   "reset_faults() first")
+            step = cia402.next_step(state)
+            if step is None:
+                raise CanopenError(f"{d.describe()}: stuck in '{state}' (statusword 0x{sw:04X}), "
+                                   "which no controlword leads out of")
+            controlword, want = step
+            if want == State.OPERATION_ENABLED:
+                # hold the actual position before the drive starts following targets
+                actual = self._sdo(d, "position actual", 0x6064, 0, "i")
+                d.target = d.actual = actual
+                d.controlword = cia402.CW_ENABLE_OPERATION
+            self._sdo(d, "controlword", 0x6040, 0, "H", controlword)
+            self._wait_state(d, want, timeout, f"controlword 0x{controlword:04X}")
+        else:
+            raise CanopenError(f"{d.describe()}: did not reach Operation enabled")
+        d.statusword = cia402.statusword_for(State.OPERATION_ENABLED)
+        d.enabled_at = time.monotonic()
+        d.feedback_at = d.enabled_at
+
+    def disable(self) -> None:
+        """Stop streaming and take every drive to Switch on disabled (controlword 0, disable voltage,
+        by SDO): no torque. A drive in Fault stays there (:meth:`reset_faults`)."""
+        with self._lock:
+            self.streaming = False
+        for d in self.drives:
+            self._sdo(d, "controlword (disable voltage)", 0x6040, 0, "H", cia402.CW_DISABLE_VOLTAGE)
+
+    def not_operational(self) -> list[str]:
+        """The drives whose last heartbeat did not say NMT Operational (restarted, lost): boot again."""
+        return [d.describe() for d in self.drives if d.nmt_state != 5]
+
+    def reset_faults(self) -> None:
+        """Fault-reset every drive in Fault and clear the master's fault; then :meth:`enable` again."""
+        with self._lock:
+            self.streaming = False
+        for d in self.drives:
+            state = cia402.decode(self._statusword(d))
+            if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+                self._wait_state(d, State.FAULT, self.config.state_timeout_s, "the fault reaction")
+                self._sdo(d, "controlword", 0x6040, 0, "H", 0)
+                self._sdo(d, "controlword (fault reset)", 0x6040, 0, "H", cia402.CW_FAULT_RESET)
+                self._wait_state(d, State.SWITCH_ON_DISABLED, self.config.state_timeout_s, "fault reset")
+            d.node.emcy.active = []
+            d.heartbeat_at = time.monotonic()
+        with self._lock:
+            self.fault = None
+
+    # ------------------------------------------------------------------ faults
+    def raise_fault(self, node: int, reason: str) -> None:
+        """Record a fault (the first since the last reset is :attr:`fault`) and quick-stop every drive.
+
+        Callable from any thread: the reader thread (EMCY), the cycle, or the daemon (a late cycle).
+        """
+        axis = next((d.cfg.axis for d in self.drives if d.cfg.node_id == node), "")
+        f = Fault(node, axis, reason)
+        with self._lock:
+            self.fault_log.append(f)
+            first = self.fault is None
+            if first:
+                self.fault = f
+                log.error("CANopen fault: %s; quick stop", f)
+            self._quick_stop_locked()
+        if first:
+            for cb in self._fault_listeners:
+                cb(f)
+
+    def quick_stop(self, reason: str = "quick stop requested") -> None:
+        """Stop all axes now (CiA 402 quick stop on every drive); a fault until reset."""
+        self.raise_fault(0, reason)
+
+    def _quick_stop_locked(self) -> None:
+        self.streaming = False
+        for d in self.drives:
+            d.controlword = cia402.CW_QUICK_STOP
+            try:
+                self._send(d.rpdo_id, _RPDO.pack(d.target, cia402.CW_QUICK_STOP))
+            except (can.CanError, OSError) as exc:
+                log.error("quick stop to %s not sent: %s", d.describe(), exc)
+
+    def _send(self, cob_id: int, data: bytes) -> None:
+        assert self.network is not None
+        self.network.send_message(cob_id, data)
+
+    # ------------------------------------------------------------------ the cycle
+    def cycle(self, positions: Sequence[float] | None = None) -> DriveFeedback:
+        """One cycle: check the drives' feedback, send one RPDO per drive with ``positions`` (machine
+        units, axis order; ``None`` holds), then one SYNC. Faulted or not enabled: SYNC only."""
+        now = time.monotonic()
+        with self._lock:
+            if self.network is None:  # not open, or shut down: nothing to send
+                return self.feedback()
+            self.cycles += 1
+            if self.streaming:
+                if self._stream_t0 == 0.0:
+                    self._stream_t0 = now
+                self._check(now)
+            try:
+                if self.streaming:
+                    if positions is not None:
+                        self._set_targets(positions)
+                    for d in self.drives:
+                        if not d.homing:
+                            self._send(d.rpdo_id, _RPDO.pack(d.target, d.controlword))
+                self.network.sync.transmit()  # type: ignore[union-attr]
+            except (can.CanError, OSError) as exc:
+                self.raise_fault(0, f"bus error: {exc}")
+            return self.feedback()
+
+    def _set_targets(self, positions: Sequence[float]) -> None:
+        if len(positions) != len(self.drives):
+            raise ValueError(f"{len(positions)} positions for {len(self.drives)} drives")
+        for d, p in zip(self.drives, positions, strict=True):
+            lo, hi = d.cfg.min_position, d.cfg.max_position
+            if (lo is not None and p < lo) or (hi is not None and p > hi):
+                self.raise_fault(d.cfg.node_id, f"commanded position {p:g} beyond the soft limits "
+                                                f"[{lo}, {hi}]")
+                return
+            try:
+                counts = d.scale.to_counts(p)
+            except OverflowError as exc:
+                self.raise_fault(d.cfg.node_id, str(exc))
+                return
+            d.target = counts
+
+    def _check(self, now: float) -> None:
+        conf = self.config
+        for d in self.drives:
+            hb_age = now - d.heartbeat_at
+            if conf.heartbeat_producer_ms > 0 and hb_age > conf.heartbeat_consumer_ms / 1000.0:
+                self.raise_fault(d.cfg.node_id, f"heartbeat missed: none for {1000 * hb_age:.0f} ms "
+                                                f"(consumer time {conf.heartbeat_consumer_ms} ms)")
+                return
+            fb_age = now - max(d.feedback_at, self._stream_t0)
+            if fb_age > conf.feedback_timeout_s and not d.homing:
+                self.raise_fault(d.cfg.node_id, f"no TPDO for {1000 * fb_age:.0f} ms "
+                                                f"(limit {1000 * conf.feedback_timeout_s:g} ms): "
+                                                "frames lost?")
+                return
+            if d.feedback_at <= d.enabled_at:
+                continue  # no TPDO yet since enabling
+            state = cia402.decode(d.statusword)
+            if state != State.OPERATION_ENABLED:
+                self.raise_fault(d.cfg.node_id, f"left Operation enabled: now '{state}' "
+                                                f"(statusword 0x{d.statusword:04X})")
+                return
+            if abs(d.following_error) > d.window:
+                fe = d.following_error / d.scale.scale
+                self.raise_fault(d.cfg.node_id, f"following error {fe:.4g} beyond its window "
+                                                f"{d.cfg.following_error_window:g}")
+                return
+
+    def feedback(self) -> DriveFeedback:
+        return DriveFeedback(
+            self.cycles,
+            tuple(d.scale.to_units(d.actual) for d in self.drives),
+            tuple(d.following_error / d.scale.scale for d in self.drives),
+            tuple(cia402.decode(d.statusword) for d in self.drives),
+            self.fault,
+        )
+
+    @property
+    def state(self) -> list[DriveState]:
+        return [DriveState(d.cfg.axis, d.cfg.node_id, cia402.decode(d.statusword), d.statusword,
+                           d.scale.to_units(d.actual), d.following_error / d.scale.scale, d.actual,
+                           d.scale.to_units(d.target)) for d in self.drives]
+
+    def positions(self) -> tuple[float, ...]:
+        """The commanded (held) position of every axis, machine units: where the planner resumes."""
+        return tuple(d.scale.to_units(d.target) for d in self.drives)
+
+    # ------------------------------------------------------------------ homing
+    def home(self, axis: str) -> float:
+        """Home one axis as configured ("set": here is home; "cia402": homing mode 6 by SDO).
+
+        The drive must be enabled. Returns the axis position afterwards (its ``home_offset``).
+        """
+        d = next((x for x in self.drives if x.cfg.axis == axis), None)
+        if d is None:
+            raise CanopenError(f"no drive for axis {axis!r}")
+        if d.cfg.homing == "set":
+            actual = self._sdo(d, "position actual", 0x6064, 0, "i")
+            with self._lock:
+                d.scale.set_home_here(actual)
+                d.target = d.actual = actual
+            return d.scale.to_units(actual)
+        with self._lock:
+            d.homing = True
+        try:
+            self._home_cia402(d)
+        finally:
+            with self._lock:
+                d.homing = False
+                d.feedback_at = time.monotonic()
+        return d.scale.to_units(d.target)
+
+    def _home_cia402(self, d: _Drive) -> None:
+        conf = self.config
+        if cia402.decode(self._statusword(d)) != State.OPERATION_ENABLED:
+            raise CanopenError(f"{d.describe()}: homing needs Operation enabled; enable() first")
+        self._sdo(d, "homing method", 0x6098, 0, "b", d.cfg.homing_method)
+        self._sdo(d, "home offset", 0x607C, 0, "i", 0)
+        self._set_mode(d, cia402.MODE_HOMING)
+        self._sdo(d, "controlword", 0x6040, 0, "H", cia402.CW_ENABLE_OPERATION)
+        self._sdo(d, "controlword (homing start)", 0x6040, 0, "H",
+                  cia402.CW_ENABLE_OPERATION | cia402.CW_HOMING_START)
+        deadline = time.monotonic() + conf.homing_timeout_s
+        while True:
+            sw = self._statusword(d)
+            if sw & cia402.SW_BIT13:
+                raise CanopenError(f"{d.describe()}: homing error (statusword 0x{sw:04X}, method "
+                                   f"{d.cfg.homing_method})")
+            if cia402.decode(sw) != State.OPERATION_ENABLED:
+                raise CanopenError(f"{d.describe()}: left Operation enabled while homing: "
+                                   f"'{cia402.decode(sw)}'")
+            if sw & cia402.SW_BIT12 and sw & cia402.SW_TARGET_REACHED:
+                break
+            if time.monotonic() > deadline:
+                raise CanopenError(f"{d.describe()}: homing not attained within {conf.homing_timeout_s:g} s "
+                                   f"(statusword 0x{sw:04X})")
+            time.sleep(0.005)
+        actual = self._sdo(d, "position actual", 0x6064, 0, "i")
+        with self._lock:
+            d.scale.drive_zero_is_home()
+            d.target = d.actual = actual
+        self._sdo(d, "controlword", 0x6040, 0, "H", cia402.CW_ENABLE_OPERATION)
+        self._set_mode(d, cia402.MODE_CSP)
+
+    def _set_mode(self, d: _Drive, mode: int) -> None:
+        self._sdo(d, "modes of operation", 0x6060, 0, "b", mode)
+        deadline = time.monotonic() + self.config.state_timeout_s
+        while (shown := self._sdo(d, "modes of operation display", 0x6061, 0, "b")) != mode:
+            if time.monotonic() > deadline:
+                raise CanopenError(f"{d.describe()}: modes of operation display stays {shown}, not {mode}")
+            time.sleep(0.002)
+
+    # ------------------------------------------------------------------ the end
+    def shutdown(self) -> None:
+        """Quick-stop if streaming, stop the heartbeat, NMT pre-operational... and close the bus."""
+        if self.network is None:
+            return
+        with self._lock:
+            if self.streaming:
+                self._quick_stop_locked()
+        if self._heartbeat_task is not None:
+            self._heartbeat_task.stop()
+            self._heartbeat_task = None
+        try:
+            for d in self.drives:
+                d.node.nmt.send_command(0x80)  # pre-operational: PDOs stop
+        except (can.CanError, OSError):
+            pass
+        net, self.network = self.network, None
+        if self._own_bus:
+            net.disconnect()
+        else:
+            if net.notifier is not None:
+                net.notifier.stop(2.0)
+
+    def __enter__(self) -> CanopenMaster:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.shutdown()
+
+
+class _ErrorFrameListener(can.Listener):
+    """CAN error frames (bus errors, error passive, bus off on SocketCAN) become a master fault."""
+
+    def __init__(self, master: CanopenMaster) -> None:
+        self.master = master
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame and self.master.streaming:
+            self.master.raise_fault(0, f"bus error frame (id 0x{msg.arbitration_id:X}, "
+                                       f"data {msg.data.hex()})")
+
+    def on_error(self, exc: Exception) -> None:
+        self.master.raise_fault(0, f"bus error: {exc}")

@@ -1,0 +1,134 @@
+"""Read the ``[canopen]`` part of the machine file into ``fieldbus.canopen.config`` dataclasses.
+
+Every mistake names the file and the dotted key (``machine.toml: canopen.axes.y.node_id: ...``).
+With no ``[canopen]`` table, the demo set-up: a virtual bus, one simulated drive per axis, node ids
+1..n in axis order.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from fieldbus.canopen.config import CanBusConfig, CanopenConfig, DriveConfig
+from motiond.configkit import Table, in_range, non_negative, one_of, positive
+
+
+def demo_canopen(axis_names: Sequence[str], cycle_s: float,
+                 axis_limits: Mapping[str, Mapping[str, Any]] | None = None) -> CanopenConfig:
+    drives = tuple(DriveConfig(name, i + 1, **_limits(name, axis_limits))
+                   for i, name in enumerate(axis_names))
+    return CanopenConfig(CanBusConfig(), drives, cycle_s=cycle_s, simulate=True)
+
+
+def _limits(name: str, axis_limits: Mapping[str, Mapping[str, Any]] | None) -> dict[str, Any]:
+    lim = (axis_limits or {}).get(name, {})
+    out = {k: float(lim[k]) for k in ("max_velocity", "quick_stop_deceleration", "min_position",
+                                       "max_position") if isinstance(lim.get(k), int | float)}
+    return out
+
+
+def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
+                 axis_limits: Mapping[str, Mapping[str, Any]] | None = None) -> CanopenConfig:
+    """``root``: the whole machine file; ``axis_names`` in drive order (from ``[axes]``);
+    ``axis_limits``: each axis's ``[axes.<name>]`` values (max_velocity, quick_stop_deceleration,
+    min_position, max_position), which the drives are configured with."""
+    if "canopen" not in root:
+        return demo_canopen(axis_names, cycle_s, axis_limits)
+    t = root.table("canopen")
+    interface = t.get("interface", str, "virtual", check=lambda v: None if v.strip() else "must not be empty")
+    channel = t.get("channel", str, "canon")
+    if interface == "udp_multicast":
+        try:
+            group = ipaddress.ip_address(channel)
+            ok = group.version == 4 and group.is_multicast
+        except ValueError:
+            ok = False
+        if not ok:
+            raise t.error("channel", "udp_multicast needs an IPv4 multicast group such as 239.74.163.1 "
+                                     "(python-can's IPv6 default sends frames off this host), "
+                                     f"got {channel!r}")
+    bitrate = t.get("bitrate", int, 1_000_000, check=in_range(10_000, 1_000_000))
+    producer = t.get("heartbeat_producer_ms", int, 100, check=in_range(0, 65535))
+    consumer = t.get("heartbeat_consumer_ms", int, 3 * producer, check=in_range(0, 65535))
+    if producer and consumer <= producer:
+        raise t.error("heartbeat_consumer_ms", f"must be longer than heartbeat_producer_ms ({producer}), "
+                                               f"got {consumer}")
+    simulate = t.get("simulate", bool, False)
+    master_id = t.get("master_node_id", int, 127, check=in_range(1, 127))
+    boot_timeout = t.get("boot_timeout_s", float, 5.0, check=positive)
+    sdo_timeout = t.get("sdo_timeout_s", float, 0.5, check=positive)
+    state_timeout = t.get("state_timeout_s", float, 2.0, check=positive)
+    homing_timeout = t.get("homing_timeout_s", float, 30.0, check=positive)
+    max_load = t.get("max_bus_load_percent", float, 70.0, check=in_range(1.0, 100.0))
+    options = dict(t.table("options").data)
+
+    base = Path(root.file).parent if root.file else Path.cwd()
+    axes = t.table("axes", required=True)
+    for name in axes.data:
+        if name not in axis_names:
+            raise axes.error(name, f"no axis {name!r} in [axes] (axes: {', '.join(axis_names)})")
+    drives = []
+    used: dict[int, str] = {}
+    for name in axis_names:
+        if name not in axes.data:
+            raise axes.error(name, "missing: every axis needs a drive ([canopen.axes."
+                                   f"{name}] with node_id)")
+        a = axes.table(name)
+        node_id = a.get("node_id", int, check=in_range(1, 127))
+        if node_id == master_id:
+            raise a.error("node_id", f"{node_id} is the master's own node id (canopen.master_node_id)")
+        if node_id in used:
+            raise a.error("node_id", f"{node_id} is already the node id of axis {used[node_id]}")
+        used[node_id] = name
+        eds = a.get("eds", str, "")
+        if eds:
+            path = Path(eds) if Path(eds).is_absolute() else base / eds
+            if not path.is_file():
+                raise a.error("eds", f"no such file: {path}")
+            eds = str(path)
+        lim = _limits(name, axis_limits)
+        drives.append(DriveConfig(
+            axis=name, node_id=node_id, eds=eds,
+            counts_per_unit=a.get("counts_per_unit", float, 10000.0, check=positive),
+            direction=a.get("direction", int, 1, check=one_of(1, -1)),
+            home_offset=a.get("home_offset", float, 0.0),
+            following_error_window=a.get("following_error_window", float, 1.0, check=positive),
+            homing=a.get("homing", str, "set", check=one_of("set", "cia402")),
+            homing_method=a.get("homing_method", int, 35, check=in_range(-128, 127)),
+            vendor_id=a.get("vendor_id", int, None, check=non_negative),
+            product_code=a.get("product_code", int, None, check=non_negative),
+            **lim,
+        ))
+        a.check_unknown()
+    axes.check_unknown()
+    t.check_unknown()
+    return CanopenConfig(
+        CanBusConfig(interface, channel, bitrate, options), tuple(drives), cycle_s=cycle_s,
+        heartbeat_producer_ms=producer, heartbeat_consumer_ms=consumer, simulate=simulate,
+        master_node_id=master_id, boot_timeout_s=boot_timeout, sdo_timeout_s=sdo_timeout,
+        state_timeout_s=state_timeout, homing_timeout_s=homing_timeout, max_bus_load=max_load / 100.0)
+
+
+def canopen_from_file(data: dict[str, Any], file: str = "") -> CanopenConfig:
+    """For stand-alone tools (``canon sim drives``, the bench): the axes and cycle from the same file."""
+    root = Table(data, file)
+    axes_t = root.table("axes")
+    names = list(axes_t.data) or ["x", "y", "z"]
+    limits = {n: v for n, v in axes_t.data.items() if isinstance(v, dict)}
+    machine = root.table("machine")
+    cycle_ms = machine.get("cycle_ms", float, 2.0, check=in_range(1.0, 10.0))
+    return read_canopen(root, names, cycle_ms / 1000.0, limits)
+
+
+def canopen_for_machine(machine: Any) -> CanopenConfig:
+    """From ``motiond.config.load_machine``'s result: the axes (drive order), their limits, the cycle."""
+    limits: dict[str, dict[str, Any]] = {}
+    for a in machine.limits.axes:
+        qsd = a.quick_stop_deceleration if a.quick_stop_deceleration is not None else 2 * a.max_acceleration
+        limits[a.name] = {"max_velocity": a.max_velocity, "quick_stop_deceleration": qsd,
+                          "min_position": a.min_position, "max_position": a.max_position}
+    root = machine.root if machine.root is not None else Table({}, machine.path or "")
+    return read_canopen(root, [a.name for a in machine.limits.axes], machine.limits.cycle_s, limits)

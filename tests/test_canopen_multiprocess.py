@@ -1,0 +1,148 @@
+"""Master in this process, simulated drives in another (``canon sim drives``), on udp_multicast.
+
+udp_multicast stays on this host: IPv4 group, hop_limit 0, and the tests run inside the private
+network namespace (``tests/run``, ``tests/netns-run``).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from fieldbus.canopen.cia402 import State
+from fieldbus.canopen.clock import stream
+from fieldbus.canopen.master import CanopenMaster
+from motiond.config_canopen import canopen_from_file
+from motiond.configkit import load_toml
+
+pytestmark = [pytest.mark.multicast, pytest.mark.timeout(90)]
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def machine_file(tmp_path: Path, interface: str, channel: str, cycle_ms: float = 2.0) -> Path:
+    text = f"""
+[machine]
+cycle_ms = {cycle_ms}
+[axes.x]
+max_velocity = 200.0
+[axes.y]
+max_velocity = 200.0
+[axes.z]
+max_velocity = 100.0
+[canopen]
+interface = "{interface}"
+channel = "{channel}"
+heartbeat_producer_ms = 50
+heartbeat_consumer_ms = 200
+[canopen.axes.x]
+node_id = 1
+[canopen.axes.y]
+node_id = 2
+direction = -1
+[canopen.axes.z]
+node_id = 3
+counts_per_unit = 5000
+"""
+    p = tmp_path / "machine.toml"
+    p.write_text(text)
+    return p
+
+
+class DriveProcess:
+    """``canon sim drives`` as a child process, waited for until it says it is up."""
+
+    def __init__(self, config: Path, *extra: str) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "motiond.cli", "sim", "drives", "--config", str(config), *extra],
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.ready = threading.Event()
+        self.lines: list[str] = []
+        threading.Thread(target=self._read, daemon=True).start()
+        if not self.ready.wait(20.0):
+            self.stop()
+            raise AssertionError(f"canon sim drives did not start: {self.lines}")
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.append(line)
+            if line.startswith("simulating drives"):
+                self.ready.set()
+
+    def stop(self) -> str:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(5.0)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5.0)
+        return self.proc.stderr.read() if self.proc.stderr else ""
+
+
+def group() -> str:
+    return f"239.74.164.{1 + os.getpid() % 250}"
+
+
+@pytest.fixture
+def setup(tmp_path):
+    made: list[tuple[DriveProcess, CanopenMaster]] = []
+
+    def make(cycle_ms: float = 2.0):
+        path = machine_file(tmp_path, "udp_multicast", group(), cycle_ms)
+        config = canopen_from_file(load_toml(path), str(path))
+        drives = DriveProcess(path)
+        master = CanopenMaster(config)
+        made.append((drives, master))
+        return drives, master
+
+    yield make
+    for drives, master in made:
+        master.shutdown()
+        drives.stop()
+
+
+def test_master_and_drives_in_two_processes_on_udp_multicast(setup):
+    drives, master = setup(2.0)
+    master.boot()
+    master.enable()
+    start = master.positions()
+    runner = stream(master, lambda t: [start[0] + 5.0 * min(t, 1.0), start[1] - 2.0 * min(t, 1.0), start[2]],
+                    1.5, fault_on_late=False)  # this machine is shared: lateness is the bench's business
+    assert runner.join(30.0)
+    assert runner.error is None
+    assert master.fault is None, master.fault
+    master.cycle(None)
+    time.sleep(0.05)
+    fb = master.feedback()
+    assert [s.state for s in master.state] == [State.OPERATION_ENABLED] * 3
+    assert fb.positions == pytest.approx((5.0, -2.0, 0.0), abs=0.01)
+    master.shutdown()
+    report = drives.stop()
+    # every SYNC reached the drives' process with its targets: no missed setpoint was counted
+    assert "node 1: syncs" in report
+    for line in report.splitlines():
+        if line.startswith("node "):
+            missed = int(line.split("missed setpoints ")[1].split(",")[0])
+            assert missed <= 2, report  # udp_multicast is lossy under load; a burst of losses is a bug
+
+
+def test_the_drive_process_dying_is_a_fault(setup):
+    drives, master = setup(4.0)
+    master.boot()
+    master.enable()
+    drives.proc.kill()
+    drives.proc.wait(5.0)
+    deadline = time.monotonic() + 3.0
+    while master.fault is None and time.monotonic() < deadline:
+        master.cycle(None)
+        time.sleep(0.004)
+    assert master.fault is not None
+    assert "no TPDO" in master.fault.reason or "heartbeat missed" in master.fault.reason
