@@ -1,0 +1,212 @@
+"""``canon run FILE.ngc``: boot the machine, run one program on it, print a summary, exit.
+
+With no ``--config`` it runs on the built-in demo machine: three simulated drives on a virtual CAN
+bus in this process, the simulated Modbus I/O module on loopback (a free port), LCM on the default
+URL (a host with no multicast route gets one warning line and telemetry inside this process only).
+It is the daemon's core (:class:`motiond.runtime.Machine`) doing what an operator would: leave
+E-stop, enable the drives, run the file, then shut down safely.
+
+Exit status 0 when the program ran to its end; 1 with ``FILE:LINE: message`` (a G-code error) or the
+fault's reason (a drive, the I/O, a late cycle) on stderr; 130 on Ctrl-C or SIGTERM (motion stopped).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+SETTLE_S = 0.5  # after the last setpoint, wait this long at most for the drives to settle
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from motiond.cli import add_common
+
+    add_common(parser)
+    parser.add_argument("--no-telemetry", action="store_true", help="publish nothing on LCM")
+    parser.add_argument("--url", help="LCM URL for status and events (default: [telemetry] url)")
+    parser.add_argument("--late-fault-ms", type=float, metavar="MS",
+                        help="a cycle starting later than this is a fault (default: 10 cycles, at least "
+                             "50 ms; 1 s with simulated drives)")
+
+
+def _fmt(v: float) -> str:
+    return f"{v:.3g}" if abs(v) < 1000 else f"{v / 1000:.3g}k"
+
+
+def summary_dict(machine: Any, result: Any) -> dict[str, Any]:
+    """The run's figures as plain data (``--json`` prints it)."""
+    axes = {}
+    for i, a in enumerate(machine.limits.axes):
+        pk = result.peaks[a.name]
+        axes[a.name] = {
+            "unit": a.unit,
+            "peak_velocity": pk.velocity, "max_velocity": a.max_velocity,
+            "peak_acceleration": pk.acceleration, "max_acceleration": a.max_acceleration,
+            "peak_jerk": pk.jerk, "max_jerk": a.max_jerk,
+            "following_error_max": pk.following_error,
+            "final_commanded": result.final_commanded[i] if result.final_commanded else None,
+            "final_actual": result.final_actual[i] if result.final_actual else None,
+            "program_final": result.expected_final[i] if result.expected_final else None,
+        }
+    return {
+        "program": result.program,
+        "ok": result.ok,
+        "error": result.error,
+        "machine": machine.limits.name,
+        "duration_s": result.duration_s,
+        "cycle_s": result.cycle_s,
+        "cycles": result.cycles,
+        "period_ms": machine.T * 1000.0,
+        "late_cycles": result.late_cycles,
+        "first_setpoint_monotonic": machine.first_setpoint_t,
+        "worst_late_ms": machine.worst_late_s * 1000.0,
+        "axes": axes,
+        "peaks": {n: {"velocity": v["peak_velocity"], "acceleration": v["peak_acceleration"],
+                      "jerk": v["peak_jerk"]} for n, v in axes.items()},
+        "following_error_max": {n: v["following_error_max"] for n, v in axes.items()},
+        "final_positions": {n: v["final_commanded"] for n, v in axes.items()},
+        "final_actual": {n: v["final_actual"] for n, v in axes.items()},
+        "outputs_switched": [
+            {"cycle": o.cycle - result.first_cycle, "kind": o.kind, "index": o.index,
+             "value": o.value, "synced": o.synced, "line": o.line}
+            for o in result.outputs],
+    }
+
+
+def print_summary(machine: Any, result: Any, console: Any) -> None:
+    from rich import box
+    from rich.table import Table
+
+    d = summary_dict(machine, result)
+    console.print(f"[bold]{result.program}[/] on {d['machine']}: ran in {d['duration_s']:.2f} s, motion "
+                  f"{d['cycle_s']:.3f} s ({d['cycles']} cycles of {d['period_ms']:g} ms), "
+                  f"{d['late_cycles']} late cycles (worst {d['worst_late_ms']:.1f} ms)", highlight=False)
+    t = Table(box=box.SIMPLE_HEAD)
+    for col in ("axis", "velocity", "acceleration", "jerk", "FE max", "final"):
+        t.add_column(col, justify="left" if col == "axis" else "right", no_wrap=True)
+
+    def pl(peak: float, limit: float) -> str:
+        return f"{_fmt(peak)}/{_fmt(limit)} {100 * peak / limit:.0f}%"
+
+    for name, a in d["axes"].items():
+        t.add_row(f"{name.upper()} {a['unit']}", pl(a["peak_velocity"], a["max_velocity"]),
+                  pl(a["peak_acceleration"], a["max_acceleration"]), pl(a["peak_jerk"], a["max_jerk"]),
+                  f"{a['following_error_max']:.4f}", f"{a['final_commanded']:.4f}")
+    t.caption = "peak / limit per second, per second², per second³ (machine units)"
+    console.print(t)
+    outs = d["outputs_switched"]
+    if outs:
+        words = [f"{'D' if o['kind'] == 'digital' else 'A'}{o['index']}="
+                 f"{int(o['value']) if o['kind'] == 'digital' else o['value']:g} (line {o['line']}"
+                 f"{', synced' if o['synced'] else ''})" for o in outs]
+        console.print(f"outputs switched: {len(outs)}: " + ", ".join(words), highlight=False)
+    else:
+        console.print("outputs switched: none")
+
+
+def _settle(machine: Any, timeout: float = SETTLE_S) -> None:
+    """Wait until the drives report the commanded position (within a count or so)."""
+    import time
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if all(abs(a - c) <= 2e-4 for a, c in zip(machine._actual, machine._commanded, strict=True)):
+            return
+        time.sleep(0.01)
+
+
+def run(args: argparse.Namespace) -> int:
+    import logging
+    import signal
+    import time
+    from pathlib import Path
+
+    from rich.console import Console
+
+    from motiond.cli import UserError
+    from motiond.config import load_machine
+    from motiond.runtime import Machine, MachineError
+    from motiond.states import CommandRefused
+    from telemetry.config import TelemetryConfig
+    from telemetry.publisher import open_lcm
+
+    if not getattr(args, "verbose", 0):  # the error is printed once, below, not also as a log line
+        for name in ("motiond.runtime", "fieldbus"):
+            logging.getLogger(name).setLevel(logging.CRITICAL)
+    path = Path(args.file)
+    if not path.is_file():
+        raise UserError(f"{args.file}: no such file")
+    config = load_machine(args.config)
+    tele = TelemetryConfig.from_table(config.telemetry)
+    if args.url:
+        from motiond.configkit import Table
+
+        tele = TelemetryConfig.from_table(Table({**config.telemetry.data, "url": args.url}, "--url",
+                                                "telemetry"))
+    lc = None if args.no_telemetry else open_lcm(tele.url, fallback="memq")
+    late = args.late_fault_ms / 1000.0 if args.late_fault_ms is not None else None
+    machine = Machine(config, lc=lc, telemetry=tele, var_file=args.var, tool_table=args.tool_table,
+                      late_fault_s=late)
+    err = Console(stderr=True, highlight=False)
+    out = Console(highlight=False)
+
+    def on_term(*_: object) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        try:
+            machine.start()
+            machine.bring_up()
+            job = machine.run(path)
+        except (MachineError, CommandRefused) as exc:
+            raise UserError(str(exc)) from None
+        result = None
+        try:
+            if err.is_terminal and not args.json:
+                from rich.progress import (
+                    BarColumn,
+                    Progress,
+                    TaskProgressColumn,
+                    TextColumn,
+                    TimeElapsedColumn,
+                    TimeRemainingColumn,
+                )
+
+                with Progress(TextColumn("{task.description}"), BarColumn(),
+                              TextColumn("line {task.completed:.0f}/{task.total:.0f}"), TaskProgressColumn(),
+                              TimeElapsedColumn(), TimeRemainingColumn(), console=err,
+                              transient=True) as progress:
+                    task = progress.add_task(path.name, total=max(job.lines_total, 1))
+                    while result is None:
+                        result = machine.wait_job(job, 0.1)
+                        progress.update(task, completed=min(job.line, job.lines_total))
+            else:
+                result = machine.wait_job(job)
+        except KeyboardInterrupt:
+            machine.abort()
+            deadline = time.monotonic() + 5.0
+            while machine.job is not None and time.monotonic() < deadline:
+                time.sleep(0.02)
+            print("canon run: interrupted: motion stopped", file=sys.stderr)
+            return 130
+        assert result is not None
+        if not result.ok:
+            print(result.error or "program aborted", file=sys.stderr)
+            return 1
+        _settle(machine)
+        result.final_actual = tuple(machine._actual)
+        if args.json:
+            import json
+
+            print(json.dumps(summary_dict(machine, result)))
+        else:
+            print_summary(machine, result, out)
+        return 0
+    except KeyboardInterrupt:
+        print("canon run: interrupted", file=sys.stderr)
+        return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        machine.shutdown()

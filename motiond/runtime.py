@@ -1,0 +1,1310 @@
+"""The machine at run time: interpreter, planner, CANopen master, Modbus I/O and telemetry, wired.
+
+:class:`Machine` is the core that ``canon run`` and ``canon daemon`` share. It owns
+
+* the :class:`~fieldbus.canopen.master.CanopenMaster` (and, with ``[canopen] simulate = true``, the
+  simulated drives in this process on their own bus object and reader thread),
+* the :class:`~fieldbus.modbus.executor.IoExecutor` (and, for ``simulate = true`` devices, the
+  simulated I/O module on loopback),
+* the :class:`~planner.core.Planner`, which only the cycle thread touches (it is not thread-safe:
+  every other thread posts a function to :meth:`Machine._on_cycle` instead),
+* the :class:`~gcode_canon.interpreter.Interpreter`, run on a job thread that interprets ahead into a
+  bounded queue (:data:`QUEUE_MAX` commands),
+* the :class:`~motiond.states.MachineStates` (the transition rules, used as they are), the event
+  publisher and the status thread.
+
+Threads: ``canon-cycle`` (a :class:`~fieldbus.canopen.clock.PeriodicRunner` on absolute deadlines:
+feeds the planner from the queue, one setpoint, one ``master.cycle``, ``io.on_setpoint``); the job
+thread (interpretation; blocks in the machine callbacks for M66 and probes); ``canon-status``
+(builds and publishes ``canon.status`` at ``status_hz``: never on the cycle thread); the CANopen and
+Modbus libraries' own threads; the caller's (commands). Nothing the cycle thread does waits on a
+network: LCM publishing, Modbus traffic and SDO transfers all happen elsewhere.
+
+Faults (a drive's EMCY or heartbeat, a late cycle beyond ``late_fault_s``, an I/O link, an
+interpreter or planner error) all end in :meth:`Machine._fault`: motion stops (the master quick-stops
+the drives on its own faults; otherwise the planner stops on the path with the quick-stop limits
+and the drives are then disabled), the job is cancelled, the state becomes FAULTED with the reason
+and an event goes out. ``reset`` returns to IDLE with the drives disabled.
+"""
+
+from __future__ import annotations
+
+import collections
+import concurrent.futures
+import contextlib
+import dataclasses
+import itertools
+import linecache
+import logging
+import math
+import os
+import queue
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from gcode_canon import commands as C
+from gcode_canon.errors import GCodeError
+from motiond.states import CommandRefused, MachineStates, Mode, State
+
+log = logging.getLogger(__name__)
+
+QUEUE_MAX = 2000
+"""Canonical commands the interpreter may run ahead of the planner."""
+LOOKAHEAD = 300
+"""Items kept queued in the planner (its lookahead); more wait in the interpreter's queue."""
+FEED_PER_CYCLE = 40
+"""At most this many commands move into the planner per cycle (bounds the cycle's work)."""
+SIM_LATE_FAULT_S = 1.0
+"""Default late-cycle fault limit with simulated drives (nothing physical to protect; a loaded PC)."""
+SIM_FEEDBACK_TIMEOUT_S = 0.5
+SIM_HEARTBEAT_CONSUMER_MS = 1500
+"""And a heartbeat this late (both ways): on a loaded PC the process can stall for a few 100 ms."""
+"""With drives simulated in this process, a TPDO may be this late before it is a fault (real: 0.1 s)."""
+_END = object()  # end of a job's commands in the queue
+
+_instance = itertools.count(1)
+
+
+class MachineError(Exception):
+    """The machine could not be brought up (boot, I/O, telemetry); the message says what and where."""
+
+
+@dataclass
+class AxisPeaks:
+    velocity: float = 0.0
+    acceleration: float = 0.0
+    jerk: float = 0.0
+    following_error: float = 0.0
+
+
+@dataclass
+class OutputSwitch:
+    """A Modbus output the program switched, in the cycle it was handed to the I/O side."""
+
+    cycle: int
+    t: float  # monotonic time of that cycle
+    kind: str  # "digital" or "analog"
+    index: int
+    value: float
+    synced: bool
+    file: str
+    line: int
+
+
+@dataclass
+class JobResult:
+    """What a finished program (or MDI line) did: ``error`` is empty when it ended normally."""
+
+    program: str
+    ok: bool
+    error: str = ""
+    aborted: bool = False
+    duration_s: float = 0.0
+    cycles: int = 0
+    cycle_s: float = 0.0
+    late_cycles: int = 0
+    peaks: dict[str, AxisPeaks] = field(default_factory=dict)
+    outputs: list[OutputSwitch] = field(default_factory=list)
+    final_commanded: tuple[float, ...] = ()
+    final_actual: tuple[float, ...] = ()
+    expected_final: tuple[float, ...] = ()
+    first_cycle: int = 0
+
+
+class _Job:
+    def __init__(self, program: str, mode: Mode, n_axes: int) -> None:
+        self.program = program
+        self.mode = mode
+        self.cancel = threading.Event()
+        self.done = threading.Event()
+        self.input_done = False
+        self.thread: threading.Thread | None = None
+        self.error = ""
+        self.aborted = False
+        self.t0 = time.monotonic()
+        self.cycle0 = 0
+        self.late0 = 0
+        self.queued = 0
+        self.peaks = [AxisPeaks() for _ in range(n_axes)]
+        self.outputs: list[OutputSwitch] = []
+        self.result: JobResult | None = None
+        self.line = 0
+        self.lines_total = 0
+
+
+class _Aborted(Exception):
+    """The job was cancelled while the interpreter waited in a machine callback."""
+
+
+class _Callbacks:
+    """The interpreter's machine callbacks (``gcode_canon.machine.MachineCallbacks``).
+
+    They run on the job thread. The interpreter asks them right after yielding the sync command, long
+    before the cycle thread has run the motion before it; so M66 and probes wait here until the
+    planner stands at that sync point, then answer, then let the planner go on (``release``).
+    """
+
+    def __init__(self, machine: Machine) -> None:
+        self.m = machine
+
+    def _job(self) -> _Job:
+        job = self.m._job
+        if job is None:
+            raise _Aborted()
+        return job
+
+    def wait_input(self, cmd: C.WaitInput) -> float:
+        job = self._job()
+        io = self.m.io
+        if io is None:
+            raise GCodeError("M66: this machine has no Modbus I/O configured ([modbus])", cmd.file, cmd.line)
+        if job.mode is Mode.AUTO:
+            self.m._wait_sync_point(cmd, job)
+        from fieldbus.modbus.faults import IoError, WaitAborted
+
+        try:
+            value = io.wait_input(cmd, cancel=job.cancel)
+        except WaitAborted:
+            raise _Aborted() from None
+        except IoError as exc:
+            raise GCodeError(str(exc), cmd.file, cmd.line) from None
+        if job.mode is Mode.AUTO:
+            self.m._on_cycle(self.m._release_wait, wait=False)
+        return value
+
+    def probe(self, cmd: C.Probe) -> tuple[C.Pose, bool]:
+        job = self._job()
+        if not self.m.simulated:
+            raise GCodeError("probing (G38.x) needs a probe input, and this machine has none configured",
+                             cmd.file, cmd.line)
+        if job.mode is Mode.AUTO:
+            self.m._wait_sync_point(cmd, job)
+            self.m._on_cycle(self.m._release_wait, wait=False)
+        self.m.event("INFO", "probe: simulated machine, contact at the end point of the move",
+                     kind="probe", source="motiond", file=cmd.file, line=cmd.line)
+        return cmd.end, True
+
+    def current_position(self) -> C.Pose | None:
+        """At the start of a program or MDI line: where the machine is (it may have been jogged, homed
+        or stopped by an abort since the interpreter last commanded it). Later (after M0, M6): None,
+        the machine went exactly where the interpreter sent it."""
+        job = self.m._job
+        if job is None or job.queued:
+            return None
+        return self.m._machine_pose()
+
+    def print_text(self, text: str) -> None:
+        self.m.event("INFO", text, kind="print", source="gcode")
+
+
+class Machine:
+    """A whole machine from a :class:`motiond.config.MachineConfig` (module docstring).
+
+    ``lc``: an LCM instance for events and status (None: no telemetry). ``var_file`` /
+    ``tool_table``: the interpreter's parameter file and tool table. ``late_fault_s``: a cycle that
+    starts later than this after its deadline is a fault (default: ten cycles, at least 50 ms;
+    1 s with simulated drives).
+    ``modbus_port``: put the simulated I/O module on this port instead of the configured one (0: a
+    free port; the demo machine uses a free port so that runs do not collide). ``feedback_timeout_s``:
+    how long a drive may send no TPDO before it is a fault (CanopenConfig's 0.1 s; 0.5 s simulated).
+    """
+
+    def __init__(self, config: Any, *, lc: Any = None, telemetry: Any = None,
+                 var_file: str | os.PathLike[str] | None = None, tool_table: str | None = None,
+                 late_fault_s: float | None = None, modbus_port: int | None = None,
+                 sim_lag_s: float = 0.002, feedback_timeout_s: float | None = None) -> None:
+        from fieldbus.canopen.config import CanopenConfig
+        from motiond.config_canopen import canopen_for_machine
+        from motiond.config_modbus import modbus_for
+        from telemetry.config import TelemetryConfig
+        from telemetry.publisher import EventPublisher, StatusPublisher
+
+        self.config = config
+        self.limits = config.limits
+        self.names = self.limits.names
+        self.n = len(self.names)
+        self.T = self.limits.cycle_s
+        self.telemetry = telemetry if telemetry is not None else TelemetryConfig.from_table(config.telemetry)
+        canopen: CanopenConfig = canopen_for_machine(config)
+        if canopen.simulate and canopen.bus.interface == "virtual":
+            # python-can's virtual channels are global to the process: one of our own per machine
+            canopen = dataclasses.replace(canopen, bus=dataclasses.replace(
+                canopen.bus, channel=f"{canopen.bus.channel}-{os.getpid()}-{next(_instance)}"))
+        if canopen.simulate:
+            # the simulated drives share this process (and its interpreter lock) with the master: a stall
+            # of the process delays their answers as much as the cycle, so allow for it
+            canopen = dataclasses.replace(
+                canopen, feedback_timeout_s=max(canopen.feedback_timeout_s, SIM_FEEDBACK_TIMEOUT_S),
+                heartbeat_consumer_ms=max(canopen.heartbeat_consumer_ms, SIM_HEARTBEAT_CONSUMER_MS)
+                if canopen.heartbeat_producer_ms else canopen.heartbeat_consumer_ms)
+        if feedback_timeout_s is not None:
+            canopen = dataclasses.replace(canopen, feedback_timeout_s=feedback_timeout_s)
+        self.canopen = canopen
+        modbus = modbus_for(config)
+        if modbus is not None:
+            port = modbus_port
+            if port is None and config.path is None:
+                port = 0
+            if port is not None:
+                devices = tuple(dataclasses.replace(d, port=port) if d.simulate else d
+                                for d in modbus.devices)
+                modbus = dataclasses.replace(modbus, devices=devices)
+        self.modbus = modbus
+        self.simulated = canopen.simulate
+        self.sim_lag_s = sim_lag_s
+        if late_fault_s is None:
+            late_fault_s = SIM_LATE_FAULT_S if canopen.simulate else max(10 * self.T, 0.050)
+        self.late_fault_s = late_fault_s
+        self.var_file = str(var_file) if var_file is not None else None
+        self.tool_table = tool_table
+        self.lc = lc
+        self.events = EventPublisher(lc, maxsize=self.telemetry.event_queue)
+        self.status_pub = StatusPublisher(lc, self.telemetry.status_hz)
+        self.states = MachineStates()
+        self.states.subscribe(self._on_state_change)
+
+        from gcode_canon.interpreter import Interpreter
+        from gcode_canon.settings import InterpreterSettings
+
+        self.interp = Interpreter(InterpreterSettings(var_file=self.var_file, tool_table=tool_table),
+                                  _Callbacks(self))
+        self.master: Any = None
+        self.sim_bus: Any = None
+        self.sim_drives: list[Any] = []
+        self.io: Any = None
+        self.sim_io: dict[str, Any] = {}
+        self.planner: Any = None
+        self.runner: Any = None
+        self._calls: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
+        self._cmdq: queue.Queue[Any] = queue.Queue(QUEUE_MAX)
+        self._job: _Job | None = None
+        self._last_job: _Job | None = None
+        self._ops = threading.RLock()  # one slow operation (enable, home, reset ...) at a time
+        self._fault_lock = threading.Lock()
+        self._pending_fault: tuple[str, str] | None = None
+        self._estopping = False
+        self._hold_stream = False
+        self._wait_seen: Any = None
+        self._stopped_at: Any = None  # the M0/M1/M60 the planner waits at (resume releases)
+        self._sync_cond = threading.Condition()
+        self._sync_reached: Any = None
+        self._aborting = False
+        self._stop_then_disable = False
+        self.single_block = False
+        self.optional_stop = False
+        self._homing = ""
+        self._jogging = False
+        self.homed = [False] * self.n
+        self.cycle = 0
+        self.late_cycles = 0
+        self.worst_late_s = 0.0
+        self.last_error = ""
+        self.last_error_utime = 0
+        self._commanded = tuple(0.0 for _ in range(self.n))
+        self._velocity = tuple(0.0 for _ in range(self.n))
+        self._acc = [0.0] * self.n
+        self._actual = tuple(0.0 for _ in range(self.n))
+        self._actual_t = 0.0
+        self.status_data_t: collections.OrderedDict[int, float] = collections.OrderedDict()
+        """seq of a published status -> monotonic time of the cycle whose drive feedback it carries."""
+        self._fe = tuple(0.0 for _ in range(self.n))
+        self._line = (0, "")
+        self._spindle = (0, 0.0)
+        self._coolant = (False, False)
+        self._tool_prepared = 0
+        self.first_setpoint_t: float | None = None
+        self.status_seq = 0
+        self._status_stop = threading.Event()
+        self._status_thread: threading.Thread | None = None
+        self.started = False
+        self._cycle_ident = 0
+        self.trace: list[tuple[int, float, tuple[float, ...], tuple[Any, ...]]] | None = None
+        """Set to a list to record (cycle, monotonic time, positions, events) of every setpoint."""
+
+    # ------------------------------------------------------------------ bring-up and shutdown
+    def start(self) -> Machine:
+        """Start the simulators (if configured), boot the drives, start the I/O, the cycle thread and
+        telemetry. The machine is then in ESTOP: nothing moves before ``estop_reset`` and ``enable``.
+        Raises :class:`MachineError` naming what could not be brought up."""
+        from fieldbus.canopen.clock import PeriodicRunner
+        from fieldbus.canopen.master import CanopenError, CanopenMaster
+
+        # a short GIL switch interval: the cycle thread gets the interpreter within 0.5 ms of waking
+        # even while the job thread interprets (the default 5 ms would make cycles late)
+        sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
+        import planner.core  # noqa: F401  (ruckig and numpy: imported here, not on the cycle thread)
+        import telemetry.lcmtypes.canon.status  # noqa: F401
+        self.events.start()
+        try:
+            if self.simulated:
+                from fieldbus.canopen.drive_sim import SimDrive
+                from fieldbus.canopen.sim_process import SimBus
+
+                self.sim_drives = [SimDrive(d.node_id, d.eds_path, lag_s=self.sim_lag_s)
+                                   for d in self.canopen.drives]
+                self.sim_bus = SimBus(self.sim_drives, self.canopen.bus)
+            try:
+                self.master = CanopenMaster(self.canopen)
+                self.master.add_fault_listener(self._on_master_fault)
+                self.master.open()
+                self.master.boot()
+            except CanopenError as exc:
+                raise MachineError(f"CANopen: {exc}") from None
+            except Exception as exc:  # python-can: no such interface or channel
+                raise MachineError(f"CANopen: cannot open the {self.canopen.bus.interface} bus "
+                                   f"{self.canopen.bus.channel!r}: {exc}") from None
+            if self.modbus is not None:
+                self._start_io()
+            self.runner = PeriodicRunner(self.T, self._step, on_late=self._on_late, keep_lateness=False,
+                                         name="canon-cycle")
+            self.runner.start()
+            self._status_thread = threading.Thread(target=self._status_loop, name="canon-status", daemon=True)
+            self._status_thread.start()
+        except BaseException:
+            self.shutdown()
+            raise
+        self.started = True
+        self.event("INFO", f"machine {self.limits.name!r} up: {self.n} drives, cycle {self.T * 1e3:g} ms, "
+                           f"{'simulated' if self.simulated else self.canopen.bus.interface} bus",
+                   kind="startup", source="motiond")
+        return self
+
+    def _start_io(self) -> None:
+        from fieldbus.modbus.executor import IoExecutor
+        from fieldbus.modbus.faults import IoError
+        from fieldbus.modbus.sim import SimIoModule
+
+        assert self.modbus is not None
+        for dev in self.modbus.devices:
+            if dev.simulate:
+                mod = SimIoModule(host="127.0.0.1", port=dev.port, unit=dev.unit)
+                try:
+                    mod.start()
+                except OSError as exc:
+                    raise MachineError(f"simulated Modbus module {dev.name!r}: cannot listen on "
+                                       f"127.0.0.1:{dev.port}: {exc}") from None
+                self.sim_io[dev.name] = mod
+        if any(dev.simulate and dev.port == 0 for dev in self.modbus.devices):
+            devices = tuple(dataclasses.replace(d, port=self.sim_io[d.name].port) if d.simulate else d
+                            for d in self.modbus.devices)
+            self.modbus = dataclasses.replace(self.modbus, devices=devices)
+        self.io = IoExecutor(self.modbus, on_fault=self._on_io_fault, on_recover=self._on_io_recover)
+        try:
+            self.io.start()
+        except IoError as exc:
+            self.io = None
+            raise MachineError(f"Modbus: {exc}") from None
+
+    def shutdown(self) -> None:
+        """Stop everything safely: the job cancelled, drives quick-stopped then disabled, outputs to
+        their safe values, parameters saved, telemetry stopped. Safe to call twice."""
+        job = self._job
+        if job is not None:
+            job.cancel.set()
+            with self._sync_cond:
+                self._sync_cond.notify_all()
+            if job.thread is not None:
+                job.thread.join(2.0)
+        if self.master is not None and self.master.streaming:
+            self._hold_stream = True
+            try:
+                self._disable_drives()
+            except Exception:
+                log.exception("disabling the drives at shutdown")
+        if self.runner is not None:
+            self.runner.stop()
+            self.runner.join(2.0)
+            self.runner = None
+        if self.io is not None:
+            try:
+                self.io.stop(safe=True)
+            except Exception:
+                log.exception("stopping the Modbus I/O")
+            self.io = None
+        if self.master is not None:
+            try:
+                self.master.shutdown()
+            except Exception:
+                log.exception("shutting the CANopen master down")
+        if self.sim_bus is not None:
+            self.sim_bus.close()
+            self.sim_bus = None
+        for mod in self.sim_io.values():
+            mod.stop()
+        self.sim_io = {}
+        try:
+            self.interp.shutdown()  # the parameter file
+        except Exception as exc:
+            log.error("saving the parameter file: %s", exc)
+        self._status_stop.set()
+        if self._status_thread is not None:
+            self._status_thread.join(2.0)
+            self._status_thread = None
+        if self.started:
+            self.event("INFO", "machine shut down", kind="shutdown", source="motiond")
+        self.started = False
+        self.events.stop()
+
+    def __enter__(self) -> Machine:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.shutdown()
+
+    # ------------------------------------------------------------------ helpers
+    def event(self, severity: str, text: str, *, kind: str = "", source: str = "motiond", file: str = "",
+              line: int = 0) -> None:
+        from telemetry.lcmtypes.canon import event as ev
+
+        level = {"DEBUG": logging.DEBUG, "INFO": logging.INFO, "WARNING": logging.WARNING,
+                 "ERROR": logging.ERROR, "FATAL": logging.CRITICAL}[severity]
+        log.log(level, "%s%s", f"{file}:{line}: " if file else "", text)
+        self.events.emit(getattr(ev, severity), text, kind=kind, source=source, file=file, line=line)
+
+    def _on_cycle(self, fn: Callable[[], Any], *, wait: bool = True, timeout: float = 2.0) -> Any:
+        """Run ``fn`` on the cycle thread (which owns the planner) and return its result."""
+        runner = self.runner
+        if runner is None or runner.join(0) or threading.get_ident() == self._cycle_ident:
+            return fn()
+        fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
+
+        def call() -> None:
+            try:
+                fut.set_result(fn())
+            except BaseException as exc:
+                fut.set_exception(exc)
+
+        self._calls.put(call)
+        if not wait:
+            return None
+        return fut.result(timeout)
+
+    def _on_state_change(self, before: Any, after: Any) -> None:
+        if before.state != after.state:
+            self.event("INFO", f"state {before.state.value} -> {after.state.value}", kind="state",
+                       source="motiond")
+
+    # ------------------------------------------------------------------ faults
+    def _on_master_fault(self, fault: Any) -> None:
+        if self._estopping:
+            return
+        self._post_fault(str(fault), "canopen")
+
+    def _on_io_fault(self, fault: Any) -> None:
+        self._post_fault(str(fault), "modbus")
+
+    def _on_io_recover(self, device: str) -> None:
+        self.event("INFO", f"Modbus device {device!r} answers again; outputs written to their safe values",
+                   kind="io_recovered", source="modbus")
+
+    def _on_late(self, k: int, by: float) -> None:
+        self.late_cycles += 1
+        self.worst_late_s = max(self.worst_late_s, by)
+        if by > self.late_fault_s and self.master is not None and self.master.streaming:
+            self._post_fault(f"cycle {k} started {by * 1e3:.1f} ms late (limit "
+                             f"{self.late_fault_s * 1e3:g} ms, period {self.T * 1e3:g} ms)", "motiond")
+
+    def _post_fault(self, reason: str, source: str) -> None:
+        """Any thread: a fault to be acted on at the start of the next cycle (first one wins)."""
+        with self._fault_lock:
+            if self._pending_fault is None:
+                self._pending_fault = (reason, source)
+
+    def _handle_fault(self) -> None:
+        """Cycle thread: stop motion, cancel the job, FAULTED with the reason."""
+        with self._fault_lock:
+            pending, self._pending_fault = self._pending_fault, None
+        if pending is None:
+            return
+        reason, source = pending
+        if self.states.state is State.FAULTED:
+            log.warning("further fault while faulted: %s", reason)
+            return
+        self.last_error = reason
+        self.last_error_utime = time.time_ns() // 1000
+        self._cancel_job(reason)
+        master_faulted = self.master is not None and self.master.fault is not None
+        if self.planner is not None:
+            if master_faulted:
+                self.planner = None  # the drives stop on their own ramps; the planner restarts later
+            else:
+                self.planner.quick_stop()
+                self._stop_then_disable = True
+        self.states.fault(reason)
+        kind = {"canopen": "drive_fault", "modbus": "io_fault"}.get(source, "fault")
+        self.event("ERROR", reason, kind=kind, source=source)
+
+    def _cancel_job(self, error: str = "", aborted: bool = False) -> None:
+        job = self._job
+        if job is None:
+            return
+        job.cancel.set()
+        if error and not job.error:
+            job.error = error
+        job.aborted = job.aborted or aborted
+        while True:
+            try:
+                self._cmdq.get_nowait()
+            except queue.Empty:
+                break
+        with self._sync_cond:
+            self._sync_cond.notify_all()
+        self._finish_job()
+
+    # ------------------------------------------------------------------ the cycle
+    def _step(self, k: int, deadline: float) -> None:
+        try:
+            self._cycle_step()
+        except Exception as exc:  # a bug must not end the cycle thread with the drives streaming
+            log.exception("cycle %d", k)
+            self._post_fault(f"internal error in the cycle loop: {exc!r}", "motiond")
+
+    def _cycle_step(self) -> None:
+        if self._cycle_ident == 0:
+            self._cycle_ident = threading.get_ident()
+        self.cycle += 1
+        while True:
+            try:
+                fn = self._calls.get_nowait()
+            except queue.Empty:
+                break
+            fn()
+        if self._pending_fault is not None:
+            self._handle_fault()
+        master = self.master
+        p = self.planner
+        sp = None
+        if p is not None and master.streaming and not self._hold_stream:
+            try:
+                self._feed(p)
+                sp = p.next_setpoint()
+            except GCodeError as exc:  # PlannerError
+                self._post_fault(str(exc), "planner")
+                sp = None
+        fb = master.cycle(sp.positions if sp is not None else None)
+        self._actual = fb.positions
+        self._actual_t = time.monotonic()
+        self._fe = fb.following_errors
+        job = self._job
+        if self.trace is not None and sp is not None:
+            self.trace.append((self.cycle, time.monotonic(), sp.positions, sp.events))
+        if sp is not None:
+            if self.first_setpoint_t is None:
+                self.first_setpoint_t = time.monotonic()
+            self._track(sp, job)
+            if sp.events:
+                self._events(sp, job)
+                if self.io is not None:
+                    self.io.on_setpoint(sp)
+        else:
+            self._velocity = tuple(0.0 for _ in range(self.n))
+            self._acc = [0.0] * self.n
+        if p is not None and p is self.planner:
+            w = p.waiting_for
+            if w is not None and w is not self._wait_seen:
+                self._wait_seen = w
+                self._on_wait(w)
+            if p.is_idle:
+                self._at_rest()
+        elif self.planner is None and (self._aborting or self._stop_then_disable):
+            self._at_rest()
+
+    def _feed(self, p: Any) -> None:
+        job = self._job
+        if job is None:
+            return
+        n = 0
+        while p.queue_length < LOOKAHEAD and n < FEED_PER_CYCLE:
+            try:
+                item = self._cmdq.get_nowait()
+            except queue.Empty:
+                return
+            n += 1
+            if item is _END:
+                p.flush()
+                job.input_done = True
+                return
+            if self.io is not None and isinstance(item, C.DigitalOutput | C.AnalogOutput | C.WaitInput):
+                problem = self.io.check(item)
+                if problem:
+                    raise GCodeError(problem, item.file, item.line)
+            elif self.io is None and isinstance(item, C.DigitalOutput | C.AnalogOutput):
+                raise GCodeError(f"{item.NAME}: this machine has no Modbus I/O configured ([modbus])",
+                                 item.file, item.line)
+            p.feed(item)
+
+    def _track(self, sp: Any, job: _Job | None) -> None:
+        T = self.T
+        prev = self._commanded
+        pos = sp.positions
+        vel = tuple((a - b) / T for a, b in zip(pos, prev, strict=True))
+        acc = [(a - b) / T for a, b in zip(vel, self._velocity, strict=True)]
+        if job is not None:
+            for i, pk in enumerate(job.peaks):
+                v, a = abs(vel[i]), abs(acc[i])
+                j = abs(acc[i] - self._acc[i]) / T
+                if v > pk.velocity:
+                    pk.velocity = v
+                if a > pk.acceleration:
+                    pk.acceleration = a
+                if j > pk.jerk:
+                    pk.jerk = j
+                fe = abs(self._fe[i])
+                if fe > pk.following_error:
+                    pk.following_error = fe
+            if sp.line:
+                job.line = sp.line
+        self._commanded = pos
+        self._velocity = vel
+        self._acc = acc
+        if sp.line:
+            self._line = (sp.line, sp.file)
+
+    def _events(self, sp: Any, job: _Job | None) -> None:
+        for ev in sp.events:
+            if isinstance(ev, C.DigitalOutput | C.AnalogOutput):
+                if job is not None:
+                    digital = isinstance(ev, C.DigitalOutput)
+                    job.outputs.append(OutputSwitch(
+                        self.cycle, time.monotonic(), "digital" if digital else "analog", ev.index,
+                        float(ev.on) if digital else ev.value, ev.synced, ev.file, ev.line))
+            elif isinstance(ev, C.Message):
+                self.event("DEBUG" if ev.debug else "INFO", ev.text, kind="message", source="gcode",
+                           file=ev.file, line=ev.line)
+            elif isinstance(ev, C.SpindleOn):
+                self._spindle = (1 if ev.direction is C.SpindleDirection.CW else -1, ev.rpm)
+            elif isinstance(ev, C.SpindleOff):
+                self._spindle = (0, self._spindle[1])
+            elif isinstance(ev, C.SetSpindleSpeed):
+                self._spindle = (self._spindle[0], ev.rpm)
+            elif isinstance(ev, C.Coolant):
+                self._coolant = (ev.mist, ev.flood)
+            elif isinstance(ev, C.SelectTool):
+                self._tool_prepared = ev.tool
+
+    def _on_wait(self, w: Any) -> None:
+        """Cycle thread: the planner stands at a sync point that waits for the machine."""
+        p = self.planner
+        if isinstance(w, C.ToolChange):
+            how = "simulated machine" if self.simulated else "no tool changer configured"
+            self.event("INFO", f"tool change to T{w.tool}: done at once ({how})",
+                       kind="tool_change", source="motiond", file=w.file, line=w.line)
+            p.release()
+        elif isinstance(w, C.ProgramStop | C.PalletShuttle):
+            if isinstance(w, C.ProgramStop) and w.optional and not self.optional_stop:
+                p.release()
+                return
+            self._stopped_at = w
+            if isinstance(w, C.PalletShuttle):
+                what = "M60 pallet shuttle"
+            else:
+                what = "M1" if w.optional else "M0"
+            with contextlib.suppress(CommandRefused):
+                self.states.pause()
+            self.event("INFO", f"{what}: program paused; 'resume' continues", kind="program_stop",
+                       source="gcode", file=w.file, line=w.line)
+        else:  # M66, probe: the job thread is waiting for this
+            with self._sync_cond:
+                self._sync_reached = w
+                self._sync_cond.notify_all()
+
+    def _wait_sync_point(self, cmd: Any, job: _Job) -> None:
+        """Job thread: block until the planner stands at ``cmd`` (or the job is cancelled)."""
+        with self._sync_cond:
+            while self._sync_reached is not cmd:
+                if job.cancel.is_set():
+                    raise _Aborted()
+                self._sync_cond.wait(0.05)
+
+    def _release_wait(self) -> None:
+        if self.planner is not None and self.planner.waiting_for is not None:
+            self.planner.release()
+
+    def _at_rest(self) -> None:
+        """Cycle thread, planner idle: finish an abort, a fault's stop, a job."""
+        if self._stop_then_disable:
+            self._stop_then_disable = False
+            self.planner = None
+            threading.Thread(target=self._disable_quietly, name="canon-disable", daemon=True).start()
+            return
+        if self._aborting:
+            self._aborting = False
+            if self.states.state in (State.RUNNING, State.PAUSED):
+                self.states.abort()
+            return
+        job = self._job
+        if job is not None and job.input_done and self._cmdq.empty():
+            self._finish_job()
+            if self.states.state in (State.RUNNING, State.PAUSED):
+                self.states.finished()
+        if self._jogging:
+            self._jogging = False
+
+    def _finish_job(self) -> None:
+        job = self._job
+        if job is None:
+            return
+        self._job = None
+        self._last_job = job
+        ok = not job.error and not job.aborted
+        res = JobResult(
+            program=job.program, ok=ok, error=job.error, aborted=job.aborted,
+            duration_s=time.monotonic() - job.t0, cycles=self.cycle - job.cycle0,
+            cycle_s=(self.cycle - job.cycle0) * self.T, late_cycles=self.late_cycles - job.late0,
+            peaks={name: job.peaks[i] for i, name in enumerate(self.names)}, outputs=job.outputs,
+            final_commanded=tuple(self._commanded), final_actual=tuple(self._actual),
+            expected_final=tuple(self.interp.position[i] for i in self.limits.pose_index),
+            first_cycle=job.cycle0)
+        job.result = res
+        job.done.set()
+        if ok:
+            self.event("INFO", f"{job.mode.value} {job.program} done in {res.duration_s:.2f} s",
+                       kind="program_end", source="motiond",
+                       file=job.program if job.mode is Mode.AUTO else "")
+        elif job.aborted:
+            self.event("WARNING", f"{job.program} aborted", kind="program_abort", source="motiond")
+
+    def _machine_pose(self) -> C.Pose:
+        """Where the machine stands, as a full pose (axes the machine lacks: the interpreter's)."""
+        def where() -> tuple[float, ...]:
+            if self.planner is not None:
+                return self.planner.position
+            return self.master.positions() if self.master is not None else self._commanded
+
+        pos = self._on_cycle(where)
+        pose = list(self.interp.position)
+        for i, k in enumerate(self.limits.pose_index):
+            pose[k] = pos[i]
+        return C.Pose(*pose)
+
+    def _new_planner(self) -> None:
+        """Cycle thread: a planner at rest where the drives hold, primed with the interpreter's modes."""
+        from planner.core import Planner
+
+        start = self.master.positions()
+        p = Planner(self.limits, start=start)
+        interp = self.interp
+        p.feed(C.SetFeedMode(interp.feed_mode))
+        p.feed(C.SetFeedRate(interp.feed))
+        mode, tol, cam = interp.control
+        p.feed(C.SetMotionControlMode(mode, tol, cam))
+        if interp.speed:
+            p.feed(C.SetSpindleSpeed(interp.speed))
+        self.planner = p
+        self._wait_seen = None
+        self._commanded = tuple(start)
+
+    # ------------------------------------------------------------------ status
+    def _status_loop(self) -> None:
+        period = 1.0 / self.telemetry.status_hz
+        deadline = time.monotonic()
+        while not self._status_stop.is_set():
+            try:
+                snap = self.status()
+                self.status_pub.update(snap)
+                self.status_pub.publish_now()
+            except Exception:
+                log.exception("building the status")
+            deadline += period
+            late = time.monotonic() - deadline
+            if late > 0:
+                deadline += (int(late / period) + 1) * period
+            self._status_stop.wait(max(0.0, deadline - time.monotonic()))
+
+    def status(self) -> Any:
+        """A ``canon.status`` snapshot of the machine now (any thread)."""
+        from telemetry.lcmtypes.canon import drive_status, status
+
+        s = status()
+        self.status_seq += 1
+        s.utime = time.time_ns() // 1000
+        s.seq = self.status_seq
+        s.machine = self.limits.name
+        snap = self.states.snapshot()
+        state = {State.ESTOP: "estop", State.IDLE: "idle", State.RUNNING: "running", State.PAUSED: "paused",
+                 State.FAULTED: "fault"}[snap.state]
+        if state == "idle" and self._homing:
+            state = "homing"
+        elif state == "idle" and self._jogging:
+            state = "jogging"
+        s.state = state
+        s.mode = snap.mode.value
+        s.estop = snap.state is State.ESTOP
+        s.enabled = snap.enabled
+        job = self._job
+        line = self._line[0]
+        s.program = job.program if job is not None and job.mode is Mode.AUTO else ""
+        s.line = int(line) if job is not None else 0
+        s.block = ""
+        if job is not None and line:
+            if job.mode is Mode.MDI:
+                s.block = job.program
+            else:
+                s.block = linecache.getline(job.program, int(line)).strip()[:200]
+        s.single_block = self.single_block
+        s.optional_stop = self.optional_stop
+        s.block_delete = bool(self.interp.settings.block_delete)
+        s.num_axes = self.n
+        s.axis_names = list(self.names)
+        s.homed = list(self.homed)
+        cmd = self._commanded
+        act = self._actual
+        self.status_data_t[s.seq] = self._actual_t
+        if len(self.status_data_t) > 2000:
+            self.status_data_t.popitem(last=False)
+        s.commanded = [float(v) for v in cmd]
+        s.actual = [float(v) for v in act]
+        s.velocity = [float(v) for v in self._velocity]
+        s.following_error = [float(v) for v in self._fe]
+        lin = [self._velocity[i] for i, a in enumerate(self.limits.axes) if not a.rotary]
+        s.path_velocity = math.sqrt(sum(v * v for v in lin))
+        s.feed_rate = float(self.interp.feed)
+        p = self.planner
+        s.feed_override = float(p.feed_override) if p is not None else 1.0
+        s.rapid_override = 1.0
+        s.spindle_override = 1.0
+        drives = []
+        master = self.master
+        if master is not None:
+            now = time.monotonic()
+            nmt_names = {0: "INITIALISING", 4: "STOPPED", 5: "OPERATIONAL", 127: "PRE-OPERATIONAL"}
+            hb_limit = self.canopen.heartbeat_consumer_ms / 1000.0
+            fault = master.fault
+            for d, st in zip(master.drives, master.state, strict=False):
+                ds = drive_status()
+                ds.axis = st.axis
+                ds.node_id = st.node
+                ds.nmt_state = nmt_names.get(d.nmt_state, "")
+                ds.heartbeat_ok = (not self.canopen.heartbeat_producer_ms) or now - d.heartbeat_at <= hb_limit
+                ds.statusword = int(st.statusword) & 0xFFFF
+                ds.cia402_state = st.state.name.lower()
+                ds.mode_display = 8 if d.nmt_state == 5 else 0
+                ds.position_actual = int(st.actual_counts)
+                ds.following_error = int(d.following_error)
+                active = getattr(d.node.emcy, "active", [])
+                ds.emcy_code = int(active[-1].code) if active else 0
+                ds.error = str(fault.reason) if fault is not None and fault.node == st.node else ""
+                drives.append(ds)
+        s.num_drives = len(drives)
+        s.drives = drives
+        g = list(self.interp.active_gcodes())
+        m = list(self.interp.active_mcodes())
+        s.num_gcodes, s.gcodes = len(g), g
+        s.num_mcodes, s.mcodes = len(m), m
+        s.tool = int(self.interp.current_tool)
+        s.tool_prepared = int(self._tool_prepared)
+        s.tool_length_offset = float(self.interp.parameter(5403))
+        s.spindle_direction, s.spindle_speed = self._spindle[0], float(self._spindle[1])
+        s.mist, s.flood = self._coolant
+        if self.io is not None:
+            io = self.io.state()
+            di, do, ai, ao = io.arrays()
+            s.io_ok = io.io_ok
+        else:
+            di, do, ai, ao = [], [], [], []
+            s.io_ok = self.modbus is None
+        s.num_digital_inputs, s.digital_inputs = len(di), [bool(v) for v in di]
+        s.num_digital_outputs, s.digital_outputs = len(do), [bool(v) for v in do]
+        s.num_analog_inputs, s.analog_inputs = len(ai), [float(v) for v in ai]
+        s.num_analog_outputs, s.analog_outputs = len(ao), [float(v) for v in ao]
+        s.last_error = self.last_error
+        s.last_error_utime = self.last_error_utime
+        s.events_dropped = self.events.dropped
+        return s
+
+    # ------------------------------------------------------------------ commands
+    def estop(self) -> None:
+        """Always accepted: quick stop on every drive now, the job cancelled, ESTOP."""
+        self.states.estop()
+        self._estopping = True
+        try:
+            if self.master is not None:
+                self.master.quick_stop("E-stop")
+        finally:
+            self._estopping = False
+
+        def on_cycle() -> None:
+            self._cancel_job("E-stop", aborted=True)
+            self.planner = None
+            self._aborting = self._stop_then_disable = False
+
+        self._on_cycle(on_cycle)
+        self.event("WARNING", "E-stop", kind="estop", source="motiond")
+
+    def estop_reset(self) -> None:
+        with self._ops:
+            if self.states.state is not State.ESTOP:
+                self.states.estop_reset()  # raises the refusal
+            if self.io is not None and self.io.fault is not None and not self.io.acknowledge():
+                raise CommandRefused(f"cannot reset the estop: a Modbus link is down ({self.io.fault})")
+            self._reset_drives()
+            self.states.estop_reset()
+            self.last_error = ""
+
+    def _reset_drives(self) -> None:
+        """Fault-reset the drives, then take them to Switch on disabled (disabled, as the states say)."""
+        from fieldbus.canopen.master import CanopenError
+
+        try:
+            if hasattr(self.master, "not_operational"):
+                lost = self.master.not_operational()
+            else:
+                lost = [d.describe() for d in self.master.drives if d.nmt_state != 5]
+            if lost:  # a drive restarted (power cycle, process restarted): boot the bus again
+                self.event("INFO", f"booting the drives again ({', '.join(lost)} not operational)",
+                           kind="reboot", source="canopen")
+                self.master.boot()
+            self.master.reset_faults()
+            self._disable_drives()
+        except CanopenError as exc:
+            raise CommandRefused(f"the drives did not reset: {exc}") from None
+
+    def _disable_drives(self) -> None:
+        """Stop streaming and take every drive to Switch on disabled (controlword 0 by SDO)."""
+        from fieldbus.canopen import cia402
+
+        master = self.master
+        if hasattr(master, "disable"):
+            self._on_cycle(lambda: setattr(self, "planner", None))
+            master.disable()
+            return
+        with master._lock:  # a master without disable() (older fieldbus)
+            master.streaming = False
+        self._on_cycle(lambda: setattr(self, "planner", None))
+        for d in master.drives:
+            master._sdo(d, "controlword (disable voltage)", 0x6040, 0, "H", cia402.CW_DISABLE_VOLTAGE)
+
+    def _disable_quietly(self) -> None:
+        with self._ops:
+            if self.states.state is not State.FAULTED:
+                return  # reset (or estop) came first and has taken care of the drives
+            try:
+                self._disable_drives()
+            except Exception as exc:
+                log.error("disabling the drives after a fault: %s", exc)
+
+    def enable(self) -> None:
+        from fieldbus.canopen.master import CanopenError
+
+        with self._ops:
+            snap = self.states.snapshot()
+            if snap.state is not State.IDLE:
+                self.states.enable()  # raises the refusal
+            if snap.enabled and self.master.streaming:
+                return
+            try:
+                self.master.enable()
+            except CanopenError as exc:
+                raise CommandRefused(f"enable failed: {exc}") from None
+            self._hold_stream = False
+            self._on_cycle(self._new_planner)
+            self.states.enable()
+
+    def disable(self) -> None:
+        from fieldbus.canopen.master import CanopenError
+
+        with self._ops:
+            snap = self.states.snapshot()
+            if snap.state not in (State.IDLE, State.FAULTED):
+                self.states.disable()  # raises
+            try:
+                self._disable_drives()
+            except CanopenError as exc:
+                raise CommandRefused(f"disable failed: {exc}") from None
+            self.states.disable()
+
+    def reset(self) -> None:
+        with self._ops:
+            if self.states.state is not State.FAULTED:
+                self.states.reset()  # raises the refusal
+            if self.io is not None and self.io.fault is not None and not self.io.acknowledge():
+                raise CommandRefused("cannot reset: a Modbus link is still down "
+                                     f"({self.io.fault})")
+            deadline = time.monotonic() + 3.0
+            while self.planner is not None and self._stop_then_disable and time.monotonic() < deadline:
+                time.sleep(0.01)  # the fault's stop on the path is still running
+            self._reset_drives()
+            with self._fault_lock:
+                self._pending_fault = None
+            self.states.reset()
+            self.last_error = ""
+            self.event("INFO", "fault reset", kind="reset", source="motiond")
+
+    def _start_job(self, mode: Mode, program: str, source: Callable[[], Any], lines_total: int = 0) -> _Job:
+        with self._ops:
+            if self.states.state is not State.IDLE:
+                self.states.start(mode)  # raises the refusal that names the state
+            if self._job is not None or self._aborting or self._stop_then_disable:
+                raise CommandRefused("busy: the previous program is still stopping")
+            if self.planner is None and self.states.snapshot().enabled:
+                self._on_cycle(self._new_planner)
+            self.states.start(mode)  # raises the refusal
+            job = _Job(program, mode, self.n)
+            job.lines_total = lines_total
+            job.cycle0 = self.cycle
+            job.late0 = self.late_cycles
+            self._wait_seen = None
+            self._sync_reached = None
+            self._stopped_at = None
+            self._job = job
+            job.thread = threading.Thread(target=self._job_main, args=(job, source), name="canon-interp",
+                                          daemon=True)
+            job.thread.start()
+            self.event("INFO", f"{mode.value} {program} started", kind="program_start", source="motiond",
+                       file=program if mode is Mode.AUTO else "")
+            return job
+
+    def run(self, path: str | os.PathLike[str], start_line: int = 0) -> _Job:
+        """Start a program file (IDLE, enabled). Returns the job (``job.done``, ``job.result``)."""
+        if start_line > 1:
+            raise CommandRefused("starting a program at a line other than the first is not supported")
+        p = Path(path)
+        if not p.is_file():
+            raise CommandRefused(f"{path}: no such file")
+        try:
+            with p.open("rb") as fh:
+                total = sum(1 for _ in fh)
+        except OSError as exc:
+            raise CommandRefused(f"{path}: cannot read: {exc.strerror}") from None
+        linecache.checkcache(str(path))  # the file may have changed since it last ran
+        return self._start_job(Mode.AUTO, str(path), lambda: self.interp.run_file(p), total)
+
+    def mdi(self, line: str) -> _Job:
+        return self._start_job(Mode.MDI, line, lambda: iter(self.interp.execute_mdi(line)))
+
+    def _job_main(self, job: _Job, source: Callable[[], Any]) -> None:
+        last_line = 0
+        try:
+            for cmd in source():
+                if (self.single_block and job.mode is Mode.AUTO and last_line and cmd.line != last_line
+                        and not self._single_block_stop(job, last_line)):
+                    return
+                last_line = cmd.line
+                if not self._put(cmd, job):
+                    return
+            self._put(_END, job)
+        except _Aborted:
+            return
+        except GCodeError as exc:
+            if not job.cancel.is_set():
+                self._post_fault(str(exc), "gcode")
+        except Exception as exc:  # never silently: an interpreter bug faults the machine
+            log.exception("interpreter thread")
+            if not job.cancel.is_set():
+                self._post_fault(f"internal error in the interpreter: {exc!r}", "gcode")
+
+    def _single_block_stop(self, job: _Job, line: int) -> bool:
+        """Job thread, single block on: let the machine finish the block (``line``), pause, and wait for
+        ``resume``. False when the job was cancelled meanwhile."""
+        def idle() -> bool:
+            p = self.planner
+            return p is None or (p.is_idle and p.queue_length == 0)
+
+        while not job.cancel.is_set():
+            if self._cmdq.empty() and self._on_cycle(idle):
+                break
+            time.sleep(self.T)
+        else:
+            return False
+        with contextlib.suppress(CommandRefused):
+            self.states.pause()
+        self.event("INFO", f"single block: stopped after line {line}; 'resume' runs the next block",
+                   kind="single_block", source="motiond", file=job.program, line=line)
+        while self.states.state is State.PAUSED and not job.cancel.is_set():
+            time.sleep(0.01)
+        return not job.cancel.is_set() and self.states.state is State.RUNNING
+
+    def _put(self, item: Any, job: _Job) -> bool:
+        while not job.cancel.is_set():
+            try:
+                self._cmdq.put(item, timeout=0.05)
+                job.queued += 1
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def pause(self) -> None:
+        self.states.pause()
+        self._on_cycle(lambda: self.planner.hold() if self.planner is not None else None)
+
+    def resume(self) -> None:
+        self.states.resume()
+
+        def on_cycle() -> None:
+            p = self.planner
+            if p is None:
+                return
+            if self._stopped_at is not None and p.waiting_for is self._stopped_at:
+                p.release()
+            self._stopped_at = None
+            p.resume()
+
+        self._on_cycle(on_cycle)
+
+    def abort(self) -> None:
+        snap = self.states.snapshot()
+        if snap.state not in (State.RUNNING, State.PAUSED, State.IDLE):
+            self.states.abort()  # raises
+
+        def on_cycle() -> None:
+            self._cancel_job("aborted by the operator", aborted=True)
+            if self.planner is not None:
+                self.planner.abort()
+                self._aborting = True
+            elif self.states.state in (State.RUNNING, State.PAUSED):
+                self.states.abort()
+
+        self._on_cycle(on_cycle)
+
+    def feed_override(self, factor: float) -> None:
+        if not (math.isfinite(factor) and 0.0 <= factor <= 2.0):
+            raise CommandRefused(f"feed override must be between 0 and 2 (0 to 200 %), got {factor:g}")
+        self._on_cycle(lambda: self.planner.set_feed_override(factor) if self.planner is not None else None)
+
+    def home(self, axes: list[str] | tuple[str, ...] = ()) -> None:
+        from fieldbus.canopen.master import CanopenError
+
+        names = [a.lower() for a in axes] or list(self.names)
+        for a in names:
+            if a not in self.names:
+                raise CommandRefused(f"no axis {a!r} (axes: {' '.join(self.names)})")
+        with self._ops:
+            self.states.manual("home")
+            if self.planner is not None and not self.planner.is_idle:
+                raise CommandRefused("cannot home while the axes move")
+            self._hold_stream = True
+            try:
+                time.sleep(2 * self.T)  # let the cycle thread see the hold
+                for a in names:
+                    self._homing = a
+                    self.master.home(a)
+                    self.homed[self.names.index(a)] = True
+                    self.event("INFO", f"axis {a} homed", kind="homed", source="canopen")
+            except CanopenError as exc:
+                raise CommandRefused(f"homing failed: {exc}") from None
+            finally:
+                self._homing = ""
+                self._on_cycle(self._new_planner)
+                self._hold_stream = False
+
+    def jog(self, axis: str, velocity: float, distance: float = 0.0) -> None:
+        a = axis.lower()
+        if a not in self.names:
+            raise CommandRefused(f"no axis {a!r} (axes: {' '.join(self.names)})")
+        i = self.names.index(a)
+        lim = self.limits.axes[i]
+        if velocity == 0.0:
+            self._on_cycle(lambda: self.planner.abort() if self.planner is not None and self._jogging
+                           else None)
+            return
+        if abs(velocity) > lim.max_velocity:
+            raise CommandRefused(f"jog velocity {abs(velocity):g} beyond axis {a}'s max_velocity "
+                                 f"{lim.max_velocity:g}")
+        self.states.manual("jog")
+
+        def on_cycle() -> None:
+            p = self.planner
+            if p is None:
+                raise CommandRefused("drives not enabled")
+            if not p.is_idle:
+                raise CommandRefused("cannot jog while the axes move")
+            pos = list(p.position)
+            if distance:
+                target = pos[i] + math.copysign(abs(distance), velocity)
+            else:  # until a jog with velocity 0, at most to the soft limit (or 1000 units)
+                bound = lim.max_position if velocity > 0 else lim.min_position
+                target = bound if bound is not None else pos[i] + math.copysign(1000.0, velocity)
+            if lim.min_position is not None and target < lim.min_position:
+                target = lim.min_position
+            if lim.max_position is not None and target > lim.max_position:
+                target = lim.max_position
+            pose = list(self.interp.position)
+            for j, k in enumerate(self.limits.pose_index):
+                pose[k] = pos[j]
+            pose[self.limits.pose_index[i]] = target
+            p.feed(C.SetFeedRate(abs(velocity) * 60.0))  # a one-axis move runs at the feed
+            p.feed(C.StraightFeed(C.Pose(*pose), file="<jog>"))
+            p.feed(C.SetFeedRate(self.interp.feed))
+            p.flush()
+            self._jogging = True
+
+        self._on_cycle(on_cycle)
+
+    def set_single_block(self, on: bool) -> None:
+        self.single_block = on
+
+    def set_optional_stop(self, on: bool) -> None:
+        self.optional_stop = on
+
+    def set_block_delete(self, on: bool) -> None:
+        self.interp.settings.block_delete = on
+
+    # ------------------------------------------------------------------ LCM commands
+    def handle_command(self, cmd: Any) -> str | None:
+        """``telemetry.commands.CommandServer``'s handler: None (done / accepted) or the refusal."""
+        verb = cmd.verb
+        s = list(cmd.strings)
+        v = list(cmd.values)
+        try:
+            if verb == "run":
+                self.run(s[0], int(v[0]) if v else 0)
+            elif verb == "mdi":
+                self.mdi(s[0])
+            elif verb == "pause":
+                self.pause()
+            elif verb == "resume":
+                self.resume()
+            elif verb == "feed_override":
+                self.feed_override(v[0])
+            elif verb == "abort":
+                self.abort()
+            elif verb == "estop":
+                self.estop()
+            elif verb == "estop_reset":
+                self.estop_reset()
+            elif verb == "enable":
+                self.enable()
+            elif verb == "disable":
+                self.disable()
+            elif verb == "reset":
+                self.reset()
+            elif verb == "home":
+                self.home(s)
+            elif verb == "jog":
+                self.jog(s[0], v[0], v[1] if len(v) > 1 else 0.0)
+            elif verb == "single_block":
+                self.set_single_block(bool(v[0]))
+            elif verb == "optional_stop":
+                self.set_optional_stop(bool(v[0]))
+            elif verb == "block_delete":
+                self.set_block_delete(bool(v[0]))
+            else:
+                return f"unknown verb {verb!r}"
+        except CommandRefused as exc:
+            return str(exc)
+        except concurrent.futures.TimeoutError:
+            return f"{verb}: the cycle thread did not answer (machine stopping?)"
+        self.event("DEBUG", f"command {verb} from {cmd.sender or '?'} done", kind="command",
+                   source="telemetry")
+        return None
+
+    # ------------------------------------------------------------------ for canon run and tests
+    def bring_up(self) -> None:
+        """ESTOP -> IDLE -> enabled: what an operator does before running a program."""
+        self.estop_reset()
+        self.enable()
+
+    def wait_job(self, job: _Job, timeout: float | None = None) -> JobResult | None:
+        if not job.done.wait(timeout):
+            return None
+        return job.result
+
+    @property
+    def job(self) -> _Job | None:
+        return self._job

@@ -1,0 +1,413 @@
+"""The daemon in this process on ``memq://``: commands through ``send_command``, status through LCM.
+
+Each test starts the demo machine (simulated drives on a private virtual bus, the simulated I/O module
+on a free loopback port) with its :class:`CommandServer`, and drives it as an HMI would: commands and
+their replies, the ``canon.status`` stream, events. Faults are injected in the simulated drives and
+the I/O module.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from motiond.cmd_daemon import start
+from motiond.config import load_machine
+from motiond.control_client import send_command, shared_memq
+from telemetry.config import TelemetryConfig
+from telemetry.lcmtypes.canon import event, status
+
+SHORT = """%
+G21 G90 G94 G64 P0.01
+G0 Z5
+G0 X10 Y5
+M62 P0
+G1 Z-1 F600
+G1 X20 Y15 F1200
+G2 X30 Y5 I5 J-5
+M63 P0
+G0 Z5
+G0 X12.5 Y7.25 Z3
+M2
+%
+"""
+SHORT_FINAL = (12.5, 7.25, 3.0)  # the program's last G0
+
+LONG = """%
+G21 G90 G94
+G1 X120 F3000
+G0 X0
+M2
+%
+"""
+
+
+class Daemon:
+    """A machine with its command server on the process's shared memq, and what it publishes."""
+
+    def __init__(self, tmp: Path, tele: TelemetryConfig | None = None, late_fault_s: float = 2.0) -> None:
+        self.lc = shared_memq()
+        self.tele = tele or TelemetryConfig(url="memq://")
+        self.statuses: list[Any] = []
+        self.events: list[Any] = []
+        self._lock = threading.Lock()
+        self.var = tmp / "params.var"
+        self.tmp = tmp
+        self.subs = [self.lc.subscribe("CANON_STATUS", self._on_status),
+                     self.lc.subscribe("CANON_EVENT", self._on_event)]
+        self.machine, self.server = start(load_machine(None), self.lc, self.tele, var_file=self.var,
+                                          late_fault_s=late_fault_s)
+
+    def _on_status(self, _ch: str, data: bytes) -> None:
+        s = status.decode(data)
+        with self._lock:
+            self.statuses.append(s)
+
+    def _on_event(self, _ch: str, data: bytes) -> None:
+        with self._lock:
+            self.events.append(event.decode(data))
+
+    def cmd(self, verb: str, strings: tuple[str, ...] | list[str] = (), values: tuple[float, ...] = (),
+            token: str = "") -> Any:
+        return send_command(self.lc, verb, strings, values, token, timeout=10.0, handle=False)
+
+    def ok(self, verb: str, *args: Any, **kw: Any) -> None:
+        reply = self.cmd(verb, *args, **kw)
+        assert reply.ok, f"{verb}: {reply.error}"
+
+    def latest(self) -> Any:
+        with self._lock:
+            return self.statuses[-1] if self.statuses else None
+
+    def wait_status(self, pred: Callable[[Any], bool], timeout: float = 10.0, what: str = "") -> Any:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            s = self.latest()
+            if s is not None and pred(s):
+                return s
+            time.sleep(0.01)
+        s = self.latest()
+        raise AssertionError(f"status never showed {what}: last state {s.state if s else None!r}, "
+                             f"error {s.last_error if s else ''!r}")
+
+    def states_seen(self) -> list[str]:
+        out: list[str] = []
+        with self._lock:
+            for s in self.statuses:
+                if not out or out[-1] != s.state:
+                    out.append(s.state)
+        return out
+
+    def program(self, text: str, name: str = "prog.ngc") -> str:
+        p = self.tmp / name
+        p.write_text(text)
+        return str(p)
+
+    def ready(self) -> None:
+        self.ok("estop_reset")
+        self.ok("enable")
+        self.wait_status(lambda s: s.state == "idle" and s.enabled, what="idle and enabled")
+
+    def close(self) -> None:
+        self.server.stop()
+        self.machine.shutdown()
+        for sub in self.subs:
+            self.lc.unsubscribe(sub)
+
+
+@pytest.fixture
+def daemon(tmp_path: Path) -> Iterator[Daemon]:
+    d = Daemon(tmp_path)
+    try:
+        yield d
+    finally:
+        d.close()
+
+
+def test_run_from_idle_to_running_to_idle(daemon: Daemon) -> None:
+    prog = daemon.program(SHORT)
+    first = daemon.wait_status(lambda s: True, what="any status")
+    assert first.state == "estop" and not first.enabled  # power-up never moves a machine
+    refused = daemon.cmd("run", [prog])
+    assert not refused.ok and "estop" in refused.error
+    assert not daemon.cmd("enable").ok  # not from estop
+    daemon.ready()
+    daemon.machine.trace = []
+    daemon.ok("run", [prog])
+    daemon.wait_status(lambda s: s.state == "running", what="running")
+    s = daemon.wait_status(lambda s: s.state == "idle" and s.seq > 0 and s.commanded[0] == SHORT_FINAL[0],
+                           what="idle at the end")
+    seq = daemon.states_seen()
+    assert seq[-3:] == ["idle", "running", "idle"]
+    assert tuple(s.commanded) == SHORT_FINAL
+    for actual, want in zip(daemon.wait_status(
+            lambda s: all(abs(a - w) < 1e-3 for a, w in zip(s.actual, SHORT_FINAL, strict=True)),
+            what="drives at the end").actual, SHORT_FINAL, strict=True):
+        assert actual == pytest.approx(want, abs=1e-3)
+    # the synchronized outputs: M62 P0 rides on the first setpoint of the Z plunge, M63 P0 on that of
+    # the retract: Z at rest on the start point the cycle before, moving by the cycle after (the first
+    # setpoint of a motion from rest is its start point, or its first sample 1e-8 mm away)
+    trace = daemon.machine.trace
+    switched = [(k, ev) for k, (_c, _t, _p, evs) in enumerate(trace) for ev in evs
+                if type(ev).__name__ == "DigitalOutput"]
+    assert [(ev.index, ev.on, ev.line) for _k, ev in switched] == [(0, True, 5), (0, False, 9)]
+    for (k, ev), z_rest in zip(switched, (5.0, -1.0), strict=True):
+        z = [trace[i][2][2] for i in range(k - 2, k + 2)]
+        assert z[0] == z[1] == z_rest, f"line {ev.line}: Z moved before the output's cycle"
+        assert abs(z[2] - z_rest) < 1e-6, f"line {ev.line}: the output came late"
+        assert z[3] != z_rest, f"line {ev.line}: Z does not start moving with its output"
+    module = daemon.machine.sim_io["io"]
+    writes = module.writes_to("coil", 0)
+    on = [w for w in writes if w.values == (1,)]
+    off = [w for w in writes if w.values == (0,) and on and w.t > on[0].t]
+    assert on and off
+    t_on, t_off = trace[switched[0][0]][1], trace[switched[1][0]][1]
+    assert 0 <= on[0].t - t_on < 0.5 and 0 <= off[0].t - t_off < 0.5  # written after its cycle, soon
+    kinds = [e.kind for e in daemon.events]
+    assert "program_start" in kinds and "program_end" in kinds
+    assert daemon.var.exists()  # the parameter file is written at program end
+
+
+def test_pause_resume_and_abort(daemon: Daemon) -> None:
+    daemon.ready()
+    prog = daemon.program(LONG)
+    daemon.ok("run", [prog])
+    daemon.wait_status(lambda s: s.commanded[0] > 10, what="X moving")
+    daemon.ok("pause")
+    held = daemon.wait_status(lambda s: s.state == "paused" and s.velocity[0] == 0.0, what="held")
+    time.sleep(0.3)
+    assert daemon.latest().commanded[0] == held.commanded[0]  # stays put while paused
+    assert 10 < held.commanded[0] < 120
+    assert held.program.endswith("prog.ngc") and held.line == 3 and held.block == "G1 X120 F3000"
+    assert not daemon.cmd("run", [prog]).ok  # one program at a time
+    daemon.ok("resume")
+    daemon.wait_status(lambda s: s.state == "running" and s.commanded[0] > held.commanded[0] + 1,
+                       what="moving again")
+    daemon.ok("abort")
+    stopped = daemon.wait_status(lambda s: s.state == "idle" and s.velocity[0] == 0.0,
+                                 what="idle after abort")
+    assert stopped.commanded[0] < 120  # never reached the end
+    time.sleep(0.2)
+    assert daemon.latest().commanded[0] == stopped.commanded[0]
+    daemon.ok("mdi", ["G0 X0"])  # and the machine takes the next command from where it stopped
+    daemon.wait_status(lambda s: s.state == "idle" and s.commanded[0] == 0.0, what="back at X0")
+
+
+def test_feed_override_single_block_switches_and_refusals(daemon: Daemon) -> None:
+    assert not daemon.cmd("feed_override", values=(3.0,)).ok
+    daemon.ok("single_block", values=(1.0,))
+    daemon.ok("optional_stop", values=(1.0,))
+    daemon.ok("block_delete", values=(1.0,))
+    s = daemon.wait_status(lambda s: s.single_block and s.optional_stop and s.block_delete, what="switches")
+    assert s.state == "estop"
+    assert not daemon.cmd("jog", ["x"], (10.0,)).ok
+    assert not daemon.cmd("home").ok
+    assert "no such file" in daemon.cmd("run", ["/nonexistent.ngc"]).error or \
+        not daemon.cmd("run", ["/nonexistent.ngc"]).ok
+    daemon.ready()
+    assert "no such file" in daemon.cmd("run", ["/nonexistent.ngc"]).error
+    daemon.ok("feed_override", values=(0.5,))
+    daemon.wait_status(lambda s: s.feed_override == 0.5, what="override 50 %")
+
+
+def test_m0_pauses_and_resume_continues_m1_needs_optional_stop(daemon: Daemon) -> None:
+    daemon.ready()
+    prog = daemon.program("%\nG0 X5\nM1\nG0 X6\nM0\nG0 X7\nM2\n%\n")
+    daemon.ok("run", [prog])
+    s = daemon.wait_status(lambda s: s.state == "paused", what="paused at M0")
+    assert s.commanded[0] == 6.0  # M1 passed (optional stop off), M0 stopped
+    daemon.ok("resume")
+    daemon.wait_status(lambda s: s.state == "idle" and s.commanded[0] == 7.0, what="end of program")
+
+
+def test_m66_waits_for_the_input(daemon: Daemon) -> None:
+    daemon.ready()
+    module = daemon.machine.sim_io["io"]
+    prog = daemon.program("%\nG0 X2\nM66 P3 L3 Q5\n#100 = #5399\nG0 X[3 + #100]\nM2\n%\n")
+    daemon.ok("run", [prog])
+    time.sleep(0.5)
+    assert daemon.latest().commanded[0] == 2.0  # waiting for discrete input 3
+    module.set("discrete_input", 3, 1)
+    daemon.wait_status(lambda s: s.state == "idle" and s.commanded[0] == 4.0, what="after M66")
+    assert daemon.machine.interp.parameter(5399) == 1.0
+
+
+def test_jog_and_home(daemon: Daemon) -> None:
+    daemon.ready()
+    daemon.ok("jog", ["y"], (20.0, 5.0))
+    daemon.wait_status(lambda s: s.commanded[1] == 5.0 and s.state == "idle", what="jogged 5 mm")
+    daemon.ok("mdi", ["G91 G0 Y1"])  # incremental from where the jog left the machine
+    daemon.wait_status(lambda s: s.commanded[1] == 6.0 and s.state == "idle", what="Y6 after G91 Y1")
+    daemon.ok("mdi", ["G90"])
+    daemon.wait_status(lambda s: s.state == "idle" and daemon.machine.job is None, what="G90 done")
+    daemon.ok("jog", ["x"], (-30.0,))  # continuous, until velocity 0
+    daemon.wait_status(lambda s: s.state == "jogging" and s.commanded[0] < -1.0, what="jogging")
+    daemon.ok("jog", ["x"], (0.0,))
+    stopped = daemon.wait_status(lambda s: s.state == "idle", what="jog stopped")
+    assert stopped.commanded[0] < -1.0
+    daemon.ok("home", ["x"])
+    s = daemon.wait_status(lambda s: s.homed[0], what="x homed")
+    assert s.commanded[0] == 0.0 and not s.homed[1]  # "set" homing: here is X0
+    daemon.ok("mdi", ["G0 X2 Y0"])  # the interpreter continues from the homed position
+    daemon.wait_status(lambda s: s.state == "idle" and s.commanded[0] == 2.0 and s.commanded[1] == 0.0,
+                       what="moved after homing")
+
+
+def test_estop_and_recovery(daemon: Daemon) -> None:
+    daemon.ready()
+    daemon.ok("run", [daemon.program(LONG)])
+    daemon.wait_status(lambda s: s.commanded[0] > 5, what="moving")
+    daemon.ok("estop")
+    s = daemon.wait_status(lambda s: s.state == "estop", what="estop")
+    assert s.estop and not s.enabled
+    assert any(e.kind == "estop" for e in daemon.events)
+    assert not daemon.cmd("mdi", ["G0 X0"]).ok
+    daemon.ready()
+    daemon.ok("mdi", ["G0 X1"])
+    daemon.wait_status(lambda s: s.state == "idle" and s.commanded[0] == 1.0, what="moving after reset")
+
+
+def test_drive_emcy_faults_and_reset_recovers(daemon: Daemon) -> None:
+    daemon.ready()
+    daemon.ok("run", [daemon.program(LONG)])
+    daemon.wait_status(lambda s: s.commanded[0] > 5, what="moving")
+    daemon.machine.sim_drives[1].inject_fault(0x2310)
+    s = daemon.wait_status(lambda s: s.state == "fault", what="fault")
+    assert "EMCY 0x2310" in s.last_error and "axis y" in s.last_error
+    assert not s.enabled
+    assert any(e.kind == "drive_fault" and "0x2310" in e.text for e in daemon.events)
+    assert not daemon.cmd("mdi", ["G0 X0"]).ok
+    refused = daemon.cmd("enable")
+    assert not refused.ok and "fault" in refused.error
+    daemon.ok("reset")
+    s = daemon.wait_status(lambda s: s.state == "idle", what="idle after reset")
+    assert not s.enabled and s.last_error == ""
+    daemon.ok("enable")
+    daemon.ok("run", [daemon.program(SHORT, "short.ngc")])
+    daemon.wait_status(lambda s: s.state == "idle" and tuple(s.commanded) == SHORT_FINAL, what="run again")
+
+
+def test_io_server_stopped_faults_and_reset_waits_for_the_link(daemon: Daemon) -> None:
+    daemon.ready()
+    module = daemon.machine.sim_io["io"]
+    module.stop()
+    s = daemon.wait_status(lambda s: s.state == "fault", what="fault")
+    assert "Modbus" in s.last_error and not s.io_ok
+    refused = daemon.cmd("reset")
+    assert not refused.ok and "Modbus" in refused.error
+    module.start()
+    deadline = time.monotonic() + 10
+    while True:
+        reply = daemon.cmd("reset")
+        if reply.ok or time.monotonic() > deadline:
+            break
+        time.sleep(0.2)
+    assert reply.ok, reply.error
+    daemon.ok("enable")
+    daemon.ok("mdi", ["M64 P2"])
+    daemon.wait_status(lambda s: s.io_ok and len(s.digital_outputs) > 2 and s.digital_outputs[2],
+                       what="output 2 on")
+
+
+def test_gcode_error_mid_program_faults_with_file_and_line(daemon: Daemon) -> None:
+    daemon.ready()
+    prog = daemon.program("%\nG0 X5\nG1 X10\nM2\n%\n", "bad.ngc")
+    daemon.ok("run", [prog])
+    s = daemon.wait_status(lambda s: s.state == "fault", what="fault")
+    assert s.last_error.endswith("bad.ngc:3: Cannot do G1 with zero feed rate")
+    daemon.ok("reset")
+    daemon.wait_status(lambda s: s.state == "idle", what="idle")
+
+
+def test_late_cycle_is_a_fault(tmp_path: Path) -> None:
+    d = Daemon(tmp_path, late_fault_s=0.1)
+    try:
+        d.ready()
+        d.machine._on_cycle(lambda: time.sleep(0.3), wait=False)  # a stalled cycle thread
+        s = d.wait_status(lambda s: s.state == "fault", what="fault")
+        assert "late" in s.last_error
+        d.ok("reset")
+        d.ok("enable")
+        d.ok("mdi", ["G0 X1"])
+        d.wait_status(lambda s: s.state == "idle" and s.commanded[0] == 1.0, what="moving after reset")
+    finally:
+        d.close()
+
+
+def test_malformed_message_is_counted_and_ignored(daemon: Daemon) -> None:
+    daemon.wait_status(lambda s: True, what="any status")
+    daemon.lc.publish("CANON_COMMAND", b"\x00not a canon.command at all")
+    deadline = time.monotonic() + 5
+    while daemon.server.bad_messages == 0 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert daemon.server.bad_messages == 1
+    daemon.ok("estop_reset")  # still answering
+    seq = daemon.latest().seq
+    daemon.wait_status(lambda s: s.seq > seq + 5, what="status still flowing")
+
+
+def test_token_required_when_the_url_leaves_the_host(tmp_path: Path) -> None:
+    tele = TelemetryConfig(url="udpm://239.255.76.67:7667?ttl=1", token="s3cret")
+    d = Daemon(tmp_path, tele)  # messages still travel on memq: only the rule reads the URL
+    try:
+        d.wait_status(lambda s: True, what="any status")  # status readable without a token
+        no = d.cmd("estop_reset")
+        assert not no.ok and "token" in no.error
+        wrong = d.cmd("estop_reset", token="guess")
+        assert not wrong.ok and "wrong token" in wrong.error
+        assert d.latest().state == "estop"
+        d.ok("estop_reset", token="s3cret")
+        d.wait_status(lambda s: s.state == "idle", what="idle")
+    finally:
+        d.close()
+
+
+def test_parameters_saved_on_shutdown(tmp_path: Path) -> None:
+    d = Daemon(tmp_path)
+    try:
+        d.ready()
+        d.ok("mdi", ["G10 L2 P1 X7.5"])  # G54 X offset: a persistent parameter (#5221)
+        d.wait_status(lambda s: s.state == "idle" and d.machine.job is None, what="mdi done")
+    finally:
+        d.close()
+    values = dict(line.split() for line in d.var.read_text().splitlines() if line.strip())
+    assert float(values["5221"]) == 7.5
+
+
+def test_single_block_stops_after_each_block(daemon: Daemon) -> None:
+    daemon.ready()
+    daemon.ok("single_block", values=(1.0,))
+    prog = daemon.program("%\nG0 X1\nG0 X2\nG0 X3\nM2\n%\n")
+    daemon.ok("run", [prog])
+    for x in (1.0, 2.0):
+        s = daemon.wait_status(lambda s, x=x: s.state == "paused" and s.commanded[0] == x,
+                               what=f"stop at X{x}")
+        time.sleep(0.2)
+        assert daemon.latest().commanded[0] == x and daemon.latest().state == "paused"
+        daemon.ok("resume")
+    daemon.ok("single_block", values=(0.0,))
+    daemon.wait_status(lambda s: s.state in ("paused", "idle") and s.commanded[0] == 3.0, what="X3")
+    if daemon.latest().state == "paused":
+        daemon.ok("resume")
+    daemon.wait_status(lambda s: s.state == "idle", what="end")
+    assert s.single_block
+
+
+def test_disable_then_nothing_moves_until_enabled(daemon: Daemon) -> None:
+    daemon.ready()
+    daemon.ok("disable")
+    s = daemon.wait_status(lambda s: not s.enabled, what="disabled")
+    assert all(d.cia402_state == "switch_on_disabled" for d in s.drives)
+    refused = daemon.cmd("mdi", ["G0 X1"])
+    assert not refused.ok and "disabled" in refused.error
+    assert not daemon.cmd("jog", ["x"], (10.0, 1.0)).ok
+    daemon.ok("enable")
+    daemon.wait_status(lambda s: s.enabled and all(d.cia402_state == "operation_enabled" for d in s.drives),
+                       what="enabled again")
+    daemon.ok("mdi", ["G0 X1"])
+    daemon.wait_status(lambda s: s.state == "idle" and s.commanded[0] == 1.0, what="moved")
