@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import logging
 import math
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 from telemetry.publisher import CANON_COMMAND, CANON_REPLY, authorize, now_utime
+from telemetry.worker import Worker
 
 log = logging.getLogger(__name__)
 
@@ -93,13 +93,15 @@ def make_command(verb: str, strings: tuple[str, ...] | list[str] = (),
 Handler = Callable[[Any], "str | None"]
 
 
-class CommandServer:
+class CommandServer(Worker):
     """Answers ``canon.command`` messages: authorize, check, call ``handler``, publish the reply.
 
     ``handler(command)`` returns None when the command is accepted, or the reason it is not. Call
     :meth:`subscribe` if the daemon runs its own ``lc.handle()`` loop, or :meth:`start` for a thread
     that does. ``replies`` / ``refused`` / ``bad_messages`` count what happened.
     """
+
+    thread_name = "canon-command-server"
 
     def __init__(self, lc: Any, handler: Handler, *, url: str, token: str = "",
                  channel: str = CANON_COMMAND, reply_channel: str = CANON_REPLY) -> None:
@@ -114,8 +116,7 @@ class CommandServer:
         self.bad_messages = 0
         self.errors = 0
         self._subscription: Any = None
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        Worker.__init__(self)
 
     def subscribe(self) -> None:
         if self._subscription is None:
@@ -160,17 +161,11 @@ class CommandServer:
     def start(self) -> CommandServer:
         """Subscribe and handle LCM traffic on a thread of our own."""
         self.subscribe()
-        if self._thread is None:
-            self._stop.clear()
-            self._thread = threading.Thread(target=self._run, name="canon-command-server", daemon=True)
-            self._thread.start()
+        self._start_thread()
         return self
 
     def stop(self, timeout: float = 2.0) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout)
-            self._thread = None
+        super().stop(timeout)
         if self._subscription is not None:
             self.lc.unsubscribe(self._subscription)
             self._subscription = None

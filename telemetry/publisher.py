@@ -23,13 +23,13 @@ import itertools
 import logging
 import queue
 import socket
-import threading
 import time
 from typing import Any, Literal, Protocol
 
 import lcm
 
 from telemetry.url import DEFAULT_URL, LcmUrl, parse_url
+from telemetry.worker import Worker
 
 log = logging.getLogger(__name__)
 
@@ -160,7 +160,7 @@ def authorize(command: Any, url: str, token: str) -> str | None:
     return None
 
 
-class StatusPublisher:
+class StatusPublisher(Worker):
     """Publishes the latest snapshot on ``channel`` every ``1/rate_hz`` seconds from its own thread.
 
     :meth:`update` hands over a snapshot (an LCM message object; the caller must not change it
@@ -170,6 +170,8 @@ class StatusPublisher:
     is published. A snapshot that cannot be encoded (array counts that do not match the arrays) is
     counted in ``errors`` and logged once per distinct message.
     """
+
+    thread_name = "canon-status-publisher"
 
     def __init__(self, lc: lcm.LCM | None, rate_hz: float = DEFAULT_STATUS_HZ,
                  channel: str = CANON_STATUS) -> None:
@@ -182,8 +184,7 @@ class StatusPublisher:
         self.errors = 0
         self.overruns = 0
         self._latest: Encodable | None = None
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        Worker.__init__(self)
         self._logged: set[str] = set()
 
     def update(self, snapshot: Encodable) -> None:
@@ -195,23 +196,9 @@ class StatusPublisher:
         return self._latest
 
     def start(self) -> StatusPublisher:
-        if self.lc is not None and self._thread is None:
-            self._stop.clear()
-            self._thread = threading.Thread(target=self._run, name="canon-status-publisher", daemon=True)
-            self._thread.start()
+        if self.lc is not None:
+            self._start_thread()
         return self
-
-    def stop(self, timeout: float = 2.0) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout)
-            self._thread = None
-
-    def __enter__(self) -> StatusPublisher:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
     def publish_now(self) -> bool:
         """Encode and publish the latest snapshot on the calling thread; False if none or it failed."""
@@ -245,13 +232,15 @@ class StatusPublisher:
             self._stop.wait(max(0.0, deadline - time.monotonic()))
 
 
-class EventPublisher:
+class EventPublisher(Worker):
     """Publishes events on ``channel`` as they happen, from its own thread.
 
     :meth:`publish` (or :meth:`emit`) stamps the event's ``seq`` (and ``utime`` when 0) and puts it
     in a bounded queue without waiting; when the queue is full the event is dropped and counted in
     ``dropped`` (put that in ``canon.status.events_dropped``); receivers see the gap in ``seq``.
     """
+
+    thread_name = "canon-event-publisher"
 
     def __init__(self, lc: lcm.LCM | None, channel: str = CANON_EVENT,
                  maxsize: int = DEFAULT_EVENT_QUEUE) -> None:
@@ -264,8 +253,7 @@ class EventPublisher:
         self.errors = 0
         self._seq = itertools.count(1)
         self._queue: queue.Queue[Any] = queue.Queue(maxsize)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        Worker.__init__(self)
 
     def publish(self, event: Any) -> bool:
         """Queue ``event`` (a ``canon.event``) for publishing; False if it was dropped. Never blocks."""
@@ -296,24 +284,14 @@ class EventPublisher:
         return self.publish(ev)
 
     def start(self) -> EventPublisher:
-        if self.lc is not None and self._thread is None:
-            self._stop.clear()
-            self._thread = threading.Thread(target=self._run, name="canon-event-publisher", daemon=True)
-            self._thread.start()
+        if self.lc is not None:
+            self._start_thread()
         return self
 
     def stop(self, timeout: float = 2.0) -> None:
         """Publish what is queued (within ``timeout``), then end the thread."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout)
-            self._thread = None
+        super().stop(timeout)
 
-    def __enter__(self) -> EventPublisher:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
     def _run(self) -> None:
         assert self.lc is not None
