@@ -38,6 +38,10 @@ Decisions a machine builder should know:
   for every F word); in G93 it is emitted for every F.
 * Mode commands (SELECT_PLANE, USE_LENGTH_UNITS, SET_G5X_OFFSET ...) are emitted on change only; no
   preamble at start: the planner starts from G17 G21 G90 G94 G54 G64 (P0), motion mode G80.
+* O-words (:mod:`gcode_canon.owords`) move the interpreter between places of a lazily read source
+  (``LineSource.mark``/``jump``) and between files; the output's ``file``/``line`` is where each
+  command really comes from (a subroutine file's own line numbers). Canned cycles
+  (:mod:`gcode_canon.cycles`) come out as plain moves and dwells, each block in exact path mode.
 * M2/M30 reset what LinuxCNC's convert_stop resets (G54, G17, G90, G94 with F0, feed/spindle
   overrides on, spindle and coolant off, motion mode G1); G92 offsets and G20/G21 persist.
 """
@@ -50,6 +54,7 @@ import math
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+from gcode_canon import cutter_comp, cycles, transforms
 from gcode_canon.arcs import MM_PER_INCH, centre_ijk, centre_r
 from gcode_canon.commands import (
     AXES,
@@ -92,6 +97,7 @@ from gcode_canon.commands import (
     WaitInput,
     WaitMode,
 )
+from gcode_canon.dialect import Dialect
 from gcode_canon.errors import GCodeError
 from gcode_canon.expressions import ExpressionReader, near_int
 from gcode_canon.lexer import AXIS_LETTERS, FAST_LINE, Block, parse_line
@@ -99,6 +105,7 @@ from gcode_canon.machine import DryRunMachine, MachineCallbacks
 from gcode_canon.messages import LogFiles, classify, expand
 from gcode_canon.modal import G_AXIS_USERS_GROUP0, ModalLine, gname, sort_codes
 from gcode_canon.offsets import N_AXES, Frames, system_base
+from gcode_canon.owords import FlowControl
 from gcode_canon.parameters import Parameters
 from gcode_canon.settings import InterpreterSettings
 from gcode_canon.source import LineSource
@@ -142,6 +149,11 @@ class Interpreter:
         self.file = ""
         self.line = 0
         self._out: list[Canon | _Resume] = []
+        self.dialect = Dialect.parse(self.settings.dialect) if isinstance(self.settings.dialect, str) \
+            else self.settings.dialect
+        self.flow = FlowControl(self)
+        self.source: LineSource = LineSource.from_string("", "<none>")
+        self.seen_code = False
         self._persist_keys: set[int] = set()
         self._missing_axes = frozenset(AXIS_LETTERS) - frozenset((self.settings.axes or AXIS_LETTERS).lower())
         self._reset_modes()
@@ -169,6 +181,7 @@ class Interpreter:
             self._step_path_control,
             self._step_distance,
             self._step_retract,
+            self._step_transforms,
             self._step_group0,
             self._step_motion,
             self._step_stop,
@@ -204,6 +217,16 @@ class Interpreter:
         self.ended = False
         self._fast_ok = True
         self._tail: tuple[float, ...] | None = None
+        self.cycle_state = cycles.CycleState()
+        self.comp: cutter_comp.CutterCompensator | None = None
+        self.xform = transforms.ProgramTransform()
+        self.xform_on = False  # not xform.identity, cached: the property is costly on every move
+        self.polar_on = False
+        self.polar = transforms.PolarState()
+        self.polar_origin = transforms.PolarOrigin.FANUC
+        self.comp_code = 400
+        self._after_comp = False  # the first move after G40 must be straight
+        self._comp_normal = 0.0
 
     def _load_var_file(self) -> None:
         path = self.settings.var_file
@@ -228,6 +251,7 @@ class Interpreter:
 
     def _load_tool_table(self) -> None:
         self.tool_table = None
+        self._implicit_table = False  # no file: every tool exists with zero offsets (G10 may set some)
         if self.settings.tool_table is not None:
             from gcode_canon import tooltable
 
@@ -249,7 +273,7 @@ class Interpreter:
             "_line": lambda: b(self.line),
             "_motion_mode": lambda: b(self.motion),
             "_plane": lambda: b(_CODE_BY_PLANE[self.plane]),
-            "_ccomp": lambda: 400.0,
+            "_ccomp": lambda: b(self.comp_code),
             "_metric": lambda: b(not self.inch),
             "_imperial": lambda: b(self.inch),
             "_absolute": lambda: b(self.absolute),
@@ -280,8 +304,8 @@ class Interpreter:
             "_current_pocket": lambda: b(self.current_pocket),
             "_selected_tool": lambda: b(self.selected_tool),
             "_selected_pocket": lambda: b(self.selected_pocket),
-            "_value": lambda: 0.0,
-            "_value_returned": lambda: 0.0,
+            "_value": lambda: self.flow.value,
+            "_value_returned": lambda: b(self.flow.value_returned),
             "_task": lambda: b(not isinstance(self.machine, DryRunMachine)),
             "_call_level": lambda: b(self.params.call_level),
             "_remap_level": lambda: 0.0,
@@ -307,6 +331,9 @@ class Interpreter:
         self.file, self.line = "<mdi>", 1
         self.ended = False
         self._tail = None
+        mdi = LineSource.from_string(line, "<mdi>", self.settings.max_line_length)
+        self.source = mdi
+        self.flow.reset(mdi)
         try:
             self._resync()
             out = self._execute_line(line)
@@ -316,8 +343,14 @@ class Interpreter:
                     item.fn()
                 else:
                     result.append(item)
+            if self.flow.frames and not self.ended:  # an o-word call: run the subroutine through
+                result.extend(self._loop(None, 0))
+            if self.flow.blocks:
+                b = self.flow.blocks[-1]
+                raise GCodeError(f"{b.label} {b.kind}: loops and conditionals need a program, not MDI")
             return result
         except GCodeError as exc:
+            self.flow.close_all()
             raise exc.located(self.file, self.line) from None
         except Exception as exc:  # a bug must not take the daemon down without a place
             log.exception("internal error in MDI line")
@@ -342,7 +375,7 @@ class Interpreter:
         codes = [
             gname(self.motion), gname(_CODE_BY_PLANE[self.plane]), "G20" if self.inch else "G21",
             "G90" if self.absolute else "G91", "G90.1" if self.ijk_absolute else "G91.1",
-            f"G{self.feed_mode.value}", "G40", gname(self.tool_length_mode),
+            f"G{self.feed_mode.value}", gname(self.comp_code), gname(self.tool_length_mode),
             gname(self.retract), _G5X_NAMES[self.frames.g5x_index],
             {MotionControlMode.EXACT_PATH: "G61", MotionControlMode.EXACT_STOP_MODAL: "G61.1"}.get(
                 self.control[0], "G64"),
@@ -374,15 +407,36 @@ class Interpreter:
         self.file = source.name
         self.line = 0
         self.ended = False
+        self.source = source
+        self.flow.reset(source)
+        self.seen_code = False
         self._resync()  # the machine may have been jogged or homed since the last program
         self._fast_ok = self.fast_path_allowed()
+        try:
+            yield from self._loop(main=source)
+        finally:
+            self.flow.close_all()
+            source.close()
+
+    def switch_source(self, source: LineSource, file: str | None = None) -> None:
+        """Continue reading from ``source`` (an o-word call or return); the loop picks it up."""
+        self.source = source
+        self.file = file if file is not None else source.name
+        self._fast_ok = False  # re-evaluated after the line
+
+    def _loop(self, main: LineSource | None, depth: int = 0) -> Iterator[Canon]:
+        """Read and execute lines from ``self.source`` until the program ends (``main``) or, for an
+        MDI call, until the call stack is back to ``depth`` frames."""
         fast_match = FAST_LINE.match
         fast = self._fast
+        flow = self.flow
         self._tail = None
         settings = self.settings
         percent_open = False
-        seen_content = False
-        try:
+        seen_content = seen_fast = False
+        while True:
+            source = self.source
+            in_main = source is main
             for raw in source:
                 self.line = source.line
                 if self._fast_ok:
@@ -390,7 +444,7 @@ class Interpreter:
                     if m is not None:
                         cmds = fast(m)
                         if cmds is not None:
-                            seen_content = True
+                            seen_content = seen_fast = True
                             yield from cmds
                             continue
                 self._tail = None
@@ -398,6 +452,8 @@ class Interpreter:
                 if not stripped:
                     continue
                 if stripped == "%":
+                    if not in_main:
+                        continue
                     if not seen_content:
                         seen_content = True
                         percent_open = True
@@ -406,6 +462,8 @@ class Interpreter:
                     yield from self._drain()
                     return
                 seen_content = True
+                if seen_fast:
+                    self.seen_code = True
                 try:
                     out = self._execute_line(raw)
                 except GCodeError as exc:
@@ -425,13 +483,28 @@ class Interpreter:
                         yield item
                 if self.ended:
                     return
-            if settings.require_program_end:
-                last = max(source.line, 1)
-                if percent_open:
-                    raise GCodeError("File ended with no closing percent sign", self.file, last)
-                raise GCodeError("File ended with no percent sign or program end (M2, M30)", self.file, last)
-        finally:
-            source.close()
+                if self.source is not source:
+                    if main is None and len(flow.frames) <= depth:
+                        return
+                    break
+            else:
+                try:
+                    flow.at_end_of_source(source)
+                except GCodeError as exc:
+                    raise exc.located(self.file, max(source.line, 1)) from None
+                if self.source is not source:
+                    if main is None and len(flow.frames) <= depth:
+                        return
+                    continue
+                if main is None:
+                    return
+                if settings.require_program_end:
+                    last = max(source.line, 1)
+                    if percent_open:
+                        raise GCodeError("File ended with no closing percent sign", self.file, last)
+                    raise GCodeError("File ended with no percent sign or program end (M2, M30)",
+                                     self.file, last)
+                return
 
     def _drain(self) -> Iterator[Canon]:
         out, self._out = self._out, []
@@ -505,6 +578,10 @@ class Interpreter:
         return ()
 
     def _emit(self, cmd: Canon | _Resume) -> None:
+        comp = self.comp
+        if comp is not None and comp.pending:  # keep order behind the move compensation holds back
+            self._out.extend(comp.hold(cmd))  # type: ignore[arg-type]
+            return
         self._out.append(cmd)
 
     def _execute_line(self, raw: str) -> list[Canon | _Resume]:
@@ -515,6 +592,8 @@ class Interpreter:
         if block.o_text is not None:
             self._o_word(block)
             return self._drain_list()
+        if block.g or block.m or block.words or block.assigns:
+            self.seen_code = True
         ml = sort_codes(block)
         self._check_words(block, ml)
         for key, _ in block.assigns:
@@ -536,22 +615,24 @@ class Interpreter:
         compensation, scaling, mirroring ...) must extend this to return False while it is active.
         """
         return (self.feed_mode is not FeedMode.INVERSE_TIME and self.frames.rotation == 0.0
-                and not self._missing_axes & {"x", "y", "z"})
+                and not self._missing_axes & {"x", "y", "z"} and self.cycle_state.motion is None
+                and self.comp is None and not self._after_comp and not self.polar_on
+                and not self.xform_on)
 
     def _drain_list(self) -> list[Canon | _Resume]:
         out, self._out = self._out, []
         return out
 
     def _o_word(self, block: Block) -> None:
-        """Hook for flow control (o-words): a later issue."""
-        raise GCodeError("O-word flow control (subroutines, loops, conditionals) is not supported yet")
+        """Flow control: :mod:`gcode_canon.owords`."""
+        assert block.o_text is not None
+        self.flow.execute(block.o_text)
 
     # --- checks ---------------------------------------------------------------------------------------
 
     def _effective_motion(self, ml: ModalLine) -> int | None:
         """The motion code that uses this line's axis words, or None when something else takes them."""
-        g0 = ml.g.get(0)
-        if g0 in G_AXIS_USERS_GROUP0 or ml.g.get(8) == 431:
+        if ml.axis_user:
             return None
         motion = ml.g.get(1)
         return self.motion if motion is None else motion
@@ -566,11 +647,11 @@ class Interpreter:
                 if letter in self._missing_axes or (letter in "@^" and self._missing_axes & {"x", "y"}):
                     axis = letter.upper() if letter not in "@^" else "X or Y"
                     raise GCodeError(f"{letter.upper()} word used, but the machine has no {axis} axis")
-        axis_user0 = g0 in G_AXIS_USERS_GROUP0 or ml.g.get(8) == 431
+        axis_user0 = ml.axis_user
         if has_axes:
             if axis_user0 and g1 is not None and g1 != 800:
                 raise GCodeError("Cannot use two G codes that both use axis values: "
-                                 f"{gname(g0 if g0 is not None else 431)} and {gname(g1)}")
+                                 f"{_axis_user_name(ml)} and {gname(g1)}")
             if not axis_user0:
                 motion = self.motion if g1 is None else g1
                 if motion == 800:
@@ -589,28 +670,54 @@ class Interpreter:
             if "x" in w or "y" in w:
                 raise GCodeError("Cannot mix polar coordinates (@ ^) with X or Y words")
             if axis_user0 or g0 == 530:
-                raise GCodeError(f"Polar coordinates (@ ^) cannot be used with {gname(g0 or 431)}")
+                raise GCodeError(f"Polar coordinates (@ ^) cannot be used with {_axis_user_name(ml)}")
         ms = set(block.m)
+        takes_ijk = g0 in (100, 120, 130) or ml.g.get(17) == 510
         for letter in "ijk":
-            if letter in w and not arc:
+            if letter in w and not arc and motion != 870 and not takes_ijk:
                 raise GCodeError(f"{letter.upper()} word with no G2 or G3 to use it")
-        if "r" in w and not arc and g0 != 100:
+        cycle = motion in cycles.CYCLE_CODES
+        if "r" in w and not (arc or cycle) and g0 != 100 and ml.g.get(18) != 680:
             raise GCodeError("R word with no G code that uses it")
-        if "p" in w and not (arc or g0 in (40, 100) or ml.g.get(13) == 640
-                             or ms & {50, 51, 52, 53, 62, 63, 64, 65, 66}):
+        if "p" in w and not (arc or g0 in (40, 100) or ml.g.get(17) == 510 or ml.g.get(13) == 640
+                             or motion in (740, 820, 840, 860, 880, 890)
+                             or ms & {50, 51, 52, 53, 62, 63, 64, 65, 66, 98}):
             raise GCodeError("P word with no G or M code that uses it")
-        if "q" in w and not (ml.g.get(13) == 640 or ms & {61, 66, 67, 68}):
+        if "q" in w and not (ml.g.get(13) == 640 or ms & {61, 66, 67, 68} or motion in (730, 830)
+                             or g0 == 100):
             raise GCodeError("Q word with no G or M code that uses it")
-        if "l" in w and not (g0 == 100 or 66 in ms):
+        if "l" in w and not (g0 == 100 or 66 in ms or 98 in ms or cycle):
             raise GCodeError("L word with no G10 or M66 to use it")
         if "e" in w and not ms & {66, 67, 68}:
             raise GCodeError("E word with no M66, M67 or M68 to use it")
-        if "h" in w and ml.g.get(8) != 430:
+        if "h" in w and ml.g.get(8) != 430 and g0 != 100:
             raise GCodeError("H word with no G43 to use it")
-        if "d" in w:
-            raise GCodeError("D word with no G code that uses it (cutter compensation is not supported yet)")
+        if "d" in w and motion not in (730, 830) and ml.g.get(7) not in (410, 420, 411, 421) and \
+                g0 not in (100, 120, 130):
+            raise GCodeError("D word with no G code that uses it (G41, G42, G41.1, G42.1, G73, G83)")
+        if self.comp is not None:
+            self._check_comp(ml)
         if g0 == 100 and "l" not in w:
             raise GCodeError("Line with G10 does not have an L word")
+
+    def _check_comp(self, ml: ModalLine) -> None:
+        """What LinuxCNC refuses while cutter radius compensation is on."""
+        plane = ml.g.get(2)
+        if plane is not None and _PLANE_BY_CODE.get(plane) is not self.plane:
+            raise GCodeError("Cannot change planes with cutter radius compensation on")
+        if ml.g.get(7) == 400:
+            return
+        g0 = ml.g.get(0)
+        if g0 in (280, 300):
+            raise GCodeError(f"Cannot use {gname(g0)} with cutter radius compensation on")
+        if g0 == 530:
+            raise GCodeError("Cannot use G53 with cutter radius compensation on")
+        if g0 in (920, 921, 922, 923):
+            raise GCodeError("Cannot change G92 offsets with cutter radius compensation on")
+        if ml.g.get(12) is not None:
+            raise GCodeError("Cannot change coordinate systems with cutter radius compensation on")
+        if ml.m.get(6) == 6:
+            raise GCodeError("Cannot change tools with cutter radius compensation on")
 
     # --- helpers ------------------------------------------------------------------------------------
 
@@ -626,17 +733,44 @@ class Interpreter:
             raise GCodeError(f"{letter.upper()} word of {what} must be at least {minimum}, not {n}")
         return n
 
+    def _to_machine(self, prog: list[float]) -> Pose:
+        """Program frame (untransformed, mm) to machine: G22/G51/G68, then the offsets."""
+        if self.xform_on:
+            return self.frames.to_machine(list(self.xform.apply_position(prog)))
+        return self.frames.to_machine(prog)
+
+    def _from_machine(self, pos) -> list[float]:
+        prog = self.frames.machine_to_program(pos)
+        if self.xform_on:
+            return list(self.xform.invert_position(prog))
+        return prog
+
     def _offsets_changed(self) -> None:
         """Keep the machine where it is: its program coordinates change instead."""
         self.frames.refresh()
-        self.prog = self.frames.machine_to_program(self.pos)
+        self.prog = self._from_machine(self.pos)
 
-    def _target(self, block: Block, prog: list[float] | None = None) -> list[float]:
+    def _target(self, block: Block, prog: list[float] | None = None, polar: bool = True) -> list[float]:
         """End point in the program frame (mm) from the line's axis words and polar words."""
         target = list(self.prog if prog is None else prog)
         scale = self.scale
         absolute = self.absolute
         words = block.words
+        if polar and self.polar_on:
+            first, second, _ = self.plane.value
+            r_letter, a_letter = AXIS_LETTERS[first], AXIS_LETTERS[second]
+            radius = words.get(r_letter)
+            angle = words.get(a_letter)
+            if radius is not None or angle is not None:
+                point, self.polar = transforms.polar_target(
+                    (target[first], target[second]), None if radius is None else radius * scale, angle,
+                    incremental=not absolute, origin=self.polar_origin, state=self.polar)
+                rest = {k: v for k, v in words.items() if k not in (r_letter, a_letter)}
+                tmp = Block()
+                tmp.words = rest
+                target = self._target(tmp, target, polar=False)
+                target[first], target[second] = point
+                return target
         for letter, value in words.items():
             k = _AXIS_INDEX.get(letter)
             if k is not None:
@@ -731,6 +865,8 @@ class Interpreter:
         if number == 0 or self.tool_table is None:
             return None
         tool = self.tool_table.get(number)
+        if tool is None and self._implicit_table:
+            return None
         if tool is None:
             raise GCodeError(f"Tool {number} is not in the tool table")
         return tool
@@ -828,7 +964,7 @@ class Interpreter:
         where = self.machine.current_position()
         if where is not None:
             self.pos = Pose(*where)
-            self.prog = self.frames.machine_to_program(self.pos)
+            self.prog = self._from_machine(self.pos)
 
     def _step_spindle(self, block: Block, ml: ModalLine) -> None:
         code = ml.m.get(7)
@@ -944,6 +1080,7 @@ class Interpreter:
         plane = _PLANE_BY_CODE[code]
         if plane is not self.plane:
             self.plane = plane
+            self.xform = self.xform.with_plane(plane)
             self._emit(SelectPlane(plane, file=self.file, line=self.line))
 
     def _step_units(self, block: Block, ml: ModalLine) -> None:
@@ -956,7 +1093,88 @@ class Interpreter:
             self._emit(UseLengthUnits(not inch, file=self.file, line=self.line))
 
     def _step_cutter_comp(self, block: Block, ml: ModalLine) -> None:
-        pass  # G40 is the only member accepted so far (G41/G42: a later module)
+        """G40 / G41 / G42 / G41.1 / G42.1: :mod:`gcode_canon.cutter_comp` does the geometry; the
+        modal state, the radius and the block checks are here."""
+        code = ml.g.get(7)
+        if code is None:
+            return
+        if code == 400:
+            self._comp_off()
+            return
+        name = gname(code)
+        if self.comp is not None:
+            raise GCodeError("Cannot turn cutter radius comp on when already on")
+        if self.plane is Plane.YZ or self.plane.value[0] > 2:
+            raise GCodeError(f"{name}: cutter radius compensation works in G17 or G18 only, not "
+                             f"{self.plane.gcode}")
+        d = block.take("d")
+        if code in (411, 421):
+            if d is None:
+                raise GCodeError(f"{name} needs a D word (the tool diameter)")
+            diameter = d * self.scale
+        else:
+            number = self.current_tool
+            if d is not None:
+                number = near_int(d, f"D word of {name}")
+                if number < 0:
+                    raise GCodeError(f"{name} D{number}: negative tool number")
+            tool = self._tool(number)
+            diameter = float(tool.diameter) if tool is not None else 0.0
+        first, second, _ = self.plane.value
+        side = "left" if code in (410, 411) else "right"
+        here = self.prog
+        if self.xform_on:  # compensation works on the transformed path; a mirror swaps the side
+            here = list(self.xform.apply_position(here))
+            side = self.xform.comp_side(side, self.plane)
+        self.comp = cutter_comp.CutterCompensator(side, diameter / 2.0, (here[first], here[second]))
+        self._comp_normal = here[self.plane.value[2]]
+        self.comp_code = code
+        self._after_comp = False
+
+    def _comp_off(self) -> None:
+        """G40 or the end of the program: the held move goes out at its offset end."""
+        comp = self.comp
+        if comp is None:
+            return
+        self.comp = None
+        self.comp_code = 400
+        self._comp_output(comp.finish())
+        self._after_comp = True
+
+    def _comp_move(self, seg: cutter_comp.Segment) -> None:
+        assert self.comp is not None
+        self._comp_output(self.comp.add(seg))
+
+    def _comp_output(self, items: list) -> None:
+        """Compensated segments to canonical commands (machine coordinates); held commands as they are."""
+        first, second, normal = self.plane.value
+        others = [k for k in range(N_AXES) if k not in (first, second, normal)]
+        f = self.file
+        for item in items:
+            if isinstance(item, (cutter_comp.Line2, cutter_comp.Arc2)):
+                prog = [0.0] * N_AXES
+                prog[first], prog[second] = item.end
+                prog[normal] = item.normal
+                for k, v in zip(others, item.extra, strict=True):
+                    prog[k] = v
+                end = self.frames.to_machine(prog)
+                if not _isfinite(sum(end)):
+                    raise GCodeError("Coordinate out of range")
+                n = item.line or self.line
+                if isinstance(item, cutter_comp.Line2):
+                    cls = StraightTraverse if item.rapid else StraightFeed
+                    self._out.append(cls(end, file=f, line=n))
+                else:
+                    centre = list(prog)
+                    centre[first], centre[second] = item.center
+                    centre[normal] = self._comp_normal
+                    centre_pose = self.frames.to_machine(centre)
+                    turns = item.turns if item.ccw else -item.turns
+                    self._out.append(ArcFeed(end, centre_pose, self.plane, turns, file=f, line=n))
+                self._comp_normal = item.normal
+                self.pos = end
+            else:
+                self._out.append(item)
 
     def _step_tool_length(self, block: Block, ml: ModalLine) -> None:
         code = ml.g.get(8)
@@ -1027,13 +1245,106 @@ class Interpreter:
         if code is not None:
             self.retract = code
 
+    # --- gcode-canon / Fanuc transforms: G15/G16, G22/G23, G50/G51, G68/G69 -----------------------
+
+    def _step_transforms(self, block: Block, ml: ModalLine) -> None:
+        """:mod:`gcode_canon.transforms` holds the geometry; :mod:`gcode_canon.dialect` the meaning."""
+        g = ml.g
+        code = g.get(16)
+        if code is not None:
+            if code == 150:
+                self.polar_on = False
+            else:
+                from gcode_canon.dialect import Action, resolve
+
+                self.polar_on = True
+                self.polar = transforms.PolarState()
+                action = resolve("G16", self.dialect).action
+                self.polar_origin = (transforms.PolarOrigin.CURRENT if action is Action.POLAR_ON_CURRENT
+                                     else transforms.PolarOrigin.FANUC)
+        mirror, scale, rotate = g.get(19), g.get(17), g.get(18)
+        if mirror is None and scale is None and rotate is None:
+            return
+        if self.comp is not None:
+            raise GCodeError("Cannot change G22/G51/G68 transforms with cutter radius compensation on")
+        old = self.xform
+        new = old
+        w = block.words
+        centre = self._target(block, polar=False)  # words resolved like a move's target (G90/G91)
+        if mirror == 220:
+            given = {AXIS_LETTERS[k]: centre[k] for k in range(N_AXES) if AXIS_LETTERS[k] in w}
+            if not given:
+                raise GCodeError("G22 needs the axis words of the mirror lines (e.g. G22 X10)")
+            new = new.with_mirror(given)
+        elif mirror == 230:
+            letters = [a for a in AXIS_LETTERS if a in w]
+            new = new.cancel_mirror(letters or None)
+        if scale == 510:
+            if "p" in w:
+                factors: float | dict[str, float] = w["p"]
+            else:
+                factors = {a: w[i] for a, i in (("x", "i"), ("y", "j"), ("z", "k")) if i in w}
+                if not factors:
+                    raise GCodeError("G51 needs P (one factor) or I J K (factors for X Y Z)")
+            new = new.with_scale(centre, factors)
+        elif scale == 500:
+            new = new.cancel_scale()
+        if rotate == 680:
+            first, second, _ = self.plane.value
+            new = new.with_rotation((centre[first], centre[second]), w.get("r", 0.0))
+        elif rotate == 690:
+            new = new.cancel_rotation()
+        machine_prog = old.apply_position(self.prog)
+        self.xform = new
+        self.xform_on = not new.identity
+        self.prog = list(new.invert_position(machine_prog))
+
+    def _full_circle(self, code: int, block: Block) -> None:
+        """G12/G13 (gcode-canon): a full circle of radius I around the current point."""
+        name = gname(code)
+        if self.comp is not None:
+            raise GCodeError(f"{name} with cutter radius compensation on is not supported")
+        self._require_feed(block, name)
+        first, second, normal = self.plane.value
+        i = block.take("i")
+        tool_radius = 0.0
+        d = self._int_word(block, "d", name)
+        if d is not None:
+            tool = self._tool(d)
+            tool_radius = float(tool.diameter) / 2.0 if tool is not None else 0.0
+        start = list(self.prog)
+        moves = transforms.full_circle((start[first], start[second]), None if i is None else i * self.scale,
+                                       code == 120, tool_radius=tool_radius, code=name)
+        f, n = self.file, self.line
+        xform = self.xform
+        for mv in moves:
+            target = list(self.prog)
+            target[first], target[second] = mv.end
+            end_pose = self._to_machine(target)
+            if mv.kind == "feed":
+                self._emit(StraightFeed(end_pose, file=f, line=n))
+            else:
+                assert mv.centre is not None
+                centre = list(target)
+                centre[first], centre[second] = mv.centre
+                clockwise = mv.clockwise
+                if self.xform_on:
+                    clockwise = xform.arc_clockwise(clockwise, self.plane)
+                centre_pose = self._to_machine(centre)
+                self._emit(ArcFeed(end_pose, centre_pose, self.plane, -1 if clockwise else 1, file=f, line=n))
+            self.prog = target
+            self.pos = end_pose
+        _ = normal
+
     # --- group 0: G10, G28/G30, G92 ---------------------------------------------------------------
 
     def _step_group0(self, block: Block, ml: ModalLine) -> None:
         code = ml.g.get(0)
-        if code is None or code in (40, 530):
+        if code is None or code in (40, 530, 110):
             return
-        if code == 100:
+        if code in (120, 130):
+            self._full_circle(code, block)
+        elif code == 100:
             self._g10(block)
         elif code in (280, 300):
             self._go_home(block, 5161 if code == 280 else 5181)
@@ -1053,6 +1364,86 @@ class Interpreter:
         elif code == 923:
             self.params.set_system(5210, 1.0)
             self._set_g92([self.params.numbered[5211 + k] for k in range(N_AXES)])
+
+    def _g10_tool(self, level: int, block: Block) -> None:
+        """Tool table edits: LinuxCNC's G10 L1 / L10 / L11, gcode-canon's G10 L1 (radius) and L3
+        (height and diameter), as :func:`gcode_canon.dialect.resolve` decides. The table file is
+        rewritten atomically after each edit (never in a dry run)."""
+        from dataclasses import replace
+
+        from gcode_canon.dialect import Action, resolve
+        from gcode_canon.tooltable import Tool, ToolTable
+
+        meaning = resolve(f"G10 L{level}", self.dialect)
+        if not meaning.accepted:
+            raise GCodeError(meaning.error or f"G10 L{level} is not accepted")
+        what = f"G10 L{level}"
+        number = self._int_word(block, "p", what)
+        if number is None:
+            raise GCodeError(f"{what} needs a P word (the tool number)")
+        if self.tool_table is None:
+            self.tool_table = ToolTable()
+            self._implicit_table = True
+        tool = self.tool_table.get(number)
+        if tool is None:
+            if not self._implicit_table:
+                raise GCodeError(f"{what} P{number}: tool {number} is not in the tool table")
+            tool = Tool(number, pocket=min(number, 1000))
+        scale = self.scale
+        w = block.words
+        offset = list(tool.offset)
+        action = meaning.action
+        try:
+            if action is Action.TOOL_RADIUS:
+                extra = sorted(set(w) - {"p", "r", "l"})
+                if extra or "r" not in w:
+                    raise GCodeError("G10 L1 (gcode-canon) takes P and R only: the tool radius")
+                tool = replace(tool, diameter=2.0 * w["r"] * scale)
+            elif action is Action.TOOL_HEIGHT_DIAMETER:
+                extra = sorted(set(w) - {"p", "h", "d", "l"})
+                if extra or not ("h" in w or "d" in w):
+                    raise GCodeError("G10 L3 takes P with H (tool height) and/or D (diameter) only")
+                if "h" in w:
+                    offset[2] = w["h"] * scale
+                tool = replace(tool, offset=Pose(*offset), diameter=w["d"] * scale if "d" in w
+                               else tool.diameter)
+            else:
+                given = [k for k, letter in enumerate(AXIS_LETTERS) if letter in w]
+                if level == 1:
+                    if not given and not any(x in w for x in "rijq"):
+                        raise GCodeError("G10 L1 without offsets has no effect")
+                    for k in given:
+                        offset[k] = w[AXIS_LETTERS[k]] * (1.0 if k in ROTARY_INDEXES else scale)
+                else:
+                    if not given:
+                        raise GCodeError(f"{what} without axis words has no effect")
+                    if self.frames.rotation != 0.0 and ("x" in w or "y" in w):
+                        raise GCodeError(f"{what} with X or Y in a rotated coordinate system is not "
+                                         "supported")
+                    if level == 10:
+                        base, g92 = list(self.frames.g5x), list(self.frames.g92)
+                    else:
+                        nums = self.params.numbered
+                        base = [nums[system_base(9) + k] for k in range(N_AXES)]
+                        g92 = [0.0] * N_AXES
+                    for k in given:
+                        value = w[AXIS_LETTERS[k]] * (1.0 if k in ROTARY_INDEXES else scale)
+                        offset[k] = self.pos[k] - value - base[k] - g92[k]
+                diameter = tool.diameter
+                if "r" in w:
+                    diameter = 2.0 * w["r"] * scale
+                orientation = near_int(w["q"], "Q word of G10 L1") if "q" in w else tool.orientation
+                tool = replace(tool, offset=Pose(*offset), diameter=diameter,
+                               front_angle=w.get("i", tool.front_angle),
+                               back_angle=w.get("j", tool.back_angle), orientation=orientation)
+        except (ValueError, TypeError) as exc:
+            raise GCodeError(f"{what} P{number}: {exc}") from None
+        self.tool_table.set(tool)
+        if number == self.current_tool:
+            self._set_tool_parameters(number)
+        path = self.settings.tool_table
+        if path is not None and not self.settings.dry_run:
+            self.tool_table.write(path)
 
     def _set_g92(self, values: list[float]) -> None:
         self.frames.g92 = values
@@ -1078,12 +1469,13 @@ class Interpreter:
         self._set_g92(values)
 
     def _go_home(self, block: Block, base: int) -> None:
+        self._after_comp = False
         f, n = self.file, self.line
         given = [k for k, letter in enumerate(AXIS_LETTERS) if letter in block.words]
         if given or "@" in block.words or "^" in block.words:
             target = self._target(block)
             self.prog = target
-            self.pos = self.frames.to_machine(target)
+            self.pos = self._to_machine(target)
             self._emit(StraightTraverse(self.pos, file=f, line=n))
         else:
             given = list(range(N_AXES))
@@ -1092,15 +1484,16 @@ class Interpreter:
         for k in given:
             end[k] = self.params.numbered[base + k] + tool[k]
         self.pos = Pose(*end)
-        self.prog = self.frames.machine_to_program(self.pos)
+        self.prog = self._from_machine(self.pos)
         self._emit(StraightTraverse(self.pos, file=f, line=n))
 
     def _g10(self, block: Block) -> None:
         level = self._int_word(block, "l", "G10")
         if level in (1, 3, 10, 11):
-            raise GCodeError(f"G10 L{level} (tool table data) is not supported yet")
+            self._g10_tool(level, block)
+            return
         if level not in (2, 20):
-            raise GCodeError(f"Invalid L word with G10: L{level} (L2 or L20 for coordinate systems)")
+            raise GCodeError(f"Invalid L word with G10: L{level} (L1, L2, L3, L10, L11 or L20)")
         p = self._int_word(block, "p", f"G10 L{level}")
         if p is None:
             raise GCodeError(f"G10 L{level} needs a P word (coordinate system 1-9, 0 for the active one)")
@@ -1157,7 +1550,7 @@ class Interpreter:
     def _step_motion(self, block: Block, ml: ModalLine) -> None:
         g0 = ml.g.get(0)
         explicit = ml.g.get(1)
-        if g0 in G_AXIS_USERS_GROUP0 or ml.g.get(8) == 431:
+        if ml.axis_user:
             if explicit is not None:
                 self.motion = explicit
             return
@@ -1165,6 +1558,12 @@ class Interpreter:
         self.motion = motion
         w = block.words
         has_axes = block.has_axes()
+        if motion in cycles.CYCLE_CODES:
+            if has_axes:
+                self._cycle(motion, block)
+            return
+        if self.cycle_state.motion is not None or self.cycle_state.initial_level is not None:
+            self.cycle_state = cycles.cancel(self.cycle_state)
         if motion in (20, 30):
             if has_axes or "i" in w or "j" in w or "k" in w or "r" in w:
                 self._arc(block, motion == 20)
@@ -1181,18 +1580,35 @@ class Interpreter:
                     if k not in ROTARY_INDEXES:
                         value *= self.scale
                     end[k] = value + tool[k]
-            target = self.frames.machine_to_program(end)
+            target = self._from_machine(end)
         else:
             target = self._target(block)
-        end_pose = self.frames.to_machine(target)
+        end_pose = self._to_machine(target)
         if not _isfinite(sum(end_pose)):  # also refuses sums beyond 1e308: no machine is that big
             raise GCodeError("Coordinate out of range")
+        if self.comp is not None and motion in (0, 10):
+            if motion == 10:
+                self._require_feed(block, "G1")
+            first, second, normal = self.plane.value
+            t = list(self.xform.apply_position(target)) if self.xform_on else target
+            others = tuple(t[k] for k in range(N_AXES) if k not in (first, second, normal))
+            self._comp_move(cutter_comp.Line2(self.comp.programmed, (t[first], t[second]),
+                                              t[normal], others, n, motion == 0))
+            self.prog = target
+            return
+        self._after_comp = False
         if motion == 0:
             cmd: Canon = StraightTraverse(end_pose, file=f, line=n)
         elif motion == 10:
             self._require_feed(block, "G1")
             cmd = StraightFeed(end_pose, file=f, line=n)
         elif motion in _PROBE_MODES:
+            if self.comp is not None:
+                raise GCodeError("Cannot probe with cutter radius compensation on")
+            if self.feed_mode is FeedMode.INVERSE_TIME:
+                raise GCodeError("Cannot probe in inverse time feed mode")
+            if any(end_pose[k] != self.pos[k] for k in ROTARY_INDEXES):
+                raise GCodeError("Cannot move rotary axes during probing")
             self._require_feed(block, gname(motion))
             if math.dist(end_pose, self.pos) < 1e-9:
                 raise GCodeError(f"{gname(motion)}: probe move has zero length")
@@ -1203,6 +1619,68 @@ class Interpreter:
         self.prog = target
         self.pos = end_pose
         self._emit(cmd)
+
+    def _cycle(self, code: int, block: Block) -> None:
+        """A canned cycle block: :mod:`gcode_canon.cycles` expands it in plane-local program units;
+        each op becomes canonical commands in machine coordinates here."""
+        self._after_comp = False
+        plane = self.plane
+        scale = self.scale
+        words = cycles.CycleWords.from_letters(plane, block.words)
+        ctx = cycles.CycleContext(
+            plane=plane, incremental=not self.absolute, retract_mode=self.retract // 10,
+            feed_rate=self.feed, inverse_time=self.feed_mode is FeedMode.INVERSE_TIME,
+            cutter_comp=self.comp is not None, spindle=self.spindle, metric=not self.inch,
+        )
+        unit = [1.0 if k in ROTARY_INDEXES else scale for k in range(N_AXES)]
+        here = [v / u for v, u in zip(self.prog, unit, strict=True)]
+        result = cycles.expand_cycle(code, words, self.cycle_state, ctx, cycles.to_local(plane, here))
+        self.cycle_state = result.state
+        f, n = self.file, self.line
+        first, second, normal = plane.value
+        control = self.control
+        prog = list(self.prog)
+        for op in result.ops:
+            kind = op.kind
+            if kind == "traverse" or kind == "feed":
+                assert op.point is not None
+                prog[first] = op.point[0] * unit[first]
+                prog[second] = op.point[1] * unit[second]
+                prog[normal] = op.point[2] * unit[normal]
+                end = self._to_machine(prog)
+                if not _isfinite(sum(end)):
+                    raise GCodeError("Coordinate out of range")
+                self.prog = list(prog)
+                self.pos = end
+                cls = StraightTraverse if kind == "traverse" else StraightFeed
+                self._emit(cls(end, file=f, line=n))
+            elif kind == "dwell":
+                self._emit(Dwell(op.seconds, file=f, line=n))
+            elif kind == "spindle_stop":
+                self._emit(SpindleOff(file=f, line=n))
+            elif kind == "spindle_on":
+                assert op.direction is not None
+                self._emit(SpindleOn(op.direction, self.speed, file=f, line=n))
+            elif kind == "program_stop":
+                self._emit(ProgramStop(False, file=f, line=n))
+            elif kind == "overrides_off":
+                self._emit(SetOverrides(feed=False, spindle=False, file=f, line=n))
+            elif kind == "overrides_restore":
+                self._emit(SetOverrides(feed=self.overrides["feed"], spindle=self.overrides["spindle"],
+                                        file=f, line=n))
+            elif kind == "exact_path_begin":
+                if control[0] is not MotionControlMode.EXACT_PATH:
+                    self._emit(SetMotionControlMode(MotionControlMode.EXACT_PATH, 0.0, 0.0, file=f, line=n))
+            elif kind == "exact_path_end":
+                if control[0] is not MotionControlMode.EXACT_PATH:
+                    self._emit(SetMotionControlMode(*control, file=f, line=n))
+            else:  # orient: G87 is refused by modal.sort_codes
+                raise GCodeError(f"{gname(code)}: spindle orientation is not supported")
+        prog[first] = result.end[0] * unit[first]
+        prog[second] = result.end[1] * unit[second]
+        prog[normal] = result.end[2] * unit[normal]
+        self.prog = prog
+        self.pos = self._to_machine(prog)
 
     def _require_feed(self, block: Block, what: str) -> None:
         if self.feed_mode is FeedMode.INVERSE_TIME:
@@ -1218,7 +1696,7 @@ class Interpreter:
             where, tripped = self.machine.probe(cmd)
             where = Pose(*where) if tripped else cmd.end
             self.pos = where
-            self.prog = self.frames.machine_to_program(where)
+            self.prog = self._from_machine(where)
             for k in range(N_AXES):
                 scale = 1.0 if k in ROTARY_INDEXES else self.scale
                 self.params.set_system(5061 + k, self.prog[k] / scale)
@@ -1264,11 +1742,43 @@ class Interpreter:
             cx, cy, rot = centre_ijk(clockwise, s2, e2, centre, turns, inch)
         else:
             raise GCodeError(f"R, I, J or K words missing for arc ({name})")
+        if self._after_comp:
+            raise GCodeError("The move just after exiting cutter compensation mode must be straight, "
+                             "not an arc")
+        if self.comp is not None:
+            normal = self.plane.value[2]
+            t, t_start = target, start
+            end2, centre2, ccw = e2, (cx, cy), rot > 0
+            if self.xform_on:
+                res = self.xform.apply_arc((target[first], target[second], target[normal]), (cx, cy),
+                                           clockwise, self.plane)
+                t = list(self.xform.apply_position(target))
+                t_start = list(self.xform.apply_position(start))
+                end2, centre2, ccw = (t[first], t[second]), res.centre, not res.clockwise
+            others = tuple(t[k] for k in range(N_AXES) if k not in (first, second, normal))
+            self._comp_normal = t_start[normal]
+            self._comp_move(cutter_comp.Arc2(self.comp.programmed, end2, centre2, ccw, t[normal],
+                                             others, self.line, abs(rot)))
+            self.prog = target
+            return
         centre_prog = list(start)
         centre_prog[first] = cx
         centre_prog[second] = cy
-        end_pose = self.frames.to_machine(target)
-        centre_pose = self.frames.to_machine(centre_prog)
+        xform = self.xform
+        if self.xform_on:
+            normal = self.plane.value[2]
+            res = xform.apply_arc((target[first], target[second], target[normal]), (cx, cy), clockwise,
+                                  self.plane)
+            end_t = list(xform.apply_position(target))
+            centre_t = list(end_t)
+            centre_t[first], centre_t[second] = res.centre
+            centre_t[normal] = xform.apply_position(start)[normal]
+            rot = abs(rot) * (-1 if res.clockwise else 1)
+            end_pose = self.frames.to_machine(end_t)
+            centre_pose = self.frames.to_machine(centre_t)
+        else:
+            end_pose = self.frames.to_machine(target)
+            centre_pose = self.frames.to_machine(centre_prog)
         if not (_isfinite(sum(end_pose)) and _isfinite(sum(centre_pose))):
             raise GCodeError("Coordinate out of range")
         self.prog = target
@@ -1288,6 +1798,15 @@ class Interpreter:
         elif code == 60:
             self._emit(PalletShuttle(file=f, line=n))
             self._emit(_Resume(self._resync))
+        elif code == 98:
+            p = self._int_word(block, "p", "M98")
+            if p is None:
+                raise GCodeError("M98 needs a P word (the program number to call)")
+            repeats = self._int_word(block, "l", "M98")
+            self.flow.m98(p, 1 if repeats is None else repeats)
+        elif code == 99:
+            if not self.flow.m99():
+                self._end_program(2)  # M99 in the main program ends it (stand-alone interpreter)
         else:
             self._end_program(code)
 
@@ -1296,6 +1815,8 @@ class Interpreter:
         overrides on, spindle and coolant off, motion mode G1; G92 offsets persist), then PROGRAM_END,
         then the parameter file is written."""
         f, n = self.file, self.line
+        self._comp_off()
+        self._after_comp = False
         if code is not None:
             if self.frames.g5x_index != 1:
                 self._select_system(1)
@@ -1317,6 +1838,11 @@ class Interpreter:
                 self.mist = self.flood = False
                 self._emit(Coolant(False, False, file=f, line=n))
             self.motion = 10
+            if self.xform_on or self.polar_on:  # Fanuc cancels these on reset
+                self.xform = self.xform.cancel_all()
+                self.xform_on = False
+                self.polar_on = False
+                self.prog = self.frames.machine_to_program(self.pos)
         self._emit(ProgramEnd(code == 30, file=f, line=n))
         self.ended = True
         self._fast_ok = False
@@ -1338,6 +1864,18 @@ class Interpreter:
         with contextlib.suppress(Exception):
             self.logs.close()
             self.probe_log.close()
+
+
+def _axis_user_name(ml: ModalLine) -> str:
+    g = ml.g
+    if g.get(0) in G_AXIS_USERS_GROUP0:
+        return gname(g[0])
+    if g.get(0) == 530:
+        return "G53"
+    for group in (8, 19, 17, 18):
+        if group in g:
+            return gname(g[group])
+    return "G43.1"
 
 
 _G5X_INDEX = {540: 1, 550: 2, 560: 3, 570: 4, 580: 5, 590: 6, 591: 7, 592: 8, 593: 9}

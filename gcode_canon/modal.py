@@ -13,7 +13,7 @@ from gcode_canon.lexer import Block
 G_GROUPS: dict[int, int] = {}
 for _group, _codes in {
     0: (40, 100, 280, 281, 300, 301, 530, 920, 921, 922, 923, 520),
-    1: (0, 10, 20, 30, 330, 331, 382, 383, 384, 385, 730, 760, 800, 810, 820, 830, 840, 850, 860, 870,
+    1: (0, 10, 20, 30, 330, 331, 382, 383, 384, 385, 730, 740, 760, 800, 810, 820, 830, 840, 850, 860, 870,
         880, 890, 52),
     2: (170, 180, 190, 171, 181, 191),
     3: (900, 910),
@@ -34,7 +34,7 @@ for _group, _codes in {
 }.items():
     for _code in _codes:
         G_GROUPS[_code] = _group
-for _code in (120, 130):  # gcode-canon circular pocket G12/G13 (non-modal)
+for _code in (110, 120, 130):  # gcode-canon G11 (end of G10 data), full circle G12/G13 (non-modal)
     G_GROUPS[_code] = 0
 
 G_UNSUPPORTED: dict[int, str] = {
@@ -45,33 +45,19 @@ G_UNSUPPORTED: dict[int, str] = {
     171: "G17.1 (UV plane)",
     181: "G18.1 (WU plane)",
     191: "G19.1 (VW plane)",
-    410: "G41 (cutter radius compensation)",
-    420: "G42 (cutter radius compensation)",
-    411: "G41.1 (dynamic cutter compensation)",
-    421: "G42.1 (dynamic cutter compensation)",
     432: "G43.2 (additional tool offset)",
     960: "G96 (constant surface speed)",
     70: "G7 (lathe diameter mode)",
-    120: "G12 (circular pocket)",
-    130: "G13 (circular pocket)",
-    150: "G15 (polar mode)",
-    160: "G16 (polar mode)",
-    500: "G50 (scaling)",
-    510: "G51 (scaling)",
-    680: "G68 (rotation)",
-    690: "G69 (rotation)",
-    220: "G22 (mirroring)",
-    230: "G23 (mirroring)",
 }
-for _code in (730, 760, 810, 820, 830, 840, 850, 860, 870, 880, 890):
-    G_UNSUPPORTED[_code] = f"G{_code // 10} (canned cycle)"
+G_UNSUPPORTED[760] = "G76 (threading: it needs spindle-synchronized motion)"
+G_UNSUPPORTED[870] = "G87 (back boring: it needs spindle orientation, which canon has no command for)"
 
 G_AXIS_USERS_GROUP0 = frozenset((100, 280, 300, 920))
 """Group-0 codes that take axis words (the motion mode is suspended on their line)."""
 
 M_GROUPS: dict[int, int] = {}
 for _group, _codes in {
-    4: (0, 1, 2, 30, 60),
+    4: (0, 1, 2, 30, 60, 98, 99),
     5: (62, 63, 64, 65, 66, 67, 68),
     6: (6, 61),
     7: (3, 4, 5, 70, 71, 72, 73),  # LinuxCNC puts the modal-state codes in the spindle group
@@ -88,14 +74,20 @@ def gname(code10: int) -> str:
     return f"G{whole}.{tenth}" if tenth else f"G{whole}"
 
 
+AXIS_USER_CODES = frozenset((*G_AXIS_USERS_GROUP0, 431, 220, 230, 510, 680))
+"""Codes other than the motion mode that take the line's axis words (G10 G28 G30 G92 G43.1, and the
+gcode-canon transforms G22 G23 G51 G68)."""
+
+
 class ModalLine:
     """The G and M codes of one line, by group, after the checks."""
 
-    __slots__ = ("g", "m")
+    __slots__ = ("axis_user", "g", "m")
 
     def __init__(self) -> None:
         self.g: dict[int, int] = {}
         self.m: dict[int, int] = {}
+        self.axis_user = False  # see AXIS_USER_CODES
 
 
 def sort_codes(block: Block) -> ModalLine:
@@ -123,4 +115,5 @@ def sort_codes(block: Block) -> ModalLine:
         what = G_UNSUPPORTED.get(code)
         if what is not None:
             raise GCodeError(f"{what} is not supported yet")
+    line.axis_user = not AXIS_USER_CODES.isdisjoint(block.g)
     return line

@@ -23,11 +23,16 @@ class InterpreterSettings:
     log_dir: Path | str | None = None
     """Directory for (LOGOPEN,...) files; None refuses LOG files."""
     subroutine_path: list[Path] = field(default_factory=list)
-    """Directories searched for ``o<name> call`` files (o-words: a later issue)."""
+    """Directories searched, in order, for ``NAME.ngc`` when ``o<NAME> call`` names a subroutine not
+    defined earlier in the program; the main program's own directory is searched last."""
     dialect: str = "linuxcnc"
+    """"linuxcnc" (default), "gcode-canon" or "grbl" (:mod:`gcode_canon.dialect`): the meaning of the
+    codes the dialects disagree on (so far: bare O numbers, M98, M99)."""
     max_line_length: int = 256
     max_call_depth: int = 10
+    """Nested o-word / M98 calls (recursion included) beyond this are an error."""
     max_loop_iterations: int = 1_000_000
+    """Passes of one while / do / repeat loop beyond this are an error (a runaway loop)."""
     max_expression_depth: int = 64
     """Bracket / function / indirection nesting refused beyond this (protects the recursion limit)."""
     axes: str | None = None

@@ -4,6 +4,8 @@ A check is a dry run: the machine starts at zero with every offset zero (or as a
 file says), inputs read 0, probes trip at their end point, and no parameter file is ever written.
 Text output names each command as LinuxCNC's canonical function (``STRAIGHT_FEED(...)``) with its
 source line, so it can be set beside ``rs274`` output; ``--json`` prints one object per command.
+``--dialect`` picks the meaning of the codes LinuxCNC and gcode-canon disagree on; ``--subroutine-path``
+(repeatable) lists the directories ``o<name> call`` looks in (then the program's own directory).
 """
 
 from __future__ import annotations
@@ -17,6 +19,11 @@ from motiond.cli import UserError, add_common
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_common(parser)
     parser.add_argument("--block-delete", action="store_true", help="skip lines that start with '/'")
+    parser.add_argument("--dialect", default="linuxcnc",
+                        help="G-code dialect: linuxcnc (default), gcode-canon or grbl")
+    parser.add_argument("--subroutine-path", action="append", default=[], metavar="DIR",
+                        help="directory searched for 'o<name> call' files (repeatable; the program's "
+                             "own directory is searched last)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -31,6 +38,15 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"{option} {value}: no such file")
     if not Path(args.file).is_file():
         raise UserError(f"{args.file}: no such file")
+    from gcode_canon.dialect import Dialect
+
+    try:
+        Dialect.parse(args.dialect)
+    except ValueError as exc:
+        raise UserError(f"--dialect: {exc}") from None
+    for directory in args.subroutine_path:
+        if not Path(directory).is_dir():
+            raise UserError(f"--subroutine-path {directory}: no such directory")
     axes = None
     if args.config is not None:  # only the axis names matter to a check: words for others are errors
         from motiond.config import load_machine
@@ -38,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
         axes = "".join(axis.name for axis in load_machine(args.config).limits.axes)
     settings = InterpreterSettings(
         var_file=args.var, tool_table=args.tool_table, block_delete=args.block_delete, dry_run=True,
-        axes=axes,
+        axes=axes, dialect=args.dialect, subroutine_path=[Path(d) for d in args.subroutine_path],
     )
     interp = Interpreter(settings, DryRunMachine())
     out = sys.stdout

@@ -106,3 +106,20 @@ def test_config_restricts_the_axes(tmp_path: Path, capsys: pytest.CaptureFixture
     assert main(["check", "--config", str(config), str(path)]) == 1
     assert capsys.readouterr().err.strip() == f"{path}:2: A word used, but the machine has no A axis"
     assert main(["check", str(path)]) == 0  # without a configuration all nine axes are accepted
+
+
+def test_dialect_and_subroutine_path_options(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    subs = tmp_path / "lib"
+    subs.mkdir()
+    (subs / "side.ngc").write_text("o<side> sub\nG0 X#1\no<side> endsub\n")
+    prog = write(tmp_path, "o<side> call [3]\nM2\n")
+    assert main(["check", "--subroutine-path", str(subs), str(prog)]) == 0
+    assert "STRAIGHT_TRAVERSE(3.0000" in capsys.readouterr().out
+    assert main(["check", str(prog)]) != 0
+    assert "no file side.ngc on the subroutine path" in capsys.readouterr().err
+    assert main(["check", "--dialect", "fanuc9", str(prog)]) != 0
+    assert "unknown G-code dialect" in capsys.readouterr().err
+    labels = write(tmp_path, "#1=0\nO5\n#1=[#1+1]\no1 if [#1 LT 2]\nM98 P5\no1 endif\nM99\nM2\n", "f.ngc")
+    assert main(["check", "--dialect", "gcode-canon", str(labels)]) == 0
+    assert main(["check", str(labels)]) != 0  # LinuxCNC: O5 reached in the flow of the main program
+    assert "main program must end" in capsys.readouterr().err

@@ -61,11 +61,13 @@ TOKENS = [
     "ATAN", "SIN", "SQRT", "LN", "ACOS", "EXISTS", "MOD", "**", "/", "*", "-", "+", "AND", "EQ", "0",
     "1", "-1", "2.5", ".5", "1e5", "9" * 30, "0.0001", "360", "#", "##2", "%", "N5", "\x00", "é", " ",
     "\t", "o100", "#5399", "#5420=1", "(MSG,", "(DEBUG,#1)", "(LOGOPEN,x)", "\r",
+    "G41.1", "G42.1", "D5", "G40", "G41", "G81", "G83", "G73", "G82", "G98", "G99", "M98", "M99",
+    "G68", "G69", "G51", "G50", "G22", "G23", "G16", "G15", "G12", "G13", "G10L1", "G10L3", "G10L10", "G11",
 ]
 
 
-def check(text: str, max_line_length: int = 256) -> None:
-    interp = Interpreter(InterpreterSettings(dry_run=True, max_line_length=max_line_length))
+def check(text: str, max_line_length: int = 256, **limits: int) -> None:
+    interp = Interpreter(InterpreterSettings(dry_run=True, max_line_length=max_line_length, **limits))
     try:
         for count, _ in enumerate(interp.run_string(text, "fuzz.ngc")):
             assert count < 10_000
@@ -148,3 +150,91 @@ def test_pathological_long_lines() -> None:
         "G0 X1 (" + "x" * 50000,
     ]:
         check(text, max_line_length=200_000)
+
+
+O_TOKENS = [
+    "o1", "o2", "o<s>", "o<t>", "o<../x>", "o<missing>", " sub", " endsub", " call", " return", " if",
+    " elseif", " else", " endif", " while", " endwhile", " do", " repeat", " endrepeat", " break",
+    " continue", " [1]", " [0]", " [#1]", " [#1 LT 3]", "#1=[#1+1]", "G0 X#1", "M98 P1", "M99", "O1",
+    "\n", "M2", "%", "(c)",
+]
+
+
+@FUZZ
+@given(st.lists(st.sampled_from(O_TOKENS), max_size=40).map("".join))
+def test_random_oword_programs(text: str) -> None:
+    """Unbalanced blocks, calls to missing files, runaway loops and recursion: clear errors only."""
+    check(text, max_loop_iterations=50, max_call_depth=5)
+
+
+def test_runaway_loop_and_recursion_stop_with_errors() -> None:
+    interp = Interpreter(InterpreterSettings(dry_run=True, max_loop_iterations=1000))
+    try:
+        list(interp.run_string("o1 while [1]\no1 endwhile\nM2\n", "loop.ngc"))
+    except GCodeError as exc:
+        assert "max_loop_iterations" in exc.message and exc.line == 2
+    else:
+        raise AssertionError("no error")
+    interp = Interpreter(InterpreterSettings(dry_run=True))
+    try:
+        list(interp.run_string("o<r> sub\no<r> call\no<r> endsub\no<r> call\nM2\n", "rec.ngc"))
+    except GCodeError as exc:
+        assert "max_call_depth" in exc.message and exc.line == 2
+    else:
+        raise AssertionError("no error")
+
+
+SEED_ISSUE3 = """G21 G90 G17 F300 S1000 M3
+o<sq> sub
+  G41.1 D2 G1 X#1 Y0
+  Y#1
+  X0
+  G2 X0 Y0 I0 J[-#1 / 2]
+  G40 G1 X-5 Y-5
+o<sq> endsub
+#<n> = 0
+o10 while [#<n> LT 2]
+  o<sq> call [10 + #<n>]
+  #<n> = [#<n> + 1]
+o10 endwhile
+G0 Z10
+G98 G81 X5 Y5 Z-2 R1
+G99 G83 X7 Q0.5 Z-3 R1
+G80
+G18 G99 G82 Z2 X1 Y-3 R1 P0.2
+G17 G68 X0 Y0 R30
+G51 P1.5
+G22 X2
+G1 X3 Y4
+G13 I2
+G69 G50 G23
+G16 G1 X5 Y60
+G15
+o20 repeat [2]
+  G10 L1 P1 R1
+o20 endrepeat
+M2
+"""
+
+
+def test_issue3_seed_is_valid() -> None:
+    out = list(Interpreter(InterpreterSettings(dry_run=True)).run_string(SEED_ISSUE3, "seed3.ngc"))
+    assert out[-1].NAME == "PROGRAM_END" and len(out) > 40
+
+
+@FUZZ
+@given(st.integers(0, 2**32 - 1), st.integers(1, 8))
+def test_mutated_issue3_programs(seed: int, n_mutations: int) -> None:
+    """O-words, cycles, compensation and transforms mutated: clear errors only, never a hang."""
+    rng = random.Random(seed)
+    chars = list(SEED_ISSUE3)
+    for _ in range(n_mutations):
+        op = rng.randrange(3)
+        pos = rng.randrange(len(chars))
+        if op == 0:
+            del chars[pos]
+        elif op == 1:
+            chars.insert(pos, rng.choice("GMXYZIJKRPQLDO#[]()<>=\n0123456789.-"))
+        else:
+            chars.insert(pos, rng.choice(TOKENS + O_TOKENS))
+    check("".join(chars), max_loop_iterations=50, max_call_depth=5)

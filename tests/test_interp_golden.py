@@ -33,10 +33,11 @@ def test_golden(name: str) -> None:
     table = PROGRAMS / f"{name}.tbl"
     if not table.exists():
         table = PROGRAMS / "tools.tbl"
-    settings = InterpreterSettings(dry_run=True, tool_table=table)
+    settings = InterpreterSettings(dry_run=True, tool_table=table, subroutine_path=[PROGRAMS / "subs"])
     got = [f"{c.line} {format_text(c)}" for c in Interpreter(settings).run_file(PROGRAMS / f"{name}.ngc")]
     assert got == expected_lines(PROGRAMS / f"{name}.expected")
 
 
 def test_there_are_golden_programs() -> None:
-    assert {"arcs", "basic", "offsets", "params", "rotation", "tools_io"} <= set(CASES)
+    assert {"arcs", "basic", "offsets", "params", "rotation", "tools_io", "owords", "cycles", "cycles_all",
+            "extensions"} <= set(CASES)

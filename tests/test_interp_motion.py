@@ -87,7 +87,7 @@ def test_g5x_offsets_and_g10_l2_incremental() -> None:
     assert last_end("G10 L2 P1 X10\nG91 G10 L2 P1 X5\nG90 G0 X0") == xyz(5)  # G91: no effect
     assert last_end("G10 L2 P0 Z-5\nG0 Z0") == xyz(0, 0, -5)
     assert "out of range" in error("G10 L2 P10 X1").message
-    assert "not supported yet" in error("G10 L1 P1 Z1").message
+    assert "without offsets has no effect" in error("G10 L1 P1").message
 
 
 def test_coordinate_rotation() -> None:
