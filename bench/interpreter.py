@@ -15,10 +15,10 @@ Usage: ``python bench/interpreter.py [LINES]`` (default 1,000,000).
 
 from __future__ import annotations
 
+import argparse
 import math
 import os
 import resource
-import sys
 import tempfile
 import time
 import tracemalloc
@@ -92,7 +92,9 @@ def traced_peak(path: Path) -> int:
 
 
 def main() -> None:
-    n = int(sys.argv[1]) if len(sys.argv) > 1 else 1_000_000
+    parser = argparse.ArgumentParser(description="Interpreter lines/s and memory on generated programs.")
+    parser.add_argument("lines", nargs="?", type=int, default=1_000_000, help="lines per program (1,000,000)")
+    n = parser.parse_args().lines
     # The figures depend on what else runs: say so next to them.
     print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
     with tempfile.TemporaryDirectory() as tmp:
