@@ -289,6 +289,23 @@ class SpindleOff(Canon):
 
 
 @dataclass(frozen=True, slots=True)
+class SpindleOrient(Canon):
+    """M19 (and G87's two stops): motion stops, then the spindle stops at ``angle`` degrees.
+
+    ``direction`` is M19's P: 0 the shortest way, 1 clockwise (as M3), 2 counter-clockwise (as M4).
+    ``timeout`` is M19's Q: seconds the machine may take to report the spindle oriented before it is
+    a fault; 0.0 means no wait was asked for (LinuxCNC: M19 without Q, and G87). The spindle is not
+    turning afterwards (M3/M4 starts it again).
+    """
+
+    NAME: ClassVar[str] = "ORIENT_SPINDLE"
+    SYNC: ClassVar[bool] = True
+    angle: float
+    direction: int = 0
+    timeout: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
 class Coolant(Canon):
     """M7 (mist on), M8 (flood on), M9 (both off): the state of both after the command."""
 

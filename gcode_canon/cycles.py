@@ -45,8 +45,9 @@ Op kinds (``CycleOp.kind``) and the canonical commands they stand for:
 * ``spindle_stop``: ``SpindleOff``. ``spindle_on``: ``SpindleOn(direction, current rpm)``.
   In G74/G84 the reversal at the bottom should not wait for "at speed" (LinuxCNC's comment says
   so), the restore at the end may.
-* ``orient``: spindle orientation to angle 0 in ``direction`` (LinuxCNC ``ORIENT_SPINDLE``; G87
-  only). canon has no canonical command for it yet: the interpreter must refuse G87 or add one.
+* ``orient``: spindle orientation to angle 0 (LinuxCNC ``ORIENT_SPINDLE``; G87 only); ``direction``
+  is the way the spindle was turning. The interpreter emits ``SpindleOrient(0, P, 0)`` with M19's P
+  for that direction (1 for M3, 2 for M4).
 * ``program_stop``: ``ProgramStop`` (G88: the operator retracts by hand).
 * ``overrides_off`` / ``overrides_restore``: around each G74/G84 hole, feed and spindle overrides
   are disabled (``SetOverrides(feed=False, spindle=False)``) then put back as they were.

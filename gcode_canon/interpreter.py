@@ -89,6 +89,7 @@ from gcode_canon.commands import (
     SpindleDirection,
     SpindleOff,
     SpindleOn,
+    SpindleOrient,
     StraightFeed,
     StraightTraverse,
     ToolChange,
@@ -677,15 +678,18 @@ class Interpreter:
             if letter in w and not arc and motion != 870 and not takes_ijk:
                 raise GCodeError(f"{letter.upper()} word with no G2 or G3 to use it")
         cycle = motion in cycles.CYCLE_CODES
-        if "r" in w and not (arc or cycle) and g0 != 100 and ml.g.get(18) != 680:
+        orient = ml.m.get(7) == 19
+        if "r" in w and not (arc or cycle or orient) and g0 != 100 and ml.g.get(18) != 680:
             raise GCodeError("R word with no G code that uses it")
         if "p" in w and not (arc or g0 in (40, 100) or ml.g.get(17) == 510 or ml.g.get(13) == 640
-                             or motion in (740, 820, 840, 860, 880, 890)
+                             or motion in (740, 820, 840, 860, 880, 890) or orient
                              or ms & {50, 51, 52, 53, 62, 63, 64, 65, 66, 98}):
             raise GCodeError("P word with no G or M code that uses it")
         if "q" in w and not (ml.g.get(13) == 640 or ms & {61, 66, 67, 68} or motion in (730, 830)
-                             or g0 == 100):
+                             or g0 == 100 or orient):
             raise GCodeError("Q word with no G or M code that uses it")
+        if orient:
+            self._check_orient_words(w, ml)
         if "l" in w and not (g0 == 100 or 66 in ms or 98 in ms or cycle):
             raise GCodeError("L word with no G10 or M66 to use it")
         if "e" in w and not ms & {66, 67, 68}:
@@ -699,6 +703,24 @@ class Interpreter:
             self._check_comp(ml)
         if g0 == 100 and "l" not in w:
             raise GCodeError("Line with G10 does not have an L word")
+
+    @staticmethod
+    def _check_orient_words(w: dict[str, float], ml: ModalLine) -> None:
+        """M19's own checks, LinuxCNC's (interp_check.cc), before anything on the line runs."""
+        if "p" in w:
+            p = w["p"]
+            whole = round(p)
+            if abs(whole - p) > 0.001:
+                raise GCodeError("P value not an integer with M19")
+            if not 0 <= whole <= 2:
+                raise GCodeError("P value must be 0, 1 or 2 with M19")
+        if "r" in w:
+            if ml.g.get(13) == 640:
+                raise GCodeError("R word is ambiguous on a line with both G64 and M19: use separate lines")
+            if not 0.0 <= w["r"] <= 360.0:
+                raise GCodeError("R value must be within 0..360 with M19")
+        if "q" in w and not w["q"] > 0.0:
+            raise GCodeError("Q word with M19 requires a value > 0")
 
     def _check_comp(self, ml: ModalLine) -> None:
         """What LinuxCNC refuses while cutter radius compensation is on."""
@@ -973,6 +995,16 @@ class Interpreter:
         if code == 5:
             self.spindle = None
             self._emit(SpindleOff(file=self.file, line=self.line))
+            return
+        if code == 19:
+            # M19 R Q P: the spindle stops at R degrees (the words were checked in _check_words).
+            # *canon*: a bare M19 orients to 0 degrees, as the manual's defaults read; LinuxCNC master
+            # emits no ORIENT_SPINDLE without R or P (only marks the spindle stopped). M19 takes no
+            # ORIENT_OFFSET: canon has no such setting.
+            w = block.words
+            self.spindle = None
+            self._emit(SpindleOrient(w.get("r", 0.0), round(w.get("p", 0.0)), w.get("q", 0.0),
+                                     file=self.file, line=self.line))
             return
         self.spindle = SpindleDirection.CW if code == 3 else SpindleDirection.CCW
         self._emit(SpindleOn(self.spindle, self.speed, file=self.file, line=self.line))
@@ -1674,8 +1706,15 @@ class Interpreter:
             elif kind == "exact_path_end":
                 if control[0] is not MotionControlMode.EXACT_PATH:
                     self._emit(SetMotionControlMode(*control, file=f, line=n))
-            else:  # orient: G87 is refused by modal.sort_codes
-                raise GCodeError(f"{gname(code)}: spindle orientation is not supported")
+            elif kind == "orient":
+                # G87 stops the spindle at 0 degrees turning the way it was going: M19 P1 for M3, P2
+                # for M4. *canon*: LinuxCNC passes its CANON_DIRECTION (2 or 3) as the orient mode,
+                # which reads as "counter-clockwise" or out of range; its G87 waits for nothing
+                # (timeout 0), as here.
+                direction = 1 if op.direction is SpindleDirection.CW else 2
+                self._emit(SpindleOrient(0.0, direction, 0.0, file=f, line=n))
+            else:  # pragma: no cover (cycles.OpKind is closed)
+                raise GCodeError(f"{gname(code)}: unknown cycle operation {kind}")
         prog[first] = result.end[0] * unit[first]
         prog[second] = result.end[1] * unit[second]
         prog[normal] = result.end[2] * unit[normal]

@@ -50,7 +50,6 @@ G_UNSUPPORTED: dict[int, str] = {
     70: "G7 (lathe diameter mode)",
 }
 G_UNSUPPORTED[760] = "G76 (threading: it needs spindle-synchronized motion)"
-G_UNSUPPORTED[870] = "G87 (back boring: it needs spindle orientation, which canon has no command for)"
 
 G_AXIS_USERS_GROUP0 = frozenset((100, 280, 300, 920))
 """Group-0 codes that take axis words (the motion mode is suspended on their line)."""
@@ -60,7 +59,7 @@ for _group, _codes in {
     4: (0, 1, 2, 30, 60, 98, 99),
     5: (62, 63, 64, 65, 66, 67, 68),
     6: (6, 61),
-    7: (3, 4, 5, 70, 71, 72, 73),  # LinuxCNC puts the modal-state codes in the spindle group
+    7: (3, 4, 5, 19, 70, 71, 72, 73),  # LinuxCNC puts M19 and the modal-state codes in the spindle group
     8: (7, 8, 9),  # M7 and M8 may both be on, but not be set on one line
     9: (48, 49, 50, 51, 52, 53),
 }.items():

@@ -5,7 +5,8 @@ file says), inputs read 0, probes trip at their end point, and no parameter file
 Text output names each command as LinuxCNC's canonical function (``STRAIGHT_FEED(...)``) with its
 source line, so it can be set beside ``rs274`` output; ``--json`` prints one object per command.
 ``--dialect`` picks the meaning of the codes LinuxCNC and gcode-canon disagree on; ``--subroutine-path``
-(repeatable) lists the directories ``o<name> call`` looks in (then the program's own directory).
+(repeatable) lists the directories ``o<name> call`` looks in (then the program's own directory). The
+machine file's ``[interpreter]`` table gives the defaults of these (:mod:`motiond.interp_settings`).
 """
 
 from __future__ import annotations
@@ -17,13 +18,10 @@ from motiond.cli import UserError, add_common
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from motiond.interp_settings import add_arguments as add_interp_arguments
+
     add_common(parser)
-    parser.add_argument("--block-delete", action="store_true", help="skip lines that start with '/'")
-    parser.add_argument("--dialect", default="linuxcnc",
-                        help="G-code dialect: linuxcnc (default), gcode-canon or grbl")
-    parser.add_argument("--subroutine-path", action="append", default=[], metavar="DIR",
-                        help="directory searched for 'o<name> call' files (repeatable; the program's "
-                             "own directory is searched last)")
+    add_interp_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -31,31 +29,13 @@ def run(args: argparse.Namespace) -> int:
 
     from gcode_canon.interpreter import Interpreter
     from gcode_canon.machine import DryRunMachine
-    from gcode_canon.settings import InterpreterSettings
+    from motiond.config import load_machine
+    from motiond.interp_settings import settings_from_args
 
-    for option, value in (("--var", args.var), ("--tool-table", args.tool_table)):
-        if value is not None and not Path(value).is_file():
-            raise UserError(f"{option} {value}: no such file")
     if not Path(args.file).is_file():
         raise UserError(f"{args.file}: no such file")
-    from gcode_canon.dialect import Dialect
-
-    try:
-        Dialect.parse(args.dialect)
-    except ValueError as exc:
-        raise UserError(f"--dialect: {exc}") from None
-    for directory in args.subroutine_path:
-        if not Path(directory).is_dir():
-            raise UserError(f"--subroutine-path {directory}: no such directory")
-    axes = None
-    if args.config is not None:  # only the axis names matter to a check: words for others are errors
-        from motiond.config import load_machine
-
-        axes = "".join(axis.name for axis in load_machine(args.config).limits.axes)
-    settings = InterpreterSettings(
-        var_file=args.var, tool_table=args.tool_table, block_delete=args.block_delete, dry_run=True,
-        axes=axes, dialect=args.dialect, subroutine_path=[Path(d) for d in args.subroutine_path],
-    )
+    # the demo machine without --config: then any of the nine axes may be named
+    settings = settings_from_args(load_machine(args.config), args, dry_run=True)
     interp = Interpreter(settings, DryRunMachine())
     out = sys.stdout
     write = out.write

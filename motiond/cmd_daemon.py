@@ -8,7 +8,8 @@ status goes out on ``CANON_STATUS`` at ``[telemetry] status_hz`` and events on `
 On SIGTERM or SIGINT: the program is cancelled, the drives are stopped and disabled, the outputs go
 to their safe values, the parameter file is written, and the daemon exits 0.
 
-The parameter file is ``--var``, else ``<state dir>/<machine name>.var``; the state directory is
+The parameter file is ``--var``, else the configuration's ``[interpreter] var_file``, else
+``<state dir>/<machine name>.var``; the state directory is
 ``--state-dir``, else ``$STATE_DIRECTORY`` (systemd's ``StateDirectory=``), else
 ``$XDG_STATE_HOME/canon``, else ``~/.local/state/canon``.
 """
@@ -56,6 +57,23 @@ def default_var_file(machine_name: str, directory: Path) -> Path:
     return directory / f"{slug}.var"
 
 
+def parameter_file(var: str | None, config: Any, state_directory: str | None) -> str | Path:
+    """Where the daemon keeps its parameters: ``--var``, else the configuration's ``[interpreter]
+    var_file``, else a file named after the machine in the state directory (created if needed)."""
+    if var is not None:
+        return var
+    if config.interpreter.var_file is not None:
+        return config.interpreter.var_file
+    directory = state_dir(state_directory)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        from motiond.cli import UserError
+
+        raise UserError(f"state directory {directory}: {exc.strerror}") from None
+    return default_var_file(config.limits.name, directory)
+
+
 def start(config: Any, lc: Any, tele: Any, *, var_file: str | os.PathLike[str] | None = None,
           tool_table: str | None = None, late_fault_s: float | None = None,
           modbus_port: int | None = None, feedback_timeout_s: float | None = None) -> tuple[Any, Any]:
@@ -93,14 +111,7 @@ def run(args: argparse.Namespace) -> int:
         lc = open_lcm(tele.url)
     except TelemetryUnavailable as exc:
         raise UserError(str(exc)) from None
-    var = args.var
-    if var is None:
-        directory = state_dir(args.state_dir)
-        try:
-            directory.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise UserError(f"state directory {directory}: {exc.strerror}") from None
-        var = default_var_file(config.limits.name, directory)
+    var = parameter_file(args.var, config, args.state_dir)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     machine = server = None

@@ -21,10 +21,12 @@ from motiond.cli import UserError, add_common
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from motiond.interp_settings import add_arguments as add_interp_arguments
+
     add_common(parser)
     parser.add_argument("--plot", metavar="out.png", help="draw tool path, velocity, acceleration, jerk")
     parser.add_argument("--setpoints", metavar="out.csv", help="write the setpoint stream as CSV")
-    parser.add_argument("--block-delete", action="store_true", help="skip lines that start with '/'")
+    add_interp_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -36,19 +38,15 @@ def run(args: argparse.Namespace) -> int:
 
     from gcode_canon.interpreter import Interpreter
     from gcode_canon.machine import DryRunMachine
-    from gcode_canon.settings import InterpreterSettings
     from motiond.config import load_machine
+    from motiond.interp_settings import settings_from_args
     from planner import check_stream, plan_all
 
-    for option, value in (("--var", args.var), ("--tool-table", args.tool_table)):
-        if value is not None and not Path(value).is_file():
-            raise UserError(f"{option} {value}: no such file")
     if not Path(args.file).is_file():
         raise UserError(f"{args.file}: no such file")
     config = load_machine(args.config)
     machine = config.limits
-    settings = InterpreterSettings(var_file=args.var, tool_table=args.tool_table,
-                                   block_delete=args.block_delete, dry_run=True)
+    settings = settings_from_args(config, args, dry_run=True)
     interp = Interpreter(settings, DryRunMachine())
     started = time.perf_counter()
     commands = list(interp.run_file(args.file))

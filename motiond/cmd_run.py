@@ -21,8 +21,10 @@ SETTLE_S = 0.5  # after the last setpoint, wait this long at most for the drives
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from motiond.cli import add_common
+    from motiond.interp_settings import add_arguments as add_interp_arguments
 
     add_common(parser)
+    add_interp_arguments(parser, block_delete=False)
     parser.add_argument("--no-telemetry", action="store_true", help="publish nothing on LCM")
     parser.add_argument("--url", help="LCM URL for status and events (default: [telemetry] url)")
     parser.add_argument("--late-fault-ms", type=float, metavar="MS",
@@ -126,6 +128,7 @@ def run(args: argparse.Namespace) -> int:
 
     from motiond.cli import UserError
     from motiond.config import load_machine
+    from motiond.interp_settings import settings_from_args
     from motiond.runtime import Machine, MachineError
     from motiond.states import CommandRefused
     from telemetry.config import TelemetryConfig
@@ -138,6 +141,7 @@ def run(args: argparse.Namespace) -> int:
     if not path.is_file():
         raise UserError(f"{args.file}: no such file")
     config = load_machine(args.config)
+    settings = settings_from_args(config, args, dry_run=False)
     tele = TelemetryConfig.from_table(config.telemetry)
     if args.url:
         from motiond.configkit import Table
@@ -146,8 +150,7 @@ def run(args: argparse.Namespace) -> int:
                                                 "telemetry"))
     lc = None if args.no_telemetry else open_lcm(tele.url, fallback="memq")
     late = args.late_fault_ms / 1000.0 if args.late_fault_ms is not None else None
-    machine = Machine(config, lc=lc, telemetry=tele, var_file=args.var, tool_table=args.tool_table,
-                      late_fault_s=late)
+    machine = Machine(config, lc=lc, telemetry=tele, late_fault_s=late, interp_settings=settings)
     err = Console(stderr=True, highlight=False)
     out = Console(highlight=False)
 

@@ -1,8 +1,9 @@
-"""``canon sim drives|io``: run simulated hardware as a separate process.
+"""``canon sim drives|io|inject``: simulated hardware as a separate process, and fault injection.
 
 ``drives`` runs the configured CiA 402 drives on a python-can bus (``motiond.cmd_sim_drives``);
-``io`` runs the Modbus I/O module on loopback (``motiond.cmd_sim_io``). Each target module has the
-usual ``add_arguments(parser)`` and ``run(args)``.
+``io`` runs the Modbus I/O module on loopback or a serial port (``motiond.cmd_sim_io``); ``inject``
+faults one running simulated drive over SDO, as a test bench would (``motiond.cmd_sim_inject``).
+Each target module has the usual ``add_arguments(parser)`` and ``run(args)``.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import importlib
 TARGETS: dict[str, tuple[str, str]] = {
     "drives": ("motiond.cmd_sim_drives", "simulated CiA 402 servo drives on a CAN bus"),
     "io": ("motiond.cmd_sim_io", "simulated Modbus TCP I/O module on 127.0.0.1"),
+    "inject": ("motiond.cmd_sim_inject", "make a simulated drive fault with an EMCY, by SDO over the bus"),
 }
 
 

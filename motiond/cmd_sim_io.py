@@ -1,9 +1,15 @@
-"""``canon sim io``: run the simulated Modbus TCP I/O module(s) on 127.0.0.1 until SIGINT/SIGTERM.
+"""``canon sim io``: run the simulated Modbus I/O module(s) until SIGINT/SIGTERM.
 
-Without ``--config`` it serves the demo machine's module on port 5020; with a machine file, one module
-per ``[[modbus.devices]]`` with ``simulate = true`` (each on its configured port and unit).
-``--port`` overrides the port when there is one module (0 picks a free one; the line
-``listening on 127.0.0.1:PORT`` says which). ``--script FILE`` gives the inputs a behaviour:
+Without ``--config`` it serves the demo machine's module by Modbus TCP on 127.0.0.1:5020; with a
+machine file, one module per ``[[modbus.devices]]`` with ``simulate = true`` (each on its configured
+port and unit). ``--port`` overrides the port when there is one module (0 picks a free one; the line
+``listening on 127.0.0.1:PORT`` says which).
+
+``--serial PORT`` serves one module by Modbus RTU on that serial port instead (the other end of a
+null-modem cable or of a pty pair, whose first end the machine file's device names in ``serial``):
+the demo module's layout without ``--config``; with it, the file's one device that has ``serial``
+(its unit, line settings and map). ``--baudrate N`` overrides the baud rate. ``--script FILE`` gives
+the inputs a behaviour:
 
 ```toml
 [[rule]]                 # 0.3 s after coil 0 is written on, discrete input 0 goes on
@@ -42,6 +48,9 @@ if TYPE_CHECKING:  # heavy imports stay inside run(): `canon check` builds this 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", metavar="machine.toml", help="machine file (default: the demo machine)")
     parser.add_argument("--port", type=int, metavar="N", help="TCP port (one module only; 0: any free port)")
+    parser.add_argument("--serial", metavar="PORT", help="serve Modbus RTU on this serial port, not TCP")
+    parser.add_argument("--baudrate", type=int, metavar="N", help="with --serial: baud rate (default: the "
+                        "device's in --config, else 19200)")
     parser.add_argument("--script", metavar="FILE", help="TOML file of rules and timed input changes")
     parser.add_argument("--size", type=int, default=256, metavar="N",
                         help="entries in each table (coils, inputs, registers); default 256")
@@ -79,11 +88,27 @@ def _serve(args: argparse.Namespace, say: Callable[[str], None]) -> int:
         cfg = read_modbus(Table(load_toml(args.config), args.config))
         if cfg is None:
             raise UserError(f"{args.config}: no [[modbus.devices]] to simulate")
-        devices = [d for d in cfg.devices if d.simulate]
-        if not devices:
-            raise UserError(f"{args.config}: no [[modbus.devices]] has simulate = true")
+        if args.serial:
+            devices = [d for d in cfg.devices if d.serial]
+            if len(devices) != 1:
+                raise UserError(f"{args.config}: --serial simulates the one [[modbus.devices]] that has "
+                                f"serial = ...; the file has {len(devices)}")
+        else:
+            devices = [d for d in cfg.devices if d.simulate]
+            if not devices:
+                raise UserError(f"{args.config}: no [[modbus.devices]] has simulate = true")
     else:
         devices = list(demo_modbus().devices)
+    if args.serial is not None:
+        if not args.serial.strip():
+            raise UserError("--serial needs a port, e.g. /dev/ttyUSB0")
+        if args.port is not None:
+            raise UserError("--port is for Modbus TCP; with --serial there is no port number")
+    if args.baudrate is not None:
+        if args.serial is None:
+            raise UserError("--baudrate needs --serial")
+        if args.baudrate <= 0:
+            raise UserError(f"--baudrate must be > 0, got {args.baudrate}")
     if args.port is not None:
         if len(devices) != 1:
             raise UserError("--port needs exactly one simulated device")
@@ -104,8 +129,13 @@ def _serve(args: argparse.Namespace, say: Callable[[str], None]) -> int:
         port = args.port if args.port is not None else dev.port
         mine = [r for name, r in rules if name in ("", dev.name)]
         size = size_for(cfg, dev.name, args.size) if cfg is not None else args.size
-        modules.append((dev.name, SimIoModule(host="127.0.0.1", port=port, unit=dev.unit, size=size,
-                                              rules=mine)))
+        if args.serial:
+            baud = args.baudrate if args.baudrate is not None else dev.baudrate
+            mod = SimIoModule(unit=dev.unit, size=size, rules=mine, serial=args.serial, baudrate=baud,
+                              parity=dev.parity, stopbits=dev.stopbits, bytesize=dev.bytesize)
+        else:
+            mod = SimIoModule(host="127.0.0.1", port=port, unit=dev.unit, size=size, rules=mine)
+        modules.append((dev.name, mod))
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
@@ -121,7 +151,9 @@ def _serve(args: argparse.Namespace, say: Callable[[str], None]) -> int:
             for dev_name, (after_s, table, address, value) in timed:
                 if dev_name in ("", name):
                     mod.schedule(after_s, table, address, value)
-            say(f"simulated I/O module {name!r} (unit {mod.unit}) listening on {mod.host}:{mod.port}")
+            line = (f" (Modbus RTU, {mod.baudrate} baud, {mod.bytesize}{mod.parity}{mod.stopbits})"
+                    if mod.serial else "")
+            say(f"simulated I/O module {name!r} (unit {mod.unit}) listening on {mod.where}{line}")
         say("stop with Ctrl-C")
         while not stop.wait(0.5):
             pass

@@ -1,9 +1,12 @@
 """The machine file: ``[machine]`` and ``[axes.*]`` read into the planner's dataclasses.
 
-The other top-level tables (``[canopen]``, ``[modbus]``, ``[telemetry]``) belong to later layers; they
-are kept as :class:`~motiond.configkit.Table` objects for their own readers (``motiond.config_canopen``,
-``motiond.config_modbus`` ...), which validate them. Unknown top-level tables are rejected here, so a
-typo such as ``[axis.x]`` is an error rather than a silently ignored section.
+``[interpreter]`` is read here too, into :class:`InterpreterConfig` (paths resolved against the
+file's directory); :mod:`motiond.interp_settings` turns it, with the command-line overrides, into the
+interpreter's settings. The other top-level tables (``[canopen]``, ``[modbus]``, ``[telemetry]``)
+belong to later layers; they are kept as :class:`~motiond.configkit.Table` objects for their own
+readers (``motiond.config_canopen``, ``motiond.config_modbus`` ...), which validate them. Unknown
+top-level tables are rejected here, so a typo such as ``[axis.x]`` is an error rather than a silently
+ignored section.
 
 With no file, :data:`planner.machine.DEMO_MACHINE` is the machine and the other sections are empty
 (each layer then uses its built-in demo defaults).
@@ -11,13 +14,30 @@ With no file, :data:`planner.machine.DEMO_MACHINE` is the machine and the other 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 
 from gcode_canon.commands import AXES
 from motiond.configkit import ConfigError, Table, in_range, load_toml, positive
 from planner.machine import DEMO_MACHINE, AxisLimits, MachineError, MachineLimits
 
-TOP_LEVEL = ("machine", "axes", "canopen", "modbus", "telemetry")
+TOP_LEVEL = ("machine", "axes", "interpreter", "canopen", "modbus", "telemetry")
+DIALECTS = ("linuxcnc", "gcode-canon", "grbl")
+
+
+@dataclass(frozen=True)
+class InterpreterConfig:
+    """``[interpreter]``: how programs are read on this machine. Paths are absolute (resolved against
+    the machine file's directory); the defaults are :class:`gcode_canon.settings.InterpreterSettings`'s."""
+
+    dialect: str = "linuxcnc"
+    subroutine_path: tuple[Path, ...] = ()
+    max_call_depth: int = 10
+    max_loop_iterations: int = 1_000_000
+    log_dir: Path | None = None
+    block_delete: bool = False
+    tool_table: Path | None = None
+    var_file: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -31,6 +51,7 @@ class MachineConfig:
     telemetry: Table
     root: Table | None = None
     """The whole file, for readers that take it (``read_canopen(root, ...)``); empty for the demo."""
+    interpreter: InterpreterConfig = field(default_factory=InterpreterConfig)
 
     @property
     def name(self) -> str:
@@ -59,6 +80,51 @@ def _axis(name: str, t: Table) -> AxisLimits:
     return AxisLimits(name, velocity, acceleration, jerk, lo, hi, quick)
 
 
+def _interpreter(t: Table, base: Path) -> InterpreterConfig:
+    """``[interpreter]``; relative paths are taken from ``base`` (the machine file's directory)."""
+
+    def resolve(text: str) -> Path:
+        p = Path(text).expanduser()
+        return p if p.is_absolute() else base / p
+
+    def path_key(name: str, want_dir: bool | None) -> Path | None:
+        text = t.get(name, str, default=None)
+        if text is None:
+            return None
+        if not text:
+            raise t.error(name, "must not be empty (leave the key out for none)")
+        p = resolve(text)
+        if want_dir is True and not p.is_dir():
+            raise t.error(name, f"no such directory: {p}")
+        if want_dir is False and not p.is_file():
+            raise t.error(name, f"no such file: {p}")
+        return p
+
+    dialect = t.get("dialect", str, default="linuxcnc", check=lambda v: None if v in DIALECTS else
+                    f"must be one of {', '.join(DIALECTS)}")
+    raw = t.get("subroutine_path", list, default=[])
+    dirs = []
+    for i, item in enumerate(raw):
+        key = f"subroutine_path[{i}]"
+        if not isinstance(item, str) or not item:
+            raise t.error(key, f"must be a directory name (a non-empty string), got {item!r}")
+        p = resolve(item)
+        if not p.is_dir():
+            raise t.error(key, f"no such directory: {p}")
+        dirs.append(p)
+    depth = t.get("max_call_depth", int, default=10, check=lambda v: None if v >= 1 else "must be >= 1")
+    loops = t.get("max_loop_iterations", int, default=1_000_000,
+                  check=lambda v: None if v >= 1 else "must be >= 1")
+    log_dir = path_key("log_dir", True)
+    block_delete = t.get("block_delete", bool, default=False)
+    tool_table = path_key("tool_table", False)
+    var_file = path_key("var_file", None)  # may not exist yet: it is written at program end
+    if var_file is not None and var_file.is_dir():
+        raise t.error("var_file", f"is a directory: {var_file}")
+    t.check_unknown()
+    return InterpreterConfig(dialect, tuple(dirs), depth, loops, log_dir, block_delete, tool_table, var_file)
+
+
 def load_machine(path: str | None) -> MachineConfig:
     """Read and check the machine file (None: the demo machine). Errors name the file and the key."""
     if path is None:
@@ -82,5 +148,6 @@ def load_machine(path: str | None) -> MachineConfig:
         limits = MachineLimits(tuple(axes), cycle_s=cycle_ms / 1000.0, name=name)
     except MachineError as exc:
         raise root.error("axes", str(exc)) from None
+    interpreter = _interpreter(root.table("interpreter"), Path(file).resolve().parent)
     return MachineConfig(limits, file, root.table("canopen"), root.table("modbus"), root.table("telemetry"),
-                         Table(root.data, file))
+                         Table(root.data, file), interpreter)

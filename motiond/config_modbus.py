@@ -143,7 +143,8 @@ def _device(t: Table) -> ModbusDevice:
     simulate = t.get("simulate", bool, False)
     if simulate and (serial or host not in _LOOPBACK):
         raise t.error("simulate", f"a simulated module listens on 127.0.0.1 only; host is {host!r}"
-                      if not serial else "a simulated module is Modbus TCP; remove serial")
+                      if not serial else "the daemon simulates Modbus TCP modules only; for RTU run "
+                      "`canon sim io --config FILE --serial PORT` on the other end of the line")
     return ModbusDevice(
         name=name,
         host=host,

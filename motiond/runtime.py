@@ -205,8 +205,10 @@ class _Callbacks:
 class Machine:
     """A whole machine from a :class:`motiond.config.MachineConfig` (module docstring).
 
-    ``lc``: an LCM instance for events and status (None: no telemetry). ``var_file`` /
-    ``tool_table``: the interpreter's parameter file and tool table. ``late_fault_s``: a cycle that
+    ``lc``: an LCM instance for events and status (None: no telemetry). ``interp_settings``: the
+    interpreter's settings (:mod:`motiond.interp_settings`); without them they are built from the
+    machine file's ``[interpreter]`` with ``var_file`` / ``tool_table`` (the parameter file and tool
+    table) taking precedence. ``late_fault_s``: a cycle that
     starts later than this after its deadline is a fault (default: ten cycles, at least 50 ms;
     1 s with simulated drives).
     ``modbus_port``: put the simulated I/O module on this port instead of the configured one (0: a
@@ -217,7 +219,8 @@ class Machine:
     def __init__(self, config: Any, *, lc: Any = None, telemetry: Any = None,
                  var_file: str | os.PathLike[str] | None = None, tool_table: str | None = None,
                  late_fault_s: float | None = None, modbus_port: int | None = None,
-                 sim_lag_s: float = 0.002, feedback_timeout_s: float | None = None) -> None:
+                 sim_lag_s: float = 0.002, feedback_timeout_s: float | None = None,
+                 interp_settings: Any = None) -> None:
         from fieldbus.canopen.config import CanopenConfig
         from motiond.config_canopen import canopen_for_machine
         from motiond.config_modbus import modbus_for
@@ -260,8 +263,13 @@ class Machine:
         if late_fault_s is None:
             late_fault_s = SIM_LATE_FAULT_S if canopen.simulate else max(10 * self.T, 0.050)
         self.late_fault_s = late_fault_s
-        self.var_file = str(var_file) if var_file is not None else None
-        self.tool_table = tool_table
+        if interp_settings is None:  # [interpreter] of the machine file, var_file / tool_table winning
+            from motiond.interp_settings import build_settings
+
+            interp_settings = build_settings(config, var=None if var_file is None else str(var_file),
+                                             tool_table=tool_table)
+        self.var_file = str(interp_settings.var_file) if interp_settings.var_file is not None else None
+        self.tool_table = str(interp_settings.tool_table) if interp_settings.tool_table is not None else None
         self.lc = lc
         self.events = EventPublisher(lc, maxsize=self.telemetry.event_queue)
         self.status_pub = StatusPublisher(lc, self.telemetry.status_hz)
@@ -269,10 +277,7 @@ class Machine:
         self.states.subscribe(self._on_state_change)
 
         from gcode_canon.interpreter import Interpreter
-        from gcode_canon.settings import InterpreterSettings
-
-        self.interp = Interpreter(InterpreterSettings(var_file=self.var_file, tool_table=tool_table),
-                                  _Callbacks(self))
+        self.interp = Interpreter(interp_settings, _Callbacks(self))
         self.master: Any = None
         self.sim_bus: Any = None
         self.sim_drives: list[Any] = []
@@ -680,6 +685,14 @@ class Machine:
                 self._spindle = (1 if ev.direction is C.SpindleDirection.CW else -1, ev.rpm)
             elif isinstance(ev, C.SpindleOff):
                 self._spindle = (0, self._spindle[1])
+            elif isinstance(ev, C.SpindleOrient):
+                # the planner stopped motion for it and goes on at once: the orientation is done
+                # here, before the next setpoint (no spindle drive is wired, as for tool changes)
+                self._spindle = (0, self._spindle[1])
+                how = "simulated machine" if self.simulated else "no spindle orientation configured"
+                self.event("INFO", f"spindle orient to {ev.angle:g} deg (P{ev.direction}): done at once "
+                           f"({how})",
+                           kind="spindle_orient", source="motiond", file=ev.file, line=ev.line)
             elif isinstance(ev, C.SetSpindleSpeed):
                 self._spindle = (self._spindle[0], ev.rpm)
             elif isinstance(ev, C.Coolant):

@@ -57,7 +57,9 @@ _TOL = 1e-9
 SLACK = 1.0 - 1e-6  # the lookahead plans with segments this much shorter, so profiles are never tight
 
 WAIT_TYPES: tuple[type[C.Canon], ...] = (C.WaitInput, C.ToolChange, C.ProgramStop, C.PalletShuttle, C.Probe)
-"""Sync commands after which the stream stays at rest until :meth:`Planner.release`."""
+"""Sync commands after which the stream stays at rest until :meth:`Planner.release`. The others
+(dwell, spindle start/stop, spindle orient M19/G87, program end) continue at once: the machine acts on
+the event riding on the rest setpoint before it takes the next one."""
 
 CONSUMED_TYPES: tuple[type[C.Canon], ...] = (
     C.SetFeedRate, C.SetFeedMode, C.SetMotionControlMode, C.ExactStopBlock, C.SelectPlane,
@@ -260,13 +262,27 @@ class Planner:
                 raise PlannerError(f"dwell must be >= 0 s, got {cmd.seconds:g}", cmd.file, cmd.line)
             if isinstance(cmd, C.SpindleOn):
                 self._spindle_rpm = abs(cmd.rpm)
-            elif isinstance(cmd, C.SpindleOff):
+            elif isinstance(cmd, C.SpindleOff | C.SpindleOrient):
                 self._spindle_rpm = 0.0
+            if isinstance(cmd, C.SpindleOrient):
+                self._check_orient(cmd)
             self._sync(cmd)
         else:
             if isinstance(cmd, C.SetSpindleSpeed):
                 self._spindle_rpm = abs(cmd.rpm)
             self._pending.append(cmd)
+
+    @staticmethod
+    def _check_orient(cmd: C.SpindleOrient) -> None:
+        if not math.isfinite(cmd.angle):
+            raise PlannerError(f"spindle orientation angle must be finite, got {cmd.angle:g}", cmd.file,
+                               cmd.line)
+        if cmd.direction not in (0, 1, 2):
+            raise PlannerError(f"spindle orientation direction must be 0, 1 or 2, got {cmd.direction}",
+                               cmd.file, cmd.line)
+        if not (math.isfinite(cmd.timeout) and cmd.timeout >= 0):
+            raise PlannerError(f"spindle orientation timeout must be >= 0 s, got {cmd.timeout:g}",
+                               cmd.file, cmd.line)
 
     def flush(self) -> None:
         """The input is over for now: events still waiting for a motion ride on the next setpoint."""

@@ -143,7 +143,12 @@ def test_the_documented_example_file_reads(tmp_path: Path) -> None:
     """The machine file in docs/DEVELOPING.md is valid as far as [machine] and [axes] go."""
     text = (Path(__file__).resolve().parent.parent / "docs" / "DEVELOPING.md").read_text()
     block = text.split("```toml", 1)[1].split("```", 1)[0]
+    (tmp_path / "subs").mkdir()  # [interpreter]'s paths must exist, relative to the file
+    (tmp_path / "logs").mkdir()
+    (tmp_path / "tools.tbl").write_text("T1 P1 Z10 D6\n")
     cfg = load_machine(write(tmp_path, block))
+    assert cfg.interpreter.subroutine_path == (tmp_path / "subs",)
+    assert cfg.interpreter.tool_table == tmp_path / "tools.tbl"
     assert cfg.limits.names == ("x",)
     assert cfg.limits.cycle_s == pytest.approx(0.002)
     assert cfg.limits.axis("x").quick_stop == 5000.0

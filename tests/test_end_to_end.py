@@ -4,7 +4,8 @@ Python types. Marked ``multicast``: run inside the private network namespace (``
 
 The tests share one set of processes (module fixture) and run in file order: a program, then the
 faults (a malformed message, the I/O module killed and restarted, the drives' process killed
-mid-move and restarted), each followed by a recovery through ``reset``.
+mid-move and restarted, an EMCY injected into one drive mid-move by SDO from this process as a test
+bench does on a real bus), each followed by a recovery through ``reset``.
 """
 
 from __future__ import annotations
@@ -49,6 +50,9 @@ M2
 FINAL = (12.5, 7.25, 3.0)
 
 LONG = "%\nG21 G90 G94\nG1 X100 F1500\nG1 X0\nM2\n%\n"
+DIAGONAL = "%\nG21 G90 G94\nG1 X60 Y40 F1500\nG1 X0 Y0\nM2\n%\n"
+SHORT = "%\nG21 G90 G94\nG1 X5 Y4 Z2 F1500\nM2\n%\n"
+SHORT_END = (5.0, 4.0, 2.0)
 
 
 def config_text(group: str, port: int, cycle_ms: float = 2.0, vmax: float = 200.0) -> str:
@@ -313,6 +317,85 @@ def test_drive_process_killed_mid_move_then_back(rig: Rig) -> None:
     hmi.ok("enable")
     hmi.ok("mdi", ["G0 X1 Y1 Z1"])
     hmi.wait(lambda s: s.state == "idle" and tuple(s.commanded) == (1.0, 1.0, 1.0), what="moving after reset")
+
+
+class Bench:
+    """This test's CANopen client on the drives' bus, as a test bench on a real bus: its own bus object,
+    SDO to one drive's simulation-only object 0x2F00; never NMT, SYNC or PDOs (the master, which does
+    no SDO while streaming, is not disturbed)."""
+
+    def __init__(self, group: str) -> None:
+        import canopen
+
+        from fieldbus.canopen.config import CanBusConfig
+
+        self.network = canopen.Network()
+        self.network.connect(**CanBusConfig("udp_multicast", group).bus_kwargs())  # hop_limit 0
+
+    def inject(self, node_id: int, code: int) -> None:
+        from fieldbus.canopen import SHIPPED_EDS
+        from fieldbus.canopen.drive_sim import SIM_INJECT, SIM_INJECT_CODE, SIM_INJECT_DELAY_MS
+
+        node = self.network.add_node(node_id, str(SHIPPED_EDS))
+        node.sdo.RESPONSE_TIMEOUT = 1.0  # a loaded PC; udp_multicast may lose a frame: retry
+        node.sdo.MAX_RETRIES = 3
+        node.sdo[SIM_INJECT][SIM_INJECT_DELAY_MS].raw = 0
+        node.sdo[SIM_INJECT][SIM_INJECT_CODE].raw = code
+
+    def close(self) -> None:
+        self.network.disconnect()
+
+
+def test_emcy_injected_by_sdo_mid_move_then_reset(rig: Rig) -> None:
+    hmi = rig.hmi
+    prog = rig.tmp / "diagonal.ngc"
+    prog.write_text(DIAGONAL)
+    s = hmi.wait(lambda s: s.state in ("estop", "idle"), what="estop or idle")  # also when run alone
+    if s.state == "estop":
+        hmi.ok("estop_reset")
+    if s.state == "estop" or not s.enabled:
+        hmi.ok("enable")
+    hmi.wait(lambda s: s.state == "idle" and s.enabled, what="idle, enabled")
+    hmi.ok("run", [str(prog)])
+    hmi.wait(lambda s: s.state == "running" and s.commanded[0] > 5 and s.commanded[1] > 3, what="moving")
+    bench = Bench(rig.group)
+    try:
+        bench.inject(2, 0x7300)  # axis y, whose drive runs in another process
+    finally:
+        bench.close()
+    s = hmi.wait(lambda s: s.state == "fault", what="fault")
+    assert "node 2 (axis y)" in s.last_error and "EMCY 0x7300" in s.last_error, s.last_error
+    assert any(e.kind == "drive_fault" and "EMCY 0x7300" in e.text for e in hmi.events)
+    # the faulted drive in Fault with the code; the others in quick stop, holding
+    s = hmi.wait(lambda s: [d.cia402_state for d in s.drives] == ["quick_stop_active", "fault",
+                                                                  "quick_stop_active"],
+                 what="drive y in fault, x and z in quick stop")
+    assert s.drives[1].emcy_code == 0x7300
+    assert 5 < s.commanded[0] < 60  # stopped mid-move
+    # every drive stopped: the positions they report stop changing
+    hmi.pump(0.3)
+    before = hmi.latest()
+    hmi.pump(0.7)
+    after = hmi.latest()
+    assert after.seq > before.seq + 10  # the daemon still publishing
+    assert list(after.actual) == list(before.actual) and list(after.commanded) == list(before.commanded)
+    assert [d.position_actual for d in after.drives] == [d.position_actual for d in before.drives]
+    # still answering commands; refusing motion until reset
+    refused = hmi.cmd("run", [str(prog)])
+    assert not refused.ok and "fault" in refused.error
+    hmi.ok("feed_override", (), (1.0,))
+    assert rig.daemon.p.poll() is None and rig.drives.p.poll() is None
+    hmi.ok("reset")
+    hmi.ok("enable")
+    hmi.wait(lambda s: s.state == "idle" and s.enabled
+             and all(d.cia402_state == "operation_enabled" for d in s.drives), what="enabled after reset")
+    short = rig.tmp / "short.ngc"
+    short.write_text(SHORT)
+    hmi.ok("run", [str(short)])
+    hmi.wait(lambda s: s.state == "idle" and tuple(s.commanded) == SHORT_END, timeout=30,
+             what="the second program at its end")
+    hmi.wait(lambda s: all(abs(a - f) < 1e-3 for a, f in zip(s.actual, SHORT_END, strict=True)),
+             what="the drives at the second program's end")
 
 
 def _free_port() -> int:

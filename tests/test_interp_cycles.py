@@ -50,5 +50,6 @@ def test_errors_have_the_line() -> None:
     assert info.value.line == 3 and "R" in info.value.message
     with pytest.raises(GCodeError, match="G76"):
         path("G76 X1")
-    with pytest.raises(GCodeError, match="G87"):
-        path("G87 X1")
+    with pytest.raises(GCodeError, match="Spindle not turning in G87") as info:  # G87 runs now (M19)
+        path("F1\nG0 Z5\nG87 X1 Z-1 R1 I0.5 J0 K0")
+    assert info.value.line == 3

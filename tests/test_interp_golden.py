@@ -40,4 +40,4 @@ def test_golden(name: str) -> None:
 
 def test_there_are_golden_programs() -> None:
     assert {"arcs", "basic", "offsets", "params", "rotation", "tools_io", "owords", "cycles", "cycles_all",
-            "extensions"} <= set(CASES)
+            "extensions", "backbore"} <= set(CASES)

@@ -137,6 +137,12 @@ DO = '[[modbus.digital_outputs]]\n'
      "modbus.devices[0].simulate: a simulated module listens on"),
     (DEV + 'serial = "/dev/ttyS0"\nport = 502\n', "modbus.devices[0].serial: a device is reached either by"),
     (DEV + 'parity = "X"\n', "modbus.devices[0].parity: must be one of N, E, O"),
+    (DEV + 'serial = "/dev/ttyS0"\nbaudrate = 0\n', "modbus.devices[0].baudrate: must be > 0"),
+    (DEV + 'serial = "/dev/ttyS0"\nstopbits = 3\n', "modbus.devices[0].stopbits: must be one of 1, 2"),
+    (DEV + 'serial = "/dev/ttyS0"\nbytesize = 6\n', "modbus.devices[0].bytesize: must be one of 7, 8"),
+    (DEV + 'serial = "/dev/ttyS0"\nsimulate = true\n',
+     "modbus.devices[0].simulate: the daemon simulates Modbus TCP modules only; for RTU run "
+     "`canon sim io --config FILE --serial PORT`"),
     (DEV + DEV, "modbus.devices[1].name: device name 'io' is used twice"),
     (DEV + '[modbus.digital_output]\nindex = 0\n', "modbus.digital_output: unknown key (misspelt?)"),
     (DEV + '[[modbus.digital_outputs]]\nindex = 0\ndevice = "oi"\ncoil = 0\n',

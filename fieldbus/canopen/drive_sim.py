@@ -22,7 +22,9 @@ Behaviour a real drive has and the tests rely on:
 * EMCY on every fault, and the reset EMCY (code 0) on fault reset.
 
 Faults are injected from tests: :meth:`inject_fault`, :meth:`drop_heartbeat`, :meth:`abort_sdo`,
-``boot_delay_s``, :meth:`stall`.
+``boot_delay_s``, :meth:`stall`. From another process, as a test bench does on a real bus, by SDO to
+the simulation-only object 0x2F00 (:data:`SIM_INJECT`): sub 2 a delay in ms, then sub 1 an EMCY code;
+the drive faults with that code exactly as :meth:`inject_fault` does (``canon sim inject``).
 """
 
 from __future__ import annotations
@@ -50,6 +52,12 @@ EMCY_VELOCITY = 0x8400  # setpoint jump beyond the maximum velocity
 EMCY_FOLLOWING_ERROR = 0x8611
 EMCY_HEARTBEAT = 0x8130  # life guard / heartbeat consumer timeout
 EMCY_GENERIC = 0x1000
+
+# Manufacturer-specific, simulation only (not on a real drive): an SDO write of a non-zero code to
+# sub 1 faults the drive with that EMCY code, after the delay in ms held in sub 2 (write it first);
+# writing 0 to sub 1 cancels faults still waiting for their delay.
+SIM_INJECT = 0x2F00
+SIM_INJECT_CODE, SIM_INJECT_DELAY_MS = 1, 2
 
 _LIVE = {0x6041, 0x6061, 0x6062, 0x6064, 0x60F4, 0x603F, 0x1001}
 
@@ -373,6 +381,8 @@ class SimDrive:
                     raise SdoAbortedError(0x06090030)  # value range exceeded
                 self.mode = mode
                 self._homing = False
+            elif index == SIM_INJECT and subindex == SIM_INJECT_CODE:
+                self._injected_by_sdo(struct.unpack_from("<H", data)[0])
             else:
                 self._params_dirty = True
 
@@ -597,6 +607,18 @@ class SimDrive:
                 self._fault(code, "injected")
             else:
                 self._scheduled.append((at, code))
+
+    def _injected_by_sdo(self, code: int) -> None:
+        """0x2F00:01 written (from another process): fault with ``code`` after 0x2F00:02 ms; 0 cancels."""
+        if code == 0:
+            self._scheduled.clear()
+            return
+        delay_ms = self._value(SIM_INJECT, SIM_INJECT_DELAY_MS)
+        log.info("drive %d: EMCY 0x%04X injected by SDO, in %d ms", self.id, code, delay_ms)
+        if delay_ms:
+            self._scheduled.append((self.clock() + delay_ms / 1000.0, code))
+        else:
+            self._fault(code, "injected by SDO")
 
     def drop_heartbeat(self, seconds: float) -> None:
         """Send no heartbeat for ``seconds``."""

@@ -365,7 +365,11 @@ class IoWorker:
 
     async def _why_unreachable(self, dev: ModbusDevice) -> str:
         if dev.serial:
-            return "the serial port could not be opened"
+            from fieldbus.modbus.serialport import serial_port_problem
+
+            problem = await asyncio.to_thread(serial_port_problem, dev.serial, dev.baudrate, dev.parity,
+                                              dev.stopbits, dev.bytesize)
+            return problem or f"the serial port opens but no answer came within {dev.timeout_s} s"
         try:
             _r, w = await asyncio.wait_for(asyncio.open_connection(dev.host, dev.port), dev.timeout_s)
         except TimeoutError:
@@ -414,10 +418,24 @@ class IoWorker:
             except (TimeoutError, OSError) as exc:
                 log.debug("connect %s: %s", link.dev.where, exc)
                 ok = False
+            except Exception as exc:  # RTU: no pyserial (RuntimeError), settings the port refuses
+                self._close(link)   # (termios.error, ValueError): no retry will help
+                raise ModbusConnectError(f"cannot connect to Modbus device {link.dev.name!r} at "
+                                         f"{link.dev.where}: cannot open the serial port: "
+                                         f"{self._serial_problem(link.dev, exc)}") from None
             if not ok:
                 self._close(link)
                 return False
         return True
+
+    @staticmethod
+    def _serial_problem(dev: ModbusDevice, exc: BaseException) -> str:
+        from fieldbus.modbus.serialport import serial_port_problem
+
+        if isinstance(exc, RuntimeError):
+            return "Modbus RTU needs pyserial (pip install pyserial)"
+        problem = serial_port_problem(dev.serial, dev.baudrate, dev.parity, dev.stopbits, dev.bytesize)
+        return problem or str(exc)
 
     def _close(self, link: _Link) -> None:
         for client in {id(c): c for c in (link.client, link.poll_client) if c is not None}.values():
@@ -443,7 +461,12 @@ class IoWorker:
         delay = dev.retry_backoff_s
         while not self._stopping:
             if not link.up:
-                if not await self._connect(link) or not await self._recover(link):
+                try:
+                    connected = await self._connect(link)
+                except ModbusConnectError as exc:  # the port changed under us: keep trying, say why
+                    log.warning("%s", exc)
+                    connected = False
+                if not connected or not await self._recover(link):
                     assert self._stop_event is not None
                     with contextlib.suppress(TimeoutError):  # back off; a stop ends the wait
                         await asyncio.wait_for(self._stop_event.wait(), delay)

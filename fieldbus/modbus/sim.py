@@ -1,11 +1,12 @@
-"""A simulated Modbus TCP I/O module, for tests, demos and ``canon sim io``.
+"""A simulated Modbus I/O module, for tests, demos and ``canon sim io``.
 
 It is a real pymodbus server (``ModbusTcpServer`` over a ``SimDevice`` with four separate tables:
 coils, discrete inputs, holding registers, input registers, addressed bit by bit) bound to
-127.0.0.1, run on its own thread with its own event loop (pymodbus builds a server inside a running
-loop). The module's contents live in this class, not in pymodbus's runtime: the ``SimDevice`` access
-hook copies them into the answer of every request and takes every write from it. That is what lets
-it
+127.0.0.1, or a ``ModbusSerialServer`` speaking Modbus RTU on a serial port (``serial=``; without
+hardware, one end of a :class:`fieldbus.modbus.serialport.PtyLink`), run on its own thread with its
+own event loop (pymodbus builds a server inside a running loop). The module's contents live in this
+class, not in pymodbus's runtime: the ``SimDevice`` access hook copies them into the answer of every
+request and takes every write from it. That is what lets it
 
 * record every write with a ``time.monotonic()`` stamp taken when the request arrives
   (:attr:`SimIoModule.writes`, :meth:`SimIoModule.wait_write`), so tests can time outputs;
@@ -15,6 +16,9 @@ it
 * misbehave on purpose: answer slowly (:attr:`SimIoModule.delay_s`) or with a Modbus exception
   (:meth:`SimIoModule.fail`), and go away and come back (:meth:`SimIoModule.stop`, then
   :meth:`SimIoModule.start` again on the same port).
+
+To try RTU without hardware, :class:`fieldbus.modbus.serialport.PtyLink` joins two pseudo-terminals
+like a null-modem cable: the module serves on one end, the client opens the other.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from dataclasses import dataclass
 from pymodbus.constants import ExcCodes
 
 from fieldbus.modbus.config import ModbusConfig
+from fieldbus.modbus.serialport import serial_port_problem
 
 log = logging.getLogger(__name__)
 
@@ -81,20 +86,31 @@ class Rule:
 
 
 class SimIoModule:
-    """A Modbus TCP I/O module with ``size`` entries in each of the four tables, on 127.0.0.1.
+    """A Modbus I/O module with ``size`` entries in each of the four tables: Modbus TCP on 127.0.0.1,
+    or Modbus RTU on the serial port ``serial`` (with ``baudrate``, ``parity``, ``stopbits``,
+    ``bytesize``; needs pyserial).
 
     ``port=0`` takes a free port; :attr:`port` holds the real one once :meth:`start` returns, and a
     restart after :meth:`stop` binds the same port again. ``unit`` is the unit id it answers (0: any).
     """
 
     def __init__(self, *, host: str = "127.0.0.1", port: int = 0, unit: int = 1, size: int = 256,
-                 rules: tuple[Rule, ...] | list[Rule] = ()) -> None:
+                 rules: tuple[Rule, ...] | list[Rule] = (), serial: str = "", baudrate: int = 19200,
+                 parity: str = "N", stopbits: int = 1, bytesize: int = 8) -> None:
         if size < 1 or size > 4096:
             raise ValueError(f"size must be 1..4096, got {size}")
         if host not in ("127.0.0.1", "localhost", "::1"):  # house rule: simulators stay on this host
             raise ValueError(f"a simulated module listens on loopback only, not {host!r}")
+        if parity not in ("N", "E", "O") or stopbits not in (1, 2) or bytesize not in (7, 8) or baudrate <= 0:
+            raise ValueError(f"bad serial settings: baudrate {baudrate}, parity {parity!r}, "
+                             f"stopbits {stopbits}, bytesize {bytesize}")
         self.host = host
         self.port = port
+        self.serial = serial
+        self.baudrate = baudrate
+        self.parity = parity
+        self.stopbits = stopbits
+        self.bytesize = bytesize
         self.unit = unit
         self.size = size
         self.rules: list[Rule] = list(rules)
@@ -119,19 +135,26 @@ class SimIoModule:
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
+    @property
+    def where(self) -> str:
+        """``127.0.0.1:5020`` or the serial port, for messages."""
+        return self.serial if self.serial else f"{self.host}:{self.port}"
+
     def start(self, timeout: float = 5.0) -> SimIoModule:
         """Start serving (a thread with its own loop); returns once the port is listening."""
         if self.running:
             return self
         self._ready.clear()
         self._error = None
-        self._thread = threading.Thread(target=self._run, name=f"sim-io:{self.port}", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=f"sim-io:{self.where}", daemon=True)
         self._thread.start()
         if not self._ready.wait(timeout):
             raise TimeoutError(f"simulated I/O module did not start within {timeout} s")
         if self._error is not None:
             self._thread.join(timeout)
             self._thread = None
+            if self.serial:
+                raise OSError(f"simulated I/O module cannot open serial port {self.serial}: {self._error}")
             raise OSError(f"simulated I/O module cannot listen on {self.host}:{self.port}: {self._error}")
         return self
 
@@ -145,7 +168,7 @@ class SimIoModule:
                 loop.call_soon_threadsafe(stop.set)
         thread.join(timeout)
         if thread.is_alive():
-            raise TimeoutError(f"simulated I/O module on port {self.port} did not stop within {timeout} s")
+            raise TimeoutError(f"simulated I/O module on {self.where} did not stop within {timeout} s")
         self._thread = None
 
     def __enter__(self) -> SimIoModule:
@@ -163,7 +186,6 @@ class SimIoModule:
             self._ready.set()
 
     async def _serve(self) -> None:
-        from pymodbus.server import ModbusTcpServer
         from pymodbus.simulator import DataType, SimData, SimDevice
 
         self._loop = asyncio.get_running_loop()
@@ -176,7 +198,23 @@ class SimIoModule:
             use_bit_addressing=True,
             action=self._access,
         )
-        server = ModbusTcpServer(device, address=(self.host, self.port))
+        if self.serial:
+            problem = serial_port_problem(self.serial, self.baudrate, self.parity, self.stopbits,
+                                          self.bytesize)
+            if problem:
+                self._error = OSError(problem)
+                self._ready.set()
+                return
+            from pymodbus.framer import FramerType
+            from pymodbus.server import ModbusSerialServer
+
+            server = ModbusSerialServer(device, framer=FramerType.RTU, port=self.serial,
+                                        baudrate=self.baudrate, parity=self.parity, stopbits=self.stopbits,
+                                        bytesize=self.bytesize)
+        else:
+            from pymodbus.server import ModbusTcpServer
+
+            server = ModbusTcpServer(device, address=(self.host, self.port))
         try:
             await server.serve_forever(background=True)
         except RuntimeError as exc:
@@ -186,7 +224,7 @@ class SimIoModule:
         sockets = getattr(server.transport, "sockets", None) or []
         if sockets:
             self.port = sockets[0].getsockname()[1]
-        log.info("simulated I/O module listening on %s:%d (unit %d)", self.host, self.port, self.unit)
+        log.info("simulated I/O module serving on %s (unit %d)", self.where, self.unit)
         self._ready.set()
         try:
             await self._stop.wait()

@@ -1,0 +1,90 @@
+"""The interpreter's settings for ``canon check``, ``canon plan``, ``canon run`` and the daemon.
+
+One place, so the four read a program the same way: the machine file's ``[interpreter]`` table
+(:class:`motiond.config.InterpreterConfig`) gives the defaults, and what the command line says wins:
+
+* ``--tool-table FILE`` and ``--var FILE`` replace ``tool_table`` / ``var_file``;
+* ``--dialect NAME`` replaces ``dialect``;
+* ``--subroutine-path DIR`` (repeatable) replaces the whole ``subroutine_path`` list;
+* ``--block-delete`` turns block delete on (the file's ``block_delete = true`` cannot be turned off
+  from the command line; it is an operator switch in the daemon).
+
+``max_call_depth``, ``max_loop_iterations`` and ``log_dir`` come from the file only. With a machine
+file, words for axes the machine does not have are errors (``axes``).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from gcode_canon.settings import InterpreterSettings
+
+
+def add_arguments(parser: argparse.ArgumentParser, *, block_delete: bool = True) -> None:
+    """The interpreter options beside :func:`motiond.cli.add_common`'s ``--tool-table`` / ``--var``."""
+    if block_delete:
+        parser.add_argument("--block-delete", action="store_true", help="skip lines that start with '/'")
+    parser.add_argument("--dialect", default=None,
+                        help="G-code dialect: linuxcnc, gcode-canon or grbl (default: [interpreter] "
+                             "dialect, else linuxcnc)")
+    parser.add_argument("--subroutine-path", action="append", default=None, metavar="DIR",
+                        help="directory searched for 'o<name> call' files (repeatable; replaces "
+                             "[interpreter] subroutine_path; the program's own directory is searched last)")
+
+
+def build_settings(config: Any, *, var: str | None = None, tool_table: str | None = None,
+                   dialect: str | None = None, subroutine_path: list[str] | None = None,
+                   block_delete: bool = False, dry_run: bool = False,
+                   check_var: bool = False) -> InterpreterSettings:
+    """Settings from ``config`` (a :class:`motiond.config.MachineConfig`) with the overrides given.
+
+    Overrides named on a command line are checked here (:class:`motiond.cli.UserError` naming the
+    option); the file's values were checked by :func:`motiond.config.load_machine`. ``check_var``:
+    a ``--var`` file must exist (a dry run reads it and never writes it).
+    """
+    from motiond.cli import UserError
+
+    ic = config.interpreter
+    if tool_table is not None and not Path(tool_table).is_file():
+        raise UserError(f"--tool-table {tool_table}: no such file")
+    if var is not None and check_var and not Path(var).is_file():
+        raise UserError(f"--var {var}: no such file")
+    if dialect is not None:
+        from gcode_canon.dialect import Dialect
+
+        try:
+            Dialect.parse(dialect)
+        except ValueError as exc:
+            raise UserError(f"--dialect: {exc}") from None
+    if subroutine_path is not None:
+        for directory in subroutine_path:
+            if not Path(directory).is_dir():
+                raise UserError(f"--subroutine-path {directory}: no such directory")
+    axes = None
+    if config.path is not None:  # words for axes the machine does not have are errors
+        axes = "".join(axis.name for axis in config.limits.axes)
+    return InterpreterSettings(
+        var_file=var if var is not None else ic.var_file,
+        tool_table=tool_table if tool_table is not None else ic.tool_table,
+        block_delete=block_delete or ic.block_delete,
+        dry_run=dry_run,
+        log_dir=ic.log_dir,
+        subroutine_path=[Path(d) for d in subroutine_path] if subroutine_path is not None
+        else list(ic.subroutine_path),
+        dialect=dialect if dialect is not None else ic.dialect,
+        max_call_depth=ic.max_call_depth,
+        max_loop_iterations=ic.max_loop_iterations,
+        axes=axes,
+    )
+
+
+def settings_from_args(config: Any, args: argparse.Namespace, *, dry_run: bool) -> InterpreterSettings:
+    """:func:`build_settings` with the options of :func:`motiond.cli.add_common` and
+    :func:`add_arguments` (those a sub-command lacks count as not given)."""
+    return build_settings(
+        config, var=getattr(args, "var", None), tool_table=getattr(args, "tool_table", None),
+        dialect=getattr(args, "dialect", None), subroutine_path=getattr(args, "subroutine_path", None),
+        block_delete=bool(getattr(args, "block_delete", False)), dry_run=dry_run, check_var=dry_run,
+    )
