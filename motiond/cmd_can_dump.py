@@ -21,21 +21,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import dataclasses
     import time
 
     import can
 
     from fieldbus.canopen.dump import describe
     from motiond.cli import UserError
-    from motiond.config_canopen import canopen_from_file
-    from motiond.configkit import load_toml
+    from motiond.config_canopen import canopen_for_tool
 
-    bus_cfg = canopen_from_file(load_toml(args.config) if args.config else {}, args.config or "").bus
-    if args.interface:
-        bus_cfg = dataclasses.replace(bus_cfg, interface=args.interface)
-    if args.channel:
-        bus_cfg = dataclasses.replace(bus_cfg, channel=args.channel)
+    _, bus_cfg = canopen_for_tool(args.config, args.interface, args.channel)
     try:
         bus = can.Bus(**bus_cfg.bus_kwargs())
     except Exception as exc:  # python-can: unknown interface, no such device, no permission

@@ -21,27 +21,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import dataclasses
     import signal
     import sys
     import threading
 
     from fieldbus.canopen.drive_sim import SimDrive
     from fieldbus.canopen.sim_process import SimBus
-    from motiond.config_canopen import canopen_from_file
-    from motiond.configkit import load_toml
+    from motiond.config_canopen import canopen_for_tool
 
-    data = load_toml(args.config) if args.config else {}
-    config = canopen_from_file(data, args.config or "")
-    bus = config.bus
-    if args.interface:
-        bus = dataclasses.replace(bus, interface=args.interface)
-    if args.channel:
-        bus = dataclasses.replace(bus, channel=args.channel)
-    if bus.interface == "udp_multicast" and ":" in bus.channel:
-        from motiond.cli import UserError
-
-        raise UserError("udp_multicast: use an IPv4 group such as 239.74.163.1 (IPv6 leaves this host)")
+    config, bus = canopen_for_tool(args.config, args.interface, args.channel)
     drives = [SimDrive(d.node_id, d.eds_path, lag_s=args.lag_ms / 1000.0, order=args.order,
                        boot_delay_s=args.boot_delay_ms / 1000.0) for d in config.drives]
     stop = threading.Event()

@@ -37,7 +37,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import dataclasses
     import logging
     import struct
     import time
@@ -47,19 +46,10 @@ def run(args: argparse.Namespace) -> int:
 
     from fieldbus.canopen.drive_sim import SIM_INJECT, SIM_INJECT_CODE, SIM_INJECT_DELAY_MS
     from motiond.cli import UserError
-    from motiond.config_canopen import canopen_from_file
-    from motiond.configkit import load_toml
+    from motiond.config_canopen import canopen_for_tool
 
     source = args.config or "the demo machine"
-    data = load_toml(args.config) if args.config else {}
-    config = canopen_from_file(data, args.config or "")
-    bus = config.bus
-    if args.interface:
-        bus = dataclasses.replace(bus, interface=args.interface)
-    if args.channel:
-        bus = dataclasses.replace(bus, channel=args.channel)
-    if bus.interface == "udp_multicast" and ":" in bus.channel:
-        raise UserError("udp_multicast: use an IPv4 group such as 239.74.163.1 (IPv6 leaves this host)")
+    config, bus = canopen_for_tool(args.config, args.interface, args.channel)
     if args.axis is not None:
         drive = next((d for d in config.drives if d.axis == args.axis), None)
         if drive is None:

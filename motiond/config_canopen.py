@@ -7,6 +7,7 @@ With no ``[canopen]`` table, the demo set-up: a virtual bus, one simulated drive
 
 from __future__ import annotations
 
+import dataclasses
 import ipaddress
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -121,6 +122,25 @@ def canopen_from_file(data: dict[str, Any], file: str = "") -> CanopenConfig:
     machine = root.table("machine")
     cycle_ms = machine.get("cycle_ms", float, 2.0, check=in_range(1.0, 10.0))
     return read_canopen(root, names, cycle_ms / 1000.0, limits)
+
+
+def canopen_for_tool(config_path: str | None, interface: str | None = None,
+                     channel: str | None = None) -> tuple[CanopenConfig, CanBusConfig]:
+    """For the bus tools (``canon sim drives``, ``sim inject``, ``can-dump``): the file's (or the demo's)
+    configuration and its bus with ``--interface``/``--channel`` applied. A udp_multicast IPv6 group is
+    refused: its frames leave this host (python-can's own default does that)."""
+    from motiond.cli import UserError
+    from motiond.configkit import load_toml
+
+    config = canopen_from_file(load_toml(config_path) if config_path else {}, config_path or "")
+    bus = config.bus
+    if interface:
+        bus = dataclasses.replace(bus, interface=interface)
+    if channel:
+        bus = dataclasses.replace(bus, channel=channel)
+    if bus.interface == "udp_multicast" and ":" in bus.channel:
+        raise UserError("udp_multicast: use an IPv4 group such as 239.74.163.1 (IPv6 leaves this host)")
+    return config, bus
 
 
 def canopen_for_machine(machine: Any) -> CanopenConfig:

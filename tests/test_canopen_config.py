@@ -166,3 +166,15 @@ def test_from_the_machine_file(tmp_path):
     assert c.cycle_s == 0.004
     demo = canopen_for_machine(load_machine(None))
     assert demo.bus.interface == "virtual" and [d.node_id for d in demo.drives] == [1, 2, 3]
+
+
+def test_bus_tools_share_overrides_and_refuse_ipv6_multicast() -> None:
+    """`sim drives`, `sim inject` and `can-dump` read the bus the same way: file (or demo), then options."""
+    from motiond.cli import UserError
+    from motiond.config_canopen import canopen_for_tool
+
+    config, bus = canopen_for_tool(None, "udp_multicast", "239.74.163.9")
+    assert (bus.interface, bus.channel) == ("udp_multicast", "239.74.163.9")
+    assert [d.node_id for d in config.drives] == [1, 2, 3]
+    with pytest.raises(UserError, match="IPv4 group"):
+        canopen_for_tool(None, "udp_multicast", "ff15:7079:7468:6f6e:6465:6d6f:6d63:6173")
