@@ -964,10 +964,7 @@ class Machine:
         from fieldbus.canopen.master import CanopenError
 
         try:
-            if hasattr(self.master, "not_operational"):
-                lost = self.master.not_operational()
-            else:
-                lost = [d.describe() for d in self.master.drives if d.nmt_state != 5]
+            lost = self.master.not_operational()
             if lost:  # a drive restarted (power cycle, process restarted): boot the bus again
                 self.event("INFO", f"booting the drives again ({', '.join(lost)} not operational)",
                            kind="reboot", source="canopen")
@@ -979,18 +976,8 @@ class Machine:
 
     def _disable_drives(self) -> None:
         """Stop streaming and take every drive to Switch on disabled (controlword 0 by SDO)."""
-        from fieldbus.canopen import cia402
-
-        master = self.master
-        if hasattr(master, "disable"):
-            self._on_cycle(lambda: setattr(self, "planner", None))
-            master.disable()
-            return
-        with master._lock:  # a master without disable() (older fieldbus)
-            master.streaming = False
         self._on_cycle(lambda: setattr(self, "planner", None))
-        for d in master.drives:
-            master._sdo(d, "controlword (disable voltage)", 0x6040, 0, "H", cia402.CW_DISABLE_VOLTAGE)
+        self.master.disable()
 
     def _disable_quietly(self) -> None:
         with self._ops:
