@@ -94,7 +94,7 @@ from __future__ import annotations
 
 import enum
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 from gcode_canon.commands import AXES, LINEAR_AXES, Plane
@@ -482,24 +482,22 @@ class ProgramTransform:
         """``T`` of a plane-local point ``(first, second)`` or ``(first, second, normal)`` of
         ``plane`` (default the active plane). With a 2-tuple, a G68 rotation of another plane of the
         same axis family needs the normal coordinate: pass a 3-tuple or use :meth:`apply_position`."""
-        plane = self.plane if plane is None else plane
-        axes = self._local_axes(plane, len(local))
-        full = [0.0] * N_AXES
-        for k, v in zip(axes, local, strict=True):
-            full[k] = float(v)
-        _check_finite("Coordinate", *full)
-        out = self.apply_position(full)
-        return tuple(out[k] for k in axes)
+        return self._map_point(local, plane, self.apply_position)
 
     def invert_point(self, local: Sequence[float], plane: Plane | None = None) -> tuple[float, ...]:
         """``T⁻¹`` of a plane-local point (same rules as :meth:`apply_point`)."""
+        return self._map_point(local, plane, self.invert_position)
+
+    def _map_point(self, local: Sequence[float], plane: Plane | None,
+                   mapping: Callable[[Sequence[float]], Sequence[float]]) -> tuple[float, ...]:
+        """Lift a plane-local point to nine axes (zeros elsewhere), map it, and project it back."""
         plane = self.plane if plane is None else plane
         axes = self._local_axes(plane, len(local))
         full = [0.0] * N_AXES
         for k, v in zip(axes, local, strict=True):
             full[k] = float(v)
         _check_finite("Coordinate", *full)
-        out = self.invert_position(full)
+        out = mapping(full)
         return tuple(out[k] for k in axes)
 
     def flips(self, plane: Plane | None = None) -> bool:
