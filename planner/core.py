@@ -659,13 +659,8 @@ class Planner:
         inp.max_velocity = [max(vmax, v1, 1e-9)]
         inp.max_acceleration = [a]
         inp.max_jerk = [j]
-        traj = Trajectory(1)
-        self.stats["solves"] += 1
-        try:
-            result = self._otg.calculate(inp, traj)
-        except RuntimeError:
-            return None
-        if result not in (Result.Working, Result.Finished):
+        traj = self._calculate(inp)
+        if traj is None:
             return None
         ext = traj.position_extrema[0]
         slack = 1e-9 + 1e-9 * length
@@ -684,14 +679,19 @@ class Planner:
         inp.max_velocity = [max(abs(v0), 1e-9)]
         inp.max_acceleration = [a]
         inp.max_jerk = [j]
+        try:
+            return self._calculate(inp)
+        finally:
+            inp.control_interface = ControlInterface.Position
+
+    def _calculate(self, inp: InputParameter) -> Trajectory | None:
+        """One ruckig solve; None when ruckig refuses or fails (callers then lower their target)."""
         traj = Trajectory(1)
         self.stats["solves"] += 1
         try:
             result = self._otg.calculate(inp, traj)
         except RuntimeError:
             return None
-        finally:
-            inp.control_interface = ControlInterface.Position
         if result not in (Result.Working, Result.Finished):
             return None
         return traj
