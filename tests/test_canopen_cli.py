@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import threading
+import time
 
+import can.interfaces.virtual as virtual
 import pytest
 from canopen_helpers import Rig, make_config
 
@@ -45,8 +47,14 @@ def test_can_dump_watches_a_running_bus(capsys):
     try:
         args = argparse.Namespace(config=None, interface="virtual", channel=r.config.bus.channel, count=40,
                                   seconds=10.0, no_sync=False)
+        listeners = len(virtual.channels.get(args.channel, ()))
         t = threading.Thread(target=cmd_can_dump.run, args=(args,), daemon=True)
         t.start()
+        # The dump must be listening before the boot starts, or it misses the NMT reset: wait (bounded)
+        # until its bus has joined the virtual channel.
+        deadline = time.monotonic() + 10.0
+        while len(virtual.channels.get(args.channel, ())) <= listeners and time.monotonic() < deadline:
+            time.sleep(0.005)
         r.up()
         r.run(20, lambda k: [0.001 * k])
         t.join(10.0)
