@@ -19,7 +19,13 @@ from gcode_canon.errors import GCodeError
 TOLERANCE_EQUAL = 0.0001
 """Values closer than this compare equal (LinuxCNC's TOLERANCE_EQUAL); also the near-integer rule."""
 
-MAX_PARAMETER = 5602
+MAX_PARAMETER = 5601
+"""Highest parameter number: LinuxCNC's ``RS274NGC_MAX_PARAMETERS`` (5602, ``interp_parameter_def.hh``) is
+the size of its parameter array, and ``read_parameter`` / ``read_parameter_setting`` (``interp_read.cc``)
+refuse an index below 1 or not below that size, so #1-#5601 exist and #5602 does not."""
+
+PARAMETER_OUT_OF_RANGE = "Parameter number out of range"  # LinuxCNC NCE_PARAMETER_NUMBER_OUT_OF_RANGE
+NON_INTEGER = "Non integer value for integer"  # LinuxCNC NCE_NON_INTEGER_VALUE_FOR_INTEGER
 
 _NUMBER = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)")
 
@@ -100,7 +106,7 @@ class ExpressionReader:
         return self.params.get_numbered(key), j
 
     def parameter_key(self, s: str, i: int, depth: int) -> tuple[int | str, int]:
-        """The parameter named at ``s[i] == '#'``: an index 1..5602 or a folded name."""
+        """The parameter named at ``s[i] == '#'``: an index 1..MAX_PARAMETER or a folded name."""
         i += 1
         if i < len(s) and s[i] == "<":
             end = s.find(">", i + 1)
@@ -112,10 +118,17 @@ class ExpressionReader:
             if "(" in name:
                 raise GCodeError("Comment inside a parameter name")
             return name, end + 1
+        index, j = self._parameter_number(s, i, depth)
+        if not 1 <= index <= MAX_PARAMETER:
+            raise GCodeError(f"{PARAMETER_OUT_OF_RANGE}: #{index} (1 to {MAX_PARAMETER})")
+        return index, j
+
+    def _parameter_number(self, s: str, i: int, depth: int) -> tuple[int, int]:
+        """The integer after ``#`` (LinuxCNC's ``read_integer_value``: within 0.0001 of an integer)."""
         value, j = self.real_value(s, i, depth + 1)
         index = round(value)
-        if abs(value - index) > TOLERANCE_EQUAL or not 1 <= index <= MAX_PARAMETER:
-            raise GCodeError(f"Parameter number out of range: #{value:g} (1 to {MAX_PARAMETER})")
+        if abs(value - index) > TOLERANCE_EQUAL:
+            raise GCodeError(f"{NON_INTEGER}: parameter number #{value:g}")
         return int(index), j
 
     # --- expressions ------------------------------------------------------------------------------
@@ -174,12 +187,7 @@ class ExpressionReader:
         if j >= len(s) or s[j] != "[":
             raise GCodeError(f"Left bracket missing after function name {name.upper()}")
         if name == "exists":
-            if not s.startswith("#<", j + 1):
-                raise GCodeError("EXISTS takes one named parameter: EXISTS[#<name>]")
-            end = s.find(">", j + 3)
-            if end < 0 or end + 1 >= len(s) or s[end + 1] != "]":
-                raise GCodeError("EXISTS takes one named parameter: EXISTS[#<name>]")
-            return (1.0 if self.params.exists(s[j + 3:end]) else 0.0), end + 2
+            return self._exists(s, j, depth)
         arg, j = self.expression(s, j, depth + 1)
         if name == "atan":
             if j >= len(s) or s[j] != "/":
@@ -189,6 +197,23 @@ class ExpressionReader:
             x, j = self.expression(s, j + 1, depth + 1)
             return math.degrees(math.atan2(arg, x)), j
         return _unary(name, arg), j
+
+    def _exists(self, s: str, j: int, depth: int) -> tuple[float, int]:
+        """``EXISTS[#<name>]`` or ``EXISTS[#n]`` at ``s[j] == '['``, as LinuxCNC's ``read_unary`` /
+        ``read_bracketed_parameter``: a name exists when defined (predefined ones always); a number
+        ``n`` (any integer expression: ``#5``, ``#[2+3]``, ``##2``) when 1 <= n <= MAX_PARAMETER,
+        whatever value the parameter holds. Neither reads the parameter's value."""
+        if not s.startswith("#", j + 1):
+            raise GCodeError("EXISTS takes one parameter: EXISTS[#<name>] or EXISTS[#n]")
+        if s.startswith("#<", j + 1):
+            end = s.find(">", j + 3)
+            if end < 0 or end + 1 >= len(s) or s[end + 1] != "]":
+                raise GCodeError("EXISTS takes one parameter: EXISTS[#<name>] or EXISTS[#n]")
+            return (1.0 if self.params.exists(s[j + 3:end]) else 0.0), end + 2
+        index, k = self._parameter_number(s, j + 2, depth)
+        if k >= len(s) or s[k] != "]":
+            raise GCodeError("Expected ] reading bracketed parameter (EXISTS[#n] takes one parameter)")
+        return (1.0 if 1 <= index <= MAX_PARAMETER else 0.0), k + 1
 
 
 def _unary(name: str, x: float) -> float:

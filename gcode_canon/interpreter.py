@@ -29,8 +29,8 @@ Decisions a machine builder should know:
 * Output positions include every offset, the tool length offset too (machine = rotate(program + G92)
   + G5x + tool); G28/G30/G53 positions are machine positions without the tool offset, as LinuxCNC.
 * Offsets in the numbered parameters (#5161-#5390) and the tool table are in mm/deg whatever G20/G21
-  says (LinuxCNC's "user units" on a millimetre machine); #5061-#5069 and #5420-#5428 are in program
-  units.
+  says (LinuxCNC's "user units" on a millimetre machine); #5061-#5069, #5420-#5428 and the machine
+  position #5021-#5029 (``#<_abs_x>`` ...) are in program units.
 * Parameter settings on a line take effect after the whole line is read and before it is executed
   (LinuxCNC copies them just before ``execute_block``).
 * F is read in the units in force after the line's G20/G21 and kept physically (mm/min): a later
@@ -225,6 +225,8 @@ class Interpreter:
         self.polar_on = False
         self.polar = transforms.PolarState()
         self.polar_origin = transforms.PolarOrigin.FANUC
+        self.scale_code = 500  # G50/G51 as programmed (G51 P1 is G51 though it changes nothing)
+        self.rotation_code = 690  # G68/G69 as programmed (G68 R0 likewise)
         self.comp_code = 400
         self._after_comp = False  # the first move after G40 must be straight
         self._comp_normal = 0.0
@@ -265,12 +267,27 @@ class Interpreter:
         def axis_getter(k: int) -> Callable[[], float]:
             return lambda: self.prog[k] / (1.0 if k in ROTARY_INDEXES else self.scale)
 
+        def numbered_axis_getter(k: int) -> Callable[[], float]:
+            def get() -> float:
+                if self.comp is not None:  # LinuxCNC read_parameter (interp_read.cc); not #<_x>
+                    raise GCodeError("Cannot read current position with cutter radius compensation on")
+                return self.prog[k] / (1.0 if k in ROTARY_INDEXES else self.scale)
+            return get
+
+        def abs_getter(k: int) -> Callable[[], float]:
+            # LinuxCNC get_abs_position (interp_convert.cc): the machine (G53) position, tool length
+            # offset included, in program units; here after the G22/G51/G68 transforms too.
+            return lambda: self.pos[k] / (1.0 if k in ROTARY_INDEXES else self.scale)
+
         for k, name in enumerate(AXES):
             p[f"_{name}"] = axis_getter(k)
-            self.params.dynamic_numbered[5420 + k] = axis_getter(k)
+            self.params.dynamic_numbered[5420 + k] = numbered_axis_getter(k)
+            p[f"_abs_{name}"] = abs_getter(k)
+            self.params.dynamic_numbered[5021 + k] = abs_getter(k)
         p.update({
             "_vmajor": lambda: 2.9,
             "_vminor": lambda: 0.0,
+            "_metric_machine": lambda: 1.0,  # lengths are kept in mm: a metric machine
             "_line": lambda: b(self.line),
             "_motion_mode": lambda: b(self.motion),
             "_plane": lambda: b(_CODE_BY_PLANE[self.plane]),
@@ -282,10 +299,13 @@ class Interpreter:
             "_inverse_time": lambda: b(self.feed_mode is FeedMode.INVERSE_TIME),
             "_units_per_minute": lambda: b(self.feed_mode is FeedMode.UNITS_PER_MINUTE),
             "_units_per_rev": lambda: b(self.feed_mode is FeedMode.UNITS_PER_REV),
-            "_coord_system": lambda: b(self.frames.g5x_index - 1),
-            "_tool_offset": lambda: b(self.tool_length_mode != 490),
-            "_retract_r_plane": lambda: b(self.retract == 980),
-            "_retract_old_z": lambda: b(self.retract == 990),
+            "_coord_system": lambda: b(_G5X_CODES[self.frames.g5x_index]),  # 540 ... 593
+            # LinuxCNC's lookup_named_param: 1 when the applied tool offset is not zero (G43 of a
+            # zero-length tool reads 0), and R_PLANE is G99, OLD_Z G98 (its manual has these two
+            # the other way round; the code is what programs see).
+            "_tool_offset": lambda: b(any(v != 0.0 for v in self.frames.tool)),
+            "_retract_r_plane": lambda: b(self.retract == 990),
+            "_retract_old_z": lambda: b(self.retract == 980),
             "_spindle_rpm_mode": lambda: 1.0,
             "_spindle_css_mode": lambda: 0.0,
             "_ijk_absolute_mode": lambda: b(self.ijk_absolute),
@@ -372,7 +392,19 @@ class Interpreter:
             return self.params.get_named("".join(key.split()).lower().lstrip("#<").rstrip(">"))
         return self.params.get_numbered(key)
 
-    def active_gcodes(self) -> tuple[str, ...]:
+    def active_gcodes(self, *, extensions: bool = True) -> tuple[str, ...]:
+        """The modal G codes in force, as strings, for status displays.
+
+        First LinuxCNC's groups, always 13 entries in this order: motion, plane, units, distance,
+        arc distance, feed mode, cutter compensation, tool length, canned-cycle return, coordinate
+        system, path control, spindle speed mode, lathe diameter mode (LinuxCNC's ``write_g_codes``
+        reports these modal groups; its group-0 entry, sequence number and G92.3 flag have no
+        place here). Then, with ``extensions`` (default), the state of the gcode-canon transform
+        groups in :mod:`gcode_canon.modal` order, each only when the interpreter's dialect accepts
+        the code (:func:`gcode_canon.dialect.resolve`): G15/G16 polar, G50/G51 scaling, G68/G69
+        rotation, G22/G23 mirroring. LinuxCNC has none of them (``Unknown g code used``), so
+        ``extensions=False`` gives exactly LinuxCNC's list.
+        """
         codes = [
             gname(self.motion), gname(_CODE_BY_PLANE[self.plane]), "G20" if self.inch else "G21",
             "G90" if self.absolute else "G91", "G90.1" if self.ijk_absolute else "G91.1",
@@ -382,7 +414,20 @@ class Interpreter:
                 self.control[0], "G64"),
             "G97", "G8",
         ]
+        if extensions:
+            codes.extend(self._active_extension_gcodes())
         return tuple(codes)
+
+    def _active_extension_gcodes(self) -> list[str]:
+        from gcode_canon.dialect import resolve
+
+        state = (
+            ("G16" if self.polar_on else "G15"),
+            gname(self.scale_code),
+            gname(self.rotation_code),
+            ("G22" if self.xform.mirrored else "G23"),  # G23 X cancels only X: G22 while others stay
+        )
+        return [code for code in state if resolve(code, self.dialect).accepted]
 
     def active_mcodes(self) -> tuple[str, ...]:
         spindle = {SpindleDirection.CW: "M3", SpindleDirection.CCW: "M4", None: "M5"}[self.spindle]
@@ -1330,6 +1375,10 @@ class Interpreter:
         self.xform = new
         self.xform_on = not new.identity
         self.prog = list(new.invert_position(machine_prog))
+        if scale is not None:
+            self.scale_code = scale
+        if rotate is not None:
+            self.rotation_code = rotate
 
     def _full_circle(self, code: int, block: Block) -> None:
         """G12/G13 (gcode-canon): a full circle of radius I around the current point."""
@@ -1877,6 +1926,7 @@ class Interpreter:
                 self.mist = self.flood = False
                 self._emit(Coolant(False, False, file=f, line=n))
             self.motion = 10
+            self.scale_code, self.rotation_code = 500, 690
             if self.xform_on or self.polar_on:  # Fanuc cancels these on reset
                 self.xform = self.xform.cancel_all()
                 self.xform_on = False
@@ -1919,3 +1969,4 @@ def _axis_user_name(ml: ModalLine) -> str:
 
 _G5X_INDEX = {540: 1, 550: 2, 560: 3, 570: 4, 580: 5, 590: 6, 591: 7, 592: 8, 593: 9}
 _G5X_NAMES = {v: gname(k) for k, v in _G5X_INDEX.items()}
+_G5X_CODES = {v: k for k, v in _G5X_INDEX.items()}

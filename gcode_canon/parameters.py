@@ -1,12 +1,14 @@
 """Numbered and named parameters: storage, scopes, read-only checks, predefined names.
 
-* Numbered #1-#5602 live in one flat list (index 0 unused). #1-#30 will become per-call locals with
-  the o-word issue (:meth:`Parameters.push_scope`); everything else is global.
+* Numbered #1-#5601 live in one flat list (index 0 unused): LinuxCNC's range (its array has
+  RS274NGC_MAX_PARAMETERS = 5602 entries from 0). #1-#30 will become per-call locals with the o-word
+  issue (:meth:`Parameters.push_scope`); everything else is global.
 * Named ``#<name>`` is local to the current scope, ``#<_name>`` global. Names arrive folded (lower
   case, no spaces) from the lexer.
-* Predefined names (``#<_x>``, ``#<_metric>`` ...) and a few numbered ones (#5420-#5428, the current
-  position) are computed on read by getters the interpreter registers; they and the tool parameters
-  #5400-#5413 are read-only to programs. The interpreter writes system values with :meth:`set_system`.
+* Predefined names (``#<_x>``, ``#<_abs_x>``, ``#<_metric>`` ...) and a few numbered ones (#5021-#5029,
+  the machine position; #5420-#5428, the current position) are computed on read by getters the
+  interpreter registers; they and the tool parameters #5400-#5413 are read-only to programs. The
+  interpreter writes system values with :meth:`set_system`.
 """
 
 from __future__ import annotations
@@ -16,8 +18,9 @@ from collections.abc import Callable
 from gcode_canon.errors import GCodeError
 from gcode_canon.expressions import MAX_PARAMETER
 
-READ_ONLY_NUMBERED = frozenset([*range(5400, 5414), *range(5420, 5429)])
-"""Numbered parameters a program may read but not assign (as LinuxCNC's _readonly_parameters)."""
+READ_ONLY_NUMBERED = frozenset([*range(5021, 5030), *range(5400, 5414), *range(5420, 5429)])
+"""Numbered parameters a program may read but not assign (LinuxCNC's ``Interp::readonly_parameters``,
+``interp_array.cc``: machine position #5021-5029, tool #5400-5413, current position #5420-5428)."""
 
 Getter = Callable[[], float]
 
@@ -36,10 +39,9 @@ class Parameters:
     # --- reading ----------------------------------------------------------------------------------
 
     def get_numbered(self, index: int) -> float:
-        if 5420 <= index <= 5428:
-            getter = self.dynamic_numbered.get(index)
-            if getter is not None:
-                return getter()
+        getter = self.dynamic_numbered.get(index)
+        if getter is not None:
+            return getter()
         return self.numbered[index]
 
     def get_named(self, name: str) -> float:

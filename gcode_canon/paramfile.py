@@ -12,7 +12,7 @@ Reading follows LinuxCNC: a line is a parameter line when it begins with two num
 and a value; anything after them that is not a number is ignored as a comment); every other line
 (blank, a header, a comment) is skipped. Beyond LinuxCNC, these are errors naming the file and line
 rather than silent surprises: numbers not ascending (LinuxCNC's "Parameter file out of order"),
-a number outside 1-5602 or one of the read-only system parameters, a non-integer parameter number,
+a number outside 1-5601 or one of the read-only system parameters, a non-integer parameter number,
 a value that is NaN or infinite, a third number on the line. Skipped lines that begin with a number
 (``5221 1,5``: a decimal comma) are logged as warnings, since they are most likely mistakes.
 
@@ -35,6 +35,7 @@ from collections.abc import Mapping
 
 from gcode_canon.atomicfile import BACKUP_SUFFIX, atomic_write_text, read_lines
 from gcode_canon.errors import GCodeError
+from gcode_canon.expressions import MAX_PARAMETER as _EXPRESSION_MAX_PARAMETER
 
 log = logging.getLogger(__name__)
 
@@ -44,9 +45,10 @@ PERSISTENT = range(5161, 5391)
 USER = range(31, 5001)
 """User parameters: saved when present in the file before, or when non-zero."""
 
-MAX_PARAMETER = 5602
-"""Highest parameter number, as the LinuxCNC manual and :mod:`gcode_canon.expressions` have it.
-(LinuxCNC's own reader stops at 5601, its array holding 5602 entries from 0.)"""
+MAX_PARAMETER = _EXPRESSION_MAX_PARAMETER
+"""Highest parameter number, 5601, as :mod:`gcode_canon.expressions` has it: LinuxCNC's
+``restore_parameters`` (``rs274ngc_pre.cc``) refuses a number not below RS274NGC_MAX_PARAMETERS (5602,
+the size of its array from 0) with "Parameter number out of range"."""
 
 READ_ONLY = frozenset([*range(5021, 5030), *range(5400, 5414), *range(5420, 5429)])
 """LinuxCNC's read-only numbered parameters (``Interp::readonly_parameters``): machine position

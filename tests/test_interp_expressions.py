@@ -67,11 +67,11 @@ def test_expression_values(expr: str, expected: float) -> None:
         ("SIN 30", "Left bracket"),
         ("ATAN[1]", "Slash missing"),
         ("ATAN[1]/2", "Left bracket"),
-        ("EXISTS[#1]", "EXISTS"),
+        ("EXISTS[1]", "EXISTS"),
         ("[" * 100 + "1" + "]" * 100, "nested too deeply"),
         ("#0", "Parameter number out of range"),
         ("#5603", "Parameter number out of range"),
-        ("#1.5", "Parameter number out of range"),
+        ("#1.5", "Non integer value for integer"),
         ("#<nope>", "not defined"),
     ],
 )
@@ -134,7 +134,7 @@ def test_predefined_parameters_follow_state() -> None:
     assert value("#<_metric>") == 1
     assert value("#<_imperial>", "G20") == 1
     assert value("#<_incremental>", "G91") == 1
-    assert value("#<_coord_system>", "G56") == 2
+    assert value("#<_coord_system>", "G56") == 560
     assert value("#<_motion_mode>", "G1 F1") == 10
     assert value("#<_plane>", "G18") == 180
     assert value("#<_feed>", "G20 F10") == pytest.approx(10)
