@@ -29,7 +29,8 @@ def run(args: argparse.Namespace) -> int:
     from motiond.cli import UserError
     from motiond.config_canopen import canopen_for_tool
 
-    _, bus_cfg = canopen_for_tool(args.config, args.interface, args.channel)
+    config, bus_cfg = canopen_for_tool(args.config, args.interface, args.channel)
+    layout = config.layout
     try:
         bus = can.Bus(**bus_cfg.bus_kwargs())
     except Exception as exc:  # python-can: unknown interface, no such device, no permission
@@ -48,7 +49,8 @@ def run(args: argparse.Namespace) -> int:
             if args.no_sync and (cob == 0x80 or 0x180 <= cob < 0x580 or 0x700 < cob < 0x780):
                 continue
             t0 = msg.timestamp if t0 is None else t0
-            print(f"{msg.timestamp - t0:10.6f}  {cob:03X}  {describe(cob, bytes(msg.data))}", flush=True)
+            line = describe(cob, bytes(msg.data), layout)
+            print(f"{msg.timestamp - t0:10.6f}  {cob:03X}  {line}", flush=True)
             n += 1
     except KeyboardInterrupt:
         pass

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from fieldbus.canopen.config import CanBusConfig, CanopenConfig, DriveConfig
+from fieldbus.canopen.pdo import LAYOUTS
 from motiond.configkit import Table, in_range, non_negative, one_of, positive
 
 
@@ -64,6 +65,11 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
     state_timeout = t.get("state_timeout_s", float, 2.0, check=positive)
     homing_timeout = t.get("homing_timeout_s", float, 30.0, check=positive)
     max_load = t.get("max_bus_load_percent", float, 70.0, check=in_range(1.0, 100.0))
+    layout = t.get("pdo_layout", str, "standard", check=one_of(*LAYOUTS))
+    fe_every = t.get("following_error_every", int, 1, check=in_range(1, 240))
+    refresh = t.get("status_refresh_ms", int, 100, check=in_range(1, 65535))
+    rt_priority = t.get("realtime_priority", int, 0, check=in_range(0, 99))
+    cpu_latency = t.get("cpu_latency_us", int, 0, check=in_range(-1, 100_000))
     options = dict(t.table("options").data)
 
     base = Path(root.file).parent if root.file else Path.cwd()
@@ -110,7 +116,9 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
         CanBusConfig(interface, channel, bitrate, options), tuple(drives), cycle_s=cycle_s,
         heartbeat_producer_ms=producer, heartbeat_consumer_ms=consumer, simulate=simulate,
         master_node_id=master_id, boot_timeout_s=boot_timeout, sdo_timeout_s=sdo_timeout,
-        state_timeout_s=state_timeout, homing_timeout_s=homing_timeout, max_bus_load=max_load / 100.0)
+        state_timeout_s=state_timeout, homing_timeout_s=homing_timeout, max_bus_load=max_load / 100.0,
+        pdo_layout=layout, following_error_every=fe_every, status_refresh_ms=refresh,
+        realtime_priority=rt_priority, cpu_latency_us=None if cpu_latency < 0 else cpu_latency)
 
 
 def canopen_from_file(data: dict[str, Any], file: str = "") -> CanopenConfig:

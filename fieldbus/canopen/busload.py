@@ -2,13 +2,15 @@
 
 Each frame's length in bits counts the worst-case bit stuffing of a classic CAN frame with an 11-bit
 identifier: 47 bits of frame overhead plus 8 per data byte, plus one stuff bit per four bits of the
-34 + 8n stuffable bits. Per cycle: one SYNC, and per drive one RPDO (target, controlword: 6 bytes)
-and two TPDOs (statusword and position actual: 6 bytes; following error: 4 bytes); heartbeats on top.
+34 + 8n stuffable bits. Per cycle: one SYNC and each drive's SYNC-driven PDOs of the PDO layout
+(:mod:`fieldbus.canopen.pdo`); event PDOs at their refresh rate and heartbeats on top.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+from fieldbus.canopen.pdo import LAYOUTS, PdoLayout, make_layout
 
 
 def frame_bits(data_bytes: int) -> int:
@@ -19,9 +21,6 @@ def frame_bits(data_bytes: int) -> int:
     return 47 + 8 * data_bytes + (stuffable - 1) // 4
 
 
-# data bytes of the frames the master sets up for each drive, every SYNC
-RPDO_BYTES = (6,)
-TPDO_BYTES = (6, 4)
 SYNC_BYTES = 0
 HEARTBEAT_BYTES = 1
 
@@ -42,13 +41,14 @@ class BusLoad:
 
 
 def bus_load(n_drives: int, cycle_s: float, bitrate: int, heartbeat_ms: int = 0,
-             master_heartbeat_ms: int = 0) -> BusLoad:
-    """Frames and bits per second of cyclic traffic for ``n_drives`` at ``cycle_s``."""
-    per_cycle_frames = 1 + n_drives * (len(RPDO_BYTES) + len(TPDO_BYTES))
-    per_cycle_bits = frame_bits(SYNC_BYTES) + n_drives * (
-        sum(map(frame_bits, RPDO_BYTES)) + sum(map(frame_bits, TPDO_BYTES)))
-    frames = per_cycle_frames / cycle_s
-    bits = per_cycle_bits / cycle_s
+             master_heartbeat_ms: int = 0, layout: PdoLayout | None = None) -> BusLoad:
+    """Frames and bits per second of cyclic traffic for ``n_drives`` at ``cycle_s`` with ``layout``
+    (default: the standard layout, following error every SYNC)."""
+    per_sync, per_second = (layout or make_layout()).frames()
+    frames = (1 + n_drives * sum(k for _, k in per_sync)) / cycle_s
+    bits = (frame_bits(SYNC_BYTES) + n_drives * sum(frame_bits(b) * k for b, k in per_sync)) / cycle_s
+    frames += n_drives * sum(r for _, r in per_second)
+    bits += n_drives * sum(frame_bits(b) * r for b, r in per_second)
     if heartbeat_ms > 0:
         frames += n_drives * 1000.0 / heartbeat_ms
         bits += n_drives * frame_bits(HEARTBEAT_BYTES) * 1000.0 / heartbeat_ms
@@ -56,3 +56,27 @@ def bus_load(n_drives: int, cycle_s: float, bitrate: int, heartbeat_ms: int = 0,
         frames += 1000.0 / master_heartbeat_ms
         bits += frame_bits(HEARTBEAT_BYTES) * 1000.0 / master_heartbeat_ms
     return BusLoad(frames, bits, bitrate)
+
+
+def alternatives(n_drives: int, cycle_s: float, bitrate: int, limit: float, heartbeat_ms: int = 0,
+                 master_heartbeat_ms: int = 0, status_refresh_ms: int = 100) -> list[str]:
+    """Settings that would fit ``n_drives`` under ``limit``: for each layout the fewest following-error
+    PDOs needed at this cycle, and the shortest whole-millisecond cycle with following error every SYNC.
+    For the refusal message: the user chooses, the master never silently drops traffic."""
+    out = []
+    for name in LAYOUTS:
+        for every in (1, 2, 3, 4, 5, 8, 10, 16, 20, 25, 50, 100, 240):
+            layout = make_layout(name, every, status_refresh_ms)
+            load = bus_load(n_drives, cycle_s, bitrate, heartbeat_ms, master_heartbeat_ms, layout)
+            if load.fraction <= limit:
+                out.append(f'pdo_layout = "{name}" with following_error_every = {every} '
+                           f"({100 * load.fraction:.1f} %)")
+                break
+    for name in LAYOUTS:
+        layout = make_layout(name, 1, status_refresh_ms)
+        for ms in range(max(1, int(cycle_s * 1000) + 1), 11):
+            load = bus_load(n_drives, ms / 1000.0, bitrate, heartbeat_ms, master_heartbeat_ms, layout)
+            if load.fraction <= limit:
+                out.append(f'pdo_layout = "{name}" with cycle_ms = {ms} ({100 * load.fraction:.1f} %)')
+                break
+    return out

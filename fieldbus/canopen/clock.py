@@ -6,12 +6,20 @@ sleep overshoots by 50-100 us typically, by milliseconds under load). A cycle th
 ``late_s`` after its deadline is *late*: counted, and reported to ``on_late`` (the daemon and
 :func:`stream` make it a master fault: a drive that missed its SYNC window is not safe to keep
 streaming to). Deadlines missed entirely are skipped, never made up in a burst.
+
+Two things make the wake-up prompt on a PC, both what cyclictest and real-time Linux applications do:
+SCHED_FIFO for the cycle thread (``realtime_priority``), and a PM QoS request on
+``/dev/cpu_dma_latency`` (``cpu_latency_us``) held while the runner runs, which keeps the CPUs out of
+the deep idle states (or, in a VM, out of the halt that hands the CPU back to the host) whose exit
+takes hundreds of microseconds. Both need root or CAP_SYS_NICE; without them the runner logs it and
+runs anyway.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import struct
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -39,6 +47,46 @@ class CycleStats:
         return (self.ended - self.started) / self.cycles if self.cycles else 0.0
 
 
+class CpuLatencyRequest:
+    """A PM QoS request for CPU wake-up latency: while the file stays open, the kernel keeps every
+    CPU's idle exit under ``us`` microseconds (0: polling idle). Closing the file ends the request."""
+
+    PATH = "/dev/cpu_dma_latency"
+
+    def __init__(self, us: int) -> None:
+        if us < 0:
+            raise ValueError(f"CPU latency must be >= 0 us, got {us}")
+        self.us = us
+        self._fd: int | None = None
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def acquire(self) -> bool:
+        """Make the request; False (logged) when the kernel's file cannot be opened (not root)."""
+        if self._fd is not None:
+            return True
+        try:
+            fd = os.open(self.PATH, os.O_WRONLY)
+        except OSError as exc:
+            log.info("no CPU latency request (%s: %s): idle CPUs may wake late", self.PATH, exc.strerror)
+            return False
+        try:
+            os.write(fd, struct.pack("<i", self.us))
+        except OSError as exc:
+            os.close(fd)
+            log.info("no CPU latency request (%s: %s)", self.PATH, exc.strerror)
+            return False
+        self._fd = fd
+        return True
+
+    def release(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+
 class PeriodicRunner:
     """Call ``step(k, t)`` every ``period_s`` on its own thread (``k``: deadline number, ``t``: the
     deadline, ``time.monotonic`` seconds) until :meth:`stop`, ``cycles`` steps are done, or ``step``
@@ -48,7 +96,7 @@ class PeriodicRunner:
                  cycles: int | None = None, late_s: float | None = None,
                  on_late: Callable[[int, float], None] | None = None, spin_s: float = 0.0003,
                  keep_lateness: bool = True, name: str = "canopen-cycle",
-                 realtime_priority: int = 0) -> None:
+                 realtime_priority: int = 0, cpu_latency_us: int | None = None) -> None:
         if period_s <= 0:
             raise ValueError("period must be > 0")
         self.period_s = period_s
@@ -60,6 +108,8 @@ class PeriodicRunner:
         self.keep_lateness = keep_lateness
         self.realtime_priority = realtime_priority
         self.realtime = False  # True when the thread got SCHED_FIFO
+        self.cpu_latency = None if cpu_latency_us is None else CpuLatencyRequest(cpu_latency_us)
+        self.cpu_latency_held = False  # True when the CPU latency request was made
         self.stats = CycleStats(period_s)
         self.error: BaseException | None = None
         self._stop = threading.Event()
@@ -91,6 +141,8 @@ class PeriodicRunner:
 
     def _run(self) -> None:
         self._set_realtime()
+        if self.cpu_latency is not None:
+            self.cpu_latency_held = self.cpu_latency.acquire()
         st = self.stats
         period = self.period_s
         cpu0 = time.thread_time()
@@ -131,6 +183,8 @@ class PeriodicRunner:
         finally:
             st.ended = time.monotonic()
             st.cpu_s = time.thread_time() - cpu0
+            if self.cpu_latency is not None:
+                self.cpu_latency.release()
 
 
 def stream(master, trajectory: Callable[[float], Sequence[float]], seconds: float, *,

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from fieldbus.canopen import SHIPPED_EDS
+from fieldbus.canopen.pdo import PdoLayout, make_layout
 
 
 @dataclass(frozen=True)
@@ -85,6 +86,19 @@ class CanopenConfig:
     #: drives are configured with ``max_velocity * velocity_margin`` as their limit (0x607F), so a
     #: planner at its limit never trips the drive, while a real jump does.
     velocity_margin: float = 1.25
+    #: PDO layout (:mod:`fieldbus.canopen.pdo`): "standard" or "compact"
+    pdo_layout: str = "standard"
+    following_error_every: int = 1
+    status_refresh_ms: int = 100
+    #: SCHED_FIFO priority of the cycle thread (0: normal scheduling)
+    realtime_priority: int = 0
+    #: CPU wake-up latency asked of the kernel while the cycle runs (/dev/cpu_dma_latency, us);
+    #: None leaves the CPUs' idle states alone
+    cpu_latency_us: int | None = 0
+
+    @property
+    def layout(self) -> PdoLayout:
+        return make_layout(self.pdo_layout, self.following_error_every, self.status_refresh_ms)
 
     def drive(self, axis: str) -> DriveConfig:
         for d in self.drives:

@@ -10,6 +10,9 @@ Behaviour a real drive has and the tests rely on:
 * NMT: boot-up message after power-on and after reset (optionally late: ``boot_delay_s``); PDOs only
   in Operational; heartbeat producer (0x1017) and consumer of the master's heartbeat (0x1016).
 * The CiA 402 state machine (``cia402``), controlword applied on receipt (by SDO or RPDO).
+* PDOs 1-4 each way as mapped: SYNC-driven TPDOs (type 1-240) on every n-th SYNC; event TPDOs (type
+  254/255) when their data change (no sooner than the inhibit time, sub 3) and on the event timer
+  (sub 5); every RPDO's values applied on receipt, a target latched at the next SYNC.
 * Cyclic synchronous position: the target received by RPDO is latched at the next SYNC; position
   actual follows the demand with first- or second-order dynamics (the servo lag); following error is
   demand minus actual and faults the drive beyond 0x6065. A target that jumps further than 0x607F
@@ -29,6 +32,7 @@ the drive faults with that code exactly as :meth:`inject_fault` does (``canon si
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import struct
@@ -68,6 +72,12 @@ class PdoMap:
     transmission: int
     entries: tuple[tuple[int, int, int], ...]  # (index, subindex, bytes)
     fmt: str = ""
+    inhibit_s: float = 0.0
+    event_timer_s: float = 0.0
+
+    @property
+    def event(self) -> bool:
+        return self.transmission in (254, 255)
 
 
 _FMT = {(1, True): "b", (1, False): "B", (2, True): "h", (2, False): "H", (4, True): "i", (4, False): "I"}
@@ -128,10 +138,14 @@ class SimDrive:
         self._stalled = False
         self.sdo_silent: set[int] = set()  # SDO requests to these indexes get no answer
         self.ignore_controlword = False  # a drive stuck in its state
+        # beyond 0x6065 the drive faults (EMCY 0x8611); False: it only sets statusword bit 13, as
+        # drives whose following-error reaction is "report" do
+        self.fault_on_following_error = True
         self._last_tick: float | None = None
         # communication set-up, read from the dictionary on entering Operational
         self._rpdos: list[PdoMap] = []
         self._tpdos: list[PdoMap] = []
+        self._event_sent: dict[int, tuple[bytes, float]] = {}  # event TPDO COB-ID: (data, time sent)
         self._subscribed: list[int] = []
         self._last_sync: float | None = None
         self._next_hb = 0.0
@@ -228,6 +242,7 @@ class SimDrive:
             self._unsubscribe_pdos()
         self.nmt_state = new
         self._send_heartbeat()
+        self._event_tpdos()  # event TPDOs go out on entering Operational
 
     def _send_heartbeat(self) -> None:
         if self.clock() < self._hb_dropped_until:
@@ -273,6 +288,7 @@ class SimDrive:
             for item in [s for s in self._scheduled if s[0] <= now]:
                 self._scheduled.remove(item)
                 self._fault(item[1], "injected")
+            self._event_tpdos(now)
 
     # ------------------------------------------------------------------ parameters from the dictionary
     def _value(self, index: int, subindex: int = 0) -> int:
@@ -313,10 +329,12 @@ class SimDrive:
         self._homing_speed = max(1, self._value(0x6099, 1))
 
     def _read_pdo(self, comm: int, mapping: int) -> PdoMap | None:
+        if comm not in self.node.object_dictionary or mapping not in self.node.object_dictionary:
+            return None  # an EDS with fewer PDOs
         cob = self._value(comm, 1)
-        if cob & 0x80000000:
-            return None
         n = self._value(mapping, 0)
+        if cob & 0x80000000 or n == 0:
+            return None
         entries = []
         fmt = "<"
         for sub in range(1, n + 1):
@@ -327,12 +345,18 @@ class SimDrive:
                                        canopen.objectdictionary.INTEGER32)
             entries.append((index, subindex, bits // 8))
             fmt += _FMT[(bits // 8, signed)]
-        return PdoMap(cob & 0x7FF, self._value(comm, 2), tuple(entries), fmt)
+        timing = [0.0, 0.0]
+        if comm >= 0x1800:  # TPDO: inhibit time (100 us units) and event timer (ms), where the EDS has them
+            for i, (sub, unit) in enumerate(((3, 1e-4), (5, 1e-3))):
+                with contextlib.suppress(KeyError):
+                    timing[i] = self._value(comm, sub) * unit
+        return PdoMap(cob & 0x7FF, self._value(comm, 2), tuple(entries), fmt, *timing)
 
     def _subscribe_pdos(self) -> None:
         self._unsubscribe_pdos()
-        self._rpdos = [p for p in (self._read_pdo(0x1400 + i, 0x1600 + i) for i in range(2)) if p]
-        self._tpdos = [p for p in (self._read_pdo(0x1800 + i, 0x1A00 + i) for i in range(2)) if p]
+        self._rpdos = [p for p in (self._read_pdo(0x1400 + i, 0x1600 + i) for i in range(4)) if p]
+        self._tpdos = [p for p in (self._read_pdo(0x1800 + i, 0x1A00 + i) for i in range(4)) if p]
+        self._event_sent = {}
         for p in self._rpdos:
             self.network.subscribe(p.cob_id, self._on_rpdo)  # type: ignore[union-attr]
             self._subscribed.append(p.cob_id)
@@ -385,6 +409,7 @@ class SimDrive:
                 self._injected_by_sdo(struct.unpack_from("<H", data)[0])
             else:
                 self._params_dirty = True
+            self._event_tpdos()
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         with self.lock:
@@ -403,6 +428,7 @@ class SimDrive:
                         self._controlword(value)
                     elif index == 0x607A:
                         self._pending_target = value
+            self._event_tpdos()
 
     # ------------------------------------------------------------------ CiA 402
     def statusword(self) -> int:
@@ -505,6 +531,27 @@ class SimDrive:
             for p in self._tpdos:
                 if 1 <= p.transmission <= 240 and self.syncs % p.transmission == 0:
                     self._send(p.cob_id, self._encode(p))
+            self._event_tpdos(now)
+
+    def _event_tpdos(self, now: float | None = None) -> None:
+        """Send each event TPDO whose data changed since it was last sent (once its inhibit time has
+        passed), or whose event timer has run out. Called, with the lock held, after everything that
+        can change the drive's state: SYNC, RPDO, SDO write, tick."""
+        if self.nmt_state != NMT_OPERATIONAL or self.network is None:
+            return
+        now = self.clock() if now is None else now
+        for p in self._tpdos:
+            if not p.event:
+                continue
+            data = self._encode(p)
+            last = self._event_sent.get(p.cob_id)
+            if last is not None:
+                changed = data != last[0] and now - last[1] >= p.inhibit_s
+                due = p.event_timer_s > 0 and now - last[1] >= p.event_timer_s
+                if not (changed or due):
+                    continue
+            self._send(p.cob_id, data)
+            self._event_sent[p.cob_id] = (data, now)
 
     def _encode(self, p: PdoMap) -> bytes:
         values = []
@@ -532,7 +579,8 @@ class SimDrive:
             self.demand = float(self.target)
             self.velocity = (self.demand - previous) / dt
             self._follow(dt)
-            if self._window != 0xFFFFFFFF and abs(self.demand - self.actual) > self._window:
+            if (self.fault_on_following_error and self._window != 0xFFFFFFFF
+                    and abs(self.demand - self.actual) > self._window):
                 self._fault(EMCY_FOLLOWING_ERROR, f"following error {self.demand - self.actual:.0f} counts")
         elif s in (State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE):
             self._decelerate(dt)

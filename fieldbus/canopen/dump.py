@@ -1,8 +1,8 @@
 """Names and meanings of CANopen frames by COB-ID, for watching the bus (``canon can-dump``).
 
 Decodes the predefined connection set (NMT, SYNC, EMCY, PDOs, SDO, heartbeat) and, for the PDO layout
-the master sets up, the values: target and controlword, statusword (with the CiA 402 state), position
-actual, following error.
+the master sets up (:mod:`fieldbus.canopen.pdo`), the values: target and controlword, statusword (with
+the CiA 402 state), position actual, following error.
 """
 
 from __future__ import annotations
@@ -11,6 +11,26 @@ import struct
 
 from fieldbus.canopen import cia402
 from fieldbus.canopen.nmt_names import NMT_COMMANDS, NMT_STATES
+from fieldbus.canopen.pdo import PdoLayout, make_layout
+
+_OBJECT_NAMES = {0x607A: "target", 0x6040: "controlword", 0x6041: "statusword", 0x6064: "position",
+                 0x60F4: "following error"}
+
+
+def _pdo_values(layout: PdoLayout, fn: int, data: bytes) -> str:
+    for p in (*layout.rpdos, *layout.tpdos):
+        if p.cob_id(0) != fn or p.data_bytes != len(data):
+            continue
+        parts = []
+        for index, value in zip(p.objects, p.struct.unpack_from(data), strict=True):
+            if index == 0x6041:
+                parts.append(f"statusword 0x{value:04X} ({cia402.decode(value)})")
+            elif index == 0x6040:
+                parts.append(f"controlword 0x{value:04X}")
+            else:
+                parts.append(f"{_OBJECT_NAMES.get(index, f'0x{index:04X}')} {value}")
+        return ", ".join(parts)
+    return ""
 
 
 def name_of(cob_id: int) -> str:
@@ -30,8 +50,9 @@ def name_of(cob_id: int) -> str:
     return f"0x{cob_id:03X}"
 
 
-def describe(cob_id: int, data: bytes) -> str:
-    """One line: the frame's name and what its data means (as far as it is known)."""
+def describe(cob_id: int, data: bytes, layout: PdoLayout | None = None) -> str:
+    """One line: the frame's name and what its data means (as far as it is known); PDOs decoded as
+    ``layout`` maps them (default: the standard layout)."""
     name = name_of(cob_id)
     fn = cob_id & 0x780
     meaning = ""
@@ -44,14 +65,8 @@ def describe(cob_id: int, data: bytes) -> str:
         elif fn == 0x080 and cob_id != 0x80 and len(data) >= 3:
             code, reg = struct.unpack_from("<HB", data)
             meaning = "error reset" if code == 0 else f"error 0x{code:04X}, register 0x{reg:02X}"
-        elif fn == 0x200 and len(data) == 6:
-            target, cw = struct.unpack_from("<iH", data)
-            meaning = f"target {target}, controlword 0x{cw:04X}"
-        elif fn == 0x180 and len(data) == 6:
-            sw, pos = struct.unpack_from("<Hi", data)
-            meaning = f"statusword 0x{sw:04X} ({cia402.decode(sw)}), position {pos}"
-        elif fn == 0x280 and len(data) == 4:
-            meaning = f"following error {struct.unpack_from('<i', data)[0]}"
+        elif 0x180 <= fn <= 0x500 and cob_id & 0x7F:
+            meaning = _pdo_values(layout or make_layout(), fn, data)
         elif fn in (0x580, 0x600) and len(data) >= 4:
             index, sub = struct.unpack_from("<HB", data, 1)
             kind = {0x2: "read", 0x1: "write", 0x4: "abort"}.get(data[0] >> 5, "")

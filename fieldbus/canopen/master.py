@@ -4,7 +4,7 @@ Life of a master (the daemon's loop thread calls :meth:`CanopenMaster.cycle` onc
 
     master = CanopenMaster(config)          # refuses a bus load over config.max_bus_load
     master.open(); master.boot(); master.enable()
-    fb = master.cycle(positions)            # RPDO per drive (target, controlword), then one SYNC
+    fb = master.cycle(positions)            # RPDO per drive (its target), then one SYNC
     ...                                     # on a fault: master.fault, drives quick-stopped
     master.reset_faults(); master.enable()  # and stream again from master.positions()
     master.shutdown()
@@ -12,7 +12,9 @@ Life of a master (the daemon's loop thread calls :meth:`CanopenMaster.cycle` onc
 Design choices:
 
 * Boot and enable use SDO (0x6040/0x6041) before streaming starts; once streaming, the controlword
-  travels in the RPDO with the target, so an SDO write could not override it.
+  travels by PDO (with the target in the standard layout, in its own RPDO on a change in the compact
+  one: :mod:`fieldbus.canopen.pdo`), so an SDO write could not override it.
+* Every PDO a drive has beyond the layout's is disabled at boot: a factory mapping adds no traffic.
 * All RPDOs of a cycle are sent before its SYNC, so the targets of every drive land in the same SYNC
   period (the drive latches on SYNC).
 * Counts are converted from absolute positions each cycle (``AxisScale``): no drift.
@@ -40,15 +42,15 @@ import canopen
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from fieldbus.canopen import cia402
-from fieldbus.canopen.busload import BusLoad, bus_load
+from fieldbus.canopen.busload import BusLoad, alternatives, bus_load
 from fieldbus.canopen.cia402 import State
 from fieldbus.canopen.config import AxisScale, CanopenConfig, DriveConfig
+from fieldbus.canopen.pdo import CONTROLWORD, TARGET_POSITION, Pdo, PdoLayout
 
 log = logging.getLogger(__name__)
 
-_RPDO = struct.Struct("<iH")  # target position, controlword
-_TPDO1 = struct.Struct("<Hi")  # statusword, position actual
-_TPDO2 = struct.Struct("<i")  # following error actual
+#: SDO abort codes a drive answers for a PDO it does not have: disabling it is then nothing to do
+_NO_SUCH_OBJECT = (0x06020000, 0x06090011)
 
 
 class CanopenError(Exception):
@@ -99,12 +101,18 @@ class DriveFeedback:
 class _Drive:
     """The master's book-keeping for one drive."""
 
-    def __init__(self, cfg: DriveConfig, node: canopen.RemoteNode) -> None:
+    def __init__(self, cfg: DriveConfig, node: canopen.RemoteNode, layout: PdoLayout) -> None:
         self.cfg = cfg
         self.node = node
         self.scale = AxisScale(cfg)
         self.window = self.scale.distance_counts(cfg.following_error_window)
-        self.rpdo_id = 0x200 + cfg.node_id
+        target_pdo = layout.carrying(TARGET_POSITION, tpdo=False)
+        cw_pdo = layout.carrying(CONTROLWORD, tpdo=False)
+        self.rpdo_id = target_pdo.cob_id(cfg.node_id)
+        self.rpdo_struct = target_pdo.struct
+        self.rpdo_with_cw = cw_pdo is target_pdo
+        self.cw_id = cw_pdo.cob_id(cfg.node_id)
+        self.cw_struct = cw_pdo.struct
         self.controlword = cia402.CW_ENABLE_OPERATION
         self.target = 0  # counts, last sent (held on a fault)
         self.statusword = 0
@@ -120,6 +128,18 @@ class _Drive:
     def describe(self) -> str:
         return f"node {self.cfg.node_id} (axis {self.cfg.axis})"
 
+    def cyclic_rpdo(self) -> bytes:
+        """The RPDO sent every cycle: the target (and, in the standard layout, the controlword)."""
+        if self.rpdo_with_cw:
+            return self.rpdo_struct.pack(self.target, self.controlword)
+        return self.rpdo_struct.pack(self.target)
+
+    def controlword_rpdo(self, controlword: int) -> tuple[int, bytes]:
+        """COB-ID and data of the RPDO that carries ``controlword`` now."""
+        if self.rpdo_with_cw:
+            return self.rpdo_id, self.rpdo_struct.pack(self.target, controlword)
+        return self.cw_id, self.cw_struct.pack(controlword)
+
 
 class CanopenMaster:
     """Master of the configured drives on one bus. ``bus``: an open python-can bus to use (else one is
@@ -129,13 +149,20 @@ class CanopenMaster:
     def __init__(self, config: CanopenConfig, bus: can.BusABC | None = None, *,
                  check_budget: bool = True) -> None:
         self.config = config
-        self.load: BusLoad = bus_load(len(config.drives), config.cycle_s, config.bus.bitrate,
-                                      config.heartbeat_producer_ms, config.heartbeat_producer_ms)
+        self.layout = config.layout
+        hb = (config.heartbeat_producer_ms, config.heartbeat_producer_ms)
+        self.load: BusLoad = bus_load(len(config.drives), config.cycle_s, config.bus.bitrate, *hb,
+                                      self.layout)
         if check_budget and self.load.fraction > config.max_bus_load:
+            fits = alternatives(len(config.drives), config.cycle_s, config.bus.bitrate, config.max_bus_load,
+                                *hb, config.status_refresh_ms)
             raise BusBudgetError(
                 f"bus load {100 * self.load.fraction:.1f} % is over the {100 * config.max_bus_load:.0f} % "
-                f"allowed: {len(config.drives)} drives every {1000 * config.cycle_s:g} ms make "
-                f"{self.load.describe()}; lengthen the cycle or raise the bitrate")
+                f"allowed: {len(config.drives)} drives every {1000 * config.cycle_s:g} ms in the "
+                f"{self.layout.name} PDO layout (following error every {config.following_error_every} "
+                f"SYNC) make {self.load.describe()}; "
+                + (f"[canopen] settings that fit: {'; '.join(fits)}" if fits else
+                   "fewer drives on this bus or a higher bitrate"))
         log.info("CANopen bus load: %s", self.load.describe())
         self._bus = bus
         self._own_bus = bus is None
@@ -167,12 +194,12 @@ class CanopenMaster:
             node.sdo.RESPONSE_TIMEOUT = self.config.sdo_timeout_s
             node.sdo.MAX_RETRIES = 2  # one retry (0 would retry forever)
             net.add_node(node)
-            d = _Drive(cfg, node)
+            d = _Drive(cfg, node, self.layout)
             self.drives.append(d)
             node.nmt.add_heartbeat_callback(lambda state, d=d: self._on_heartbeat(d, state))
             node.emcy.add_callback(lambda entry, d=d: self._on_emcy(d, entry))
-            net.subscribe(0x180 + cfg.node_id, lambda cid, data, ts, d=d: self._on_tpdo1(d, data))
-            net.subscribe(0x280 + cfg.node_id, lambda cid, data, ts, d=d: self._on_tpdo2(d, data))
+            for p in self.layout.tpdos:
+                net.subscribe(p.cob_id(cfg.node_id), self._tpdo_reader(d, p))
         if self.config.heartbeat_producer_ms > 0:
             self._heartbeat_task = net.send_periodic(
                 0x700 + self.config.master_node_id, [0x05], self.config.heartbeat_producer_ms / 1000.0)
@@ -195,14 +222,25 @@ class CanopenMaster:
             return  # error reset
         self.raise_fault(d.cfg.node_id, f"EMCY 0x{entry.code:04X} {entry.get_desc() or 'error'}".rstrip())
 
-    def _on_tpdo1(self, d: _Drive, data: bytearray) -> None:
-        if len(data) >= 6:
-            d.statusword, d.actual = _TPDO1.unpack_from(data)
-            d.feedback_at = time.monotonic()
+    @staticmethod
+    def _tpdo_reader(d: _Drive, p: Pdo) -> Callable[[int, bytearray, float], None]:
+        """The reader-thread callback of one TPDO: its values into the drive's book-keeping. A TPDO
+        with the position actual is the drive's cyclic sign of life (``feedback_at``)."""
+        st = p.struct
+        objects = p.objects
 
-    def _on_tpdo2(self, d: _Drive, data: bytearray) -> None:
-        if len(data) >= 4:
-            d.following_error = _TPDO2.unpack_from(data)[0]
+        def on_tpdo(cob_id: int, data: bytearray, timestamp: float) -> None:
+            if len(data) < st.size:
+                return
+            for index, value in zip(objects, st.unpack_from(data), strict=True):
+                if index == 0x6064:
+                    d.actual = value
+                    d.feedback_at = time.monotonic()
+                elif index == 0x6041:
+                    d.statusword = value
+                elif index == 0x60F4:
+                    d.following_error = value
+        return on_tpdo
 
     # ------------------------------------------------------------------ SDO helpers
     def _sdo(self, d: _Drive, what: str, index: int, sub: int, fmt: str | None = None,
@@ -222,6 +260,20 @@ class CanopenMaster:
         if fmt is None:
             fmt = {1: "B", 2: "H", 4: "I"}.get(len(raw), "I")
         return struct.unpack_from("<" + fmt, raw.ljust(struct.calcsize(fmt), b"\0"))[0]
+
+    def _disable_pdo(self, d: _Drive, p: Pdo) -> None:
+        """COB-ID bit 31 on a PDO the layout does not use; a drive without that PDO has nothing to
+        disable (its abort for a missing object is fine)."""
+        try:
+            d.node.sdo.download(p.comm_index, 1, struct.pack("<I", 0x80000000 | p.cob_id(d.cfg.node_id)))
+        except SdoAbortedError as exc:
+            if exc.code not in _NO_SUCH_OBJECT:
+                raise CanopenError(f"{d.describe()}: SDO write of 0x{p.comm_index:04X}:01 ({p.name} COB-ID "
+                                   f"(disable)) aborted by the drive: 0x{exc.code:08X} {exc}") from None
+        except SdoCommunicationError:
+            raise CanopenError(f"{d.describe()}: SDO write of 0x{p.comm_index:04X}:01 ({p.name} COB-ID "
+                               f"(disable)) timed out: no answer in {self.config.sdo_timeout_s:g} s "
+                               "(twice)") from None
 
     def _statusword(self, d: _Drive) -> int:
         return self._sdo(d, "statusword", 0x6041, 0, "H")
@@ -271,33 +323,13 @@ class CanopenMaster:
             ("max profile velocity", 0x607F, 0, "I", vmax),
             ("quick stop deceleration", 0x6085, 0, "I", qsd),
             ("quick stop option", 0x605A, 0, "h", 6),
-            # RPDO1: target position + controlword, applied on SYNC
-            ("RPDO1 COB-ID (disable)", 0x1400, 1, "I", 0x80000000 | d.rpdo_id),
-            ("RPDO1 transmission type", 0x1400, 2, "B", 1),
-            ("RPDO1 mapping count", 0x1600, 0, "B", 0),
-            ("RPDO1 map target position", 0x1600, 1, "I", 0x607A0020),
-            ("RPDO1 map controlword", 0x1600, 2, "I", 0x60400010),
-            ("RPDO1 mapping count", 0x1600, 0, "B", 2),
-            ("RPDO1 COB-ID", 0x1400, 1, "I", d.rpdo_id),
-            ("RPDO2 COB-ID (disable)", 0x1401, 1, "I", 0x80000300 + cfg.node_id),
-            # TPDO1: statusword + position actual; TPDO2: following error; both on every SYNC
-            ("TPDO1 COB-ID (disable)", 0x1800, 1, "I", 0x80000180 + cfg.node_id),
-            ("TPDO1 transmission type", 0x1800, 2, "B", 1),
-            ("TPDO1 mapping count", 0x1A00, 0, "B", 0),
-            ("TPDO1 map statusword", 0x1A00, 1, "I", 0x60410010),
-            ("TPDO1 map position actual", 0x1A00, 2, "I", 0x60640020),
-            ("TPDO1 mapping count", 0x1A00, 0, "B", 2),
-            ("TPDO1 COB-ID", 0x1800, 1, "I", 0x180 + cfg.node_id),
-            ("TPDO2 COB-ID (disable)", 0x1801, 1, "I", 0x80000280 + cfg.node_id),
-            ("TPDO2 transmission type", 0x1801, 2, "B", 1),
-            ("TPDO2 mapping count", 0x1A01, 0, "B", 0),
-            ("TPDO2 map following error", 0x1A01, 1, "I", 0x60F40020),
-            ("TPDO2 mapping count", 0x1A01, 0, "B", 1),
-            ("TPDO2 COB-ID", 0x1801, 1, "I", 0x280 + cfg.node_id),
+            *self.layout.sdo_steps(cfg.node_id),
             ("producer heartbeat time", 0x1017, 0, "H", conf.heartbeat_producer_ms),
             ("consumer heartbeat time", 0x1016, 1, "I",
              (conf.master_node_id << 16) | (conf.heartbeat_consumer_ms if conf.heartbeat_producer_ms else 0)),
         ]
+        for p in self.layout.unused_pdos():
+            self._disable_pdo(d, p)
         for what, index, sub, fmt, value in steps:
             self._sdo(d, what, index, sub, fmt, value)
         mode = self._sdo(d, "modes of operation display", 0x6061, 0, "b")
@@ -431,7 +463,7 @@ class CanopenMaster:
         for d in self.drives:
             d.controlword = cia402.CW_QUICK_STOP
             try:
-                self._send(d.rpdo_id, _RPDO.pack(d.target, cia402.CW_QUICK_STOP))
+                self._send(*d.controlword_rpdo(cia402.CW_QUICK_STOP))
             except (can.CanError, OSError) as exc:
                 log.error("quick stop to %s not sent: %s", d.describe(), exc)
 
@@ -458,7 +490,7 @@ class CanopenMaster:
                         self._set_targets(positions)
                     for d in self.drives:
                         if not d.homing:
-                            self._send(d.rpdo_id, _RPDO.pack(d.target, d.controlword))
+                            self._send(d.rpdo_id, d.cyclic_rpdo())
                 self.network.sync.transmit()  # type: ignore[union-attr]
             except (can.CanError, OSError) as exc:
                 self.raise_fault(0, f"bus error: {exc}")
@@ -505,6 +537,13 @@ class CanopenMaster:
                 fe = d.following_error / d.scale.scale
                 self.raise_fault(d.cfg.node_id, f"following error {fe:.4g} beyond its window "
                                                 f"{d.cfg.following_error_window:g}")
+                return
+            if d.statusword & cia402.SW_BIT13 and not d.homing:
+                # the drive's own check against 0x6065, seen on the statusword before (or without)
+                # the following-error PDO
+                self.raise_fault(d.cfg.node_id, "following error beyond its window "
+                                                f"{d.cfg.following_error_window:g} (the drive reports it: "
+                                                f"statusword 0x{d.statusword:04X}, bit 13)")
                 return
 
     def feedback(self) -> DriveFeedback:

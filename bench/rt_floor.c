@@ -1,0 +1,62 @@
+/* The wake-up floor of this machine, for bench/fieldbus.py: what the kernel alone gives a periodic
+ * thread, without Python. Like cyclictest: sleep to absolute deadlines with clock_nanosleep
+ * (TIMER_ABSTIME), measure how late each wake-up is.
+ *
+ *   rt_floor PERIOD_US CYCLES PRIORITY CPU_LATENCY_US
+ *
+ * PRIORITY > 0: SCHED_FIFO at that priority. CPU_LATENCY_US >= 0: hold a PM QoS request on
+ * /dev/cpu_dma_latency for the run. Prints: p50 p99 p999 max (us) and the cycles later than half a
+ * period, as one line of numbers.
+ */
+#define _GNU_SOURCE
+#include <fcntl.h>
+#include <sched.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <time.h>
+#include <unistd.h>
+
+static int cmp(const void *a, const void *b) {
+    int64_t x = *(const int64_t *)a, y = *(const int64_t *)b;
+    return (x > y) - (x < y);
+}
+
+int main(int argc, char **argv) {
+    if (argc != 5) {
+        fprintf(stderr, "usage: rt_floor PERIOD_US CYCLES PRIORITY CPU_LATENCY_US\n");
+        return 2;
+    }
+    int64_t period = atoll(argv[1]) * 1000;
+    int n = atoi(argv[2]), prio = atoi(argv[3]), latency = atoi(argv[4]);
+    if (period <= 0 || n <= 0) return 2;
+    if (prio > 0) {
+        struct sched_param sp = {.sched_priority = prio};
+        if (sched_setscheduler(0, SCHED_FIFO, &sp) != 0) perror("rt_floor: SCHED_FIFO refused");
+    }
+    int qos = -1;
+    if (latency >= 0) {
+        qos = open("/dev/cpu_dma_latency", O_WRONLY);
+        int32_t v = latency;
+        if (qos < 0 || write(qos, &v, sizeof v) != sizeof v) perror("rt_floor: no CPU latency request");
+    }
+    int64_t *late = malloc(sizeof(int64_t) * (size_t)n);
+    if (!late) return 1;
+    struct timespec t, now;
+    clock_gettime(CLOCK_MONOTONIC, &t);
+    for (int i = 0; i < n; i++) {
+        t.tv_nsec += period;
+        while (t.tv_nsec >= 1000000000L) { t.tv_nsec -= 1000000000L; t.tv_sec++; }
+        clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &t, NULL);
+        clock_gettime(CLOCK_MONOTONIC, &now);
+        late[i] = (now.tv_sec - t.tv_sec) * 1000000000LL + (now.tv_nsec - t.tv_nsec);
+    }
+    if (qos >= 0) close(qos);
+    int missed = 0;
+    for (int i = 0; i < n; i++) missed += late[i] > period / 2;
+    qsort(late, (size_t)n, sizeof(int64_t), cmp);
+    printf("%.0f %.0f %.0f %.0f %d\n", late[n / 2] / 1e3, late[(int64_t)n * 99 / 100] / 1e3,
+           late[(int64_t)n * 999 / 1000] / 1e3, late[n - 1] / 1e3, missed);
+    free(late);
+    return 0;
+}
