@@ -266,3 +266,20 @@ def test_machine_file_mistakes_name_the_key(key, value, message):
 
     with pytest.raises(ConfigError, match=message):
         _read({key: value})
+
+
+def test_enable_right_after_a_quick_stop_waits_for_the_ramp(rig):
+    """Quick stop active -> Operation enabled is taken only once the stop ramp has ended: enable()
+    straight after reset_faults() must wait for it, then hold where the axis stopped (no jump)."""
+    r = rig(2)
+    start = r.master.positions()
+    r.run(100, lambda k: [start[0] + 0.2 * k, start[1] + 0.2 * k])  # 100 mm/s
+    r.master.quick_stop("test")
+    r.master.reset_faults()
+    r.master.enable()  # the drives are still on their 5000 mm/s^2 ramp (20 ms) here
+    assert [s.state for s in r.master.state] == [State.OPERATION_ENABLED] * 2
+    held = r.master.positions()
+    r.run(50)
+    assert r.master.fault is None
+    for node, p in zip((1, 2), held, strict=True):
+        assert r.sim(node).actual / 10000 == pytest.approx(p, abs=1e-3)

@@ -366,7 +366,11 @@ class CanopenMaster:
             self._stream_t0 = 0.0
             self.streaming = True
 
-    def _wait_state(self, d: _Drive, want: State, timeout: float, doing: str) -> None:
+    def _wait_state(self, d: _Drive, want: State, timeout: float, doing: str,
+                    resend: int | None = None) -> None:
+        """Poll the statusword until ``want``. ``resend``: write this controlword again while waiting,
+        for a transition the drive takes only once it is ready (Quick stop active -> Operation enabled
+        needs the stop ramp finished; the command sent during the ramp is ignored)."""
         deadline = time.monotonic() + timeout
         while True:
             sw = self._statusword(d)
@@ -377,6 +381,8 @@ class CanopenMaster:
                 raise CanopenError(f"{d.describe()}: stuck in '{state}' (statusword 0x{sw:04X}) "
                                    f"{timeout:g} s after {doing}, waiting for '{want}'")
             time.sleep(0.002)
+            if resend is not None:
+                self._sdo(d, "controlword", 0x6040, 0, "H", resend)
 
     def _enable_drive(self, d: _Drive) -> None:
         timeout = self.config.state_timeout_s
@@ -400,7 +406,11 @@ class CanopenMaster:
                 d.target = d.actual = actual
                 d.controlword = cia402.CW_ENABLE_OPERATION
             self._sdo(d, "controlword", 0x6040, 0, "H", controlword)
-            self._wait_state(d, want, timeout, f"controlword 0x{controlword:04X}")
+            self._wait_state(d, want, timeout, f"controlword 0x{controlword:04X}",
+                             resend=controlword if state == State.QUICK_STOP_ACTIVE else None)
+            if want == State.OPERATION_ENABLED and state == State.QUICK_STOP_ACTIVE:
+                # the drive finished its stop ramp before it enabled: hold where it stopped
+                d.target = d.actual = self._sdo(d, "position actual", 0x6064, 0, "i")
         else:
             raise CanopenError(f"{d.describe()}: did not reach Operation enabled")
         d.statusword = cia402.statusword_for(State.OPERATION_ENABLED)
