@@ -26,7 +26,8 @@ pytestmark = [pytest.mark.multicast, pytest.mark.timeout(90)]
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def machine_file(tmp_path: Path, interface: str, channel: str, cycle_ms: float = 2.0) -> Path:
+def machine_file(tmp_path: Path, interface: str, channel: str, cycle_ms: float = 2.0,
+                 layout: str = "standard") -> Path:
     text = f"""
 [machine]
 cycle_ms = {cycle_ms}
@@ -41,6 +42,8 @@ interface = "{interface}"
 channel = "{channel}"
 heartbeat_producer_ms = 50
 heartbeat_consumer_ms = 200
+pdo_layout = "{layout}"
+following_error_every = {1 if layout == "standard" else 4}
 [canopen.axes.x]
 node_id = 1
 [canopen.axes.y]
@@ -95,8 +98,8 @@ def group() -> str:
 def setup(tmp_path):
     made: list[tuple[DriveProcess, CanopenMaster]] = []
 
-    def make(cycle_ms: float = 2.0):
-        path = machine_file(tmp_path, "udp_multicast", group(), cycle_ms)
+    def make(cycle_ms: float = 2.0, layout: str = "standard"):
+        path = machine_file(tmp_path, "udp_multicast", group(), cycle_ms, layout)
         config = canopen_from_file(load_toml(path), str(path))
         drives = DriveProcess(path)
         master = CanopenMaster(config)
@@ -109,8 +112,9 @@ def setup(tmp_path):
         drives.stop()
 
 
-def test_master_and_drives_in_two_processes_on_udp_multicast(setup):
-    drives, master = setup(2.0)
+@pytest.mark.parametrize("layout", ["standard", "compact"])
+def test_master_and_drives_in_two_processes_on_udp_multicast(setup, layout):
+    drives, master = setup(2.0, layout)
     master.boot()
     master.enable()
     start = master.positions()
@@ -124,6 +128,7 @@ def test_master_and_drives_in_two_processes_on_udp_multicast(setup):
     fb = master.feedback()
     assert [s.state for s in master.state] == [State.OPERATION_ENABLED] * 3
     assert fb.positions == pytest.approx((5.0, -2.0, 0.0), abs=0.01)
+    assert all(abs(e) < 1.0 for e in fb.following_errors)
     master.shutdown()
     report = drives.stop()
     # every SYNC reached the drives' process with its targets: no missed setpoint was counted

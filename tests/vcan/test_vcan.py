@@ -57,8 +57,9 @@ def rig():
         r.close()
 
 
-def test_boot_stream_and_feedback_on_vcan0(rig):
-    r = rig(2).up()
+@pytest.mark.parametrize("layout", ["standard", "compact"])
+def test_boot_stream_and_feedback_on_vcan0(rig, layout):
+    r = rig(2, pdo_layout=layout).up()
     r.run(60, lambda k: [0.01 * min(k, 40), -0.01 * min(k, 40)])
     # the emulated VM processes frames late: hold and let the feedback catch up (bounded)
     deadline = time.monotonic() + 30.0
@@ -70,8 +71,9 @@ def test_boot_stream_and_feedback_on_vcan0(rig):
     assert r.sim(1).target == 4000 and r.sim(2).target == -4000
 
 
-def test_emcy_fault_quick_stop_and_reset_on_vcan0(rig):
-    r = rig(2).up()
+@pytest.mark.parametrize("layout", ["standard", "compact"])
+def test_emcy_fault_quick_stop_and_reset_on_vcan0(rig, layout):
+    r = rig(2, pdo_layout=layout).up()
     r.run(10, lambda k: [0.001 * k, 0.0])
     held = r.master.positions()
     r.sim(1).inject_fault(0x2310)
