@@ -6,9 +6,11 @@ Design (see docs/planner.md for the whole story):
   bounds on ``dq/ds``, ``d2q/ds2`` and ``d3q/ds3`` each piece gets a speed cap and an acceleration
   and jerk limit along ``s`` that keep every axis inside its own limits, tangential and centripetal
   terms budgeted together.
-* Corners between lines in G64 are replaced by curvature-continuous blends inside the tolerance P.
-  Every other junction gets a speed cap from the step it makes in axis velocity (tangent change) or
-  acceleration (curvature change) within one cycle; a real corner caps it to zero (a stop).
+* Corners between lines in G64 are replaced by curvature-continuous blends inside the tolerance P,
+  and joins with arcs by curvature-continuous transitions (quintic Hermite) inside P. Every other
+  junction gets a speed cap from the step it makes in axis velocity (tangent change) or acceleration
+  (curvature change) within one cycle; a real corner caps it to zero (a stop).
+* Override switches (M48-M53) are queued with each move, as LinuxCNC does.
 * Lookahead: each queued segment keeps ``vb``, the fastest speed at its end from which everything
   queued behind it can still be travelled and stopped at the end of the queue. It is maintained
   incrementally on every append with closed forms (``planner.kinematics``), so feeding is O(1)
@@ -30,11 +32,11 @@ import logging
 import math
 from collections.abc import Iterable, Iterator, Sequence
 
-from ruckig import ControlInterface, InputParameter, Result, Ruckig, Trajectory
+from ruckig import ControlInterface, InputParameter, Result, Ruckig, RuckigError, Trajectory
 
 from gcode_canon import commands as C
 from gcode_canon.errors import GCodeError
-from planner.geometry import Arc, Blend, Line, Piece, deviation_of_blend
+from planner.geometry import Arc, Blend, Line, Piece, Transition, deviation_of_blend
 from planner.kinematics import change_distance, max_reach, min_reach
 from planner.machine import DEMO_MACHINE, MachineLimits
 from planner.setpoints import Setpoint
@@ -49,7 +51,15 @@ JERK_CROSS = 0.15  # 3 v a q'' (of the continuous share)
 JUNCTION_TANGENT = 0.05  # a velocity step dv in one cycle reads as a jerk of up to dv / T^2
 JUNCTION_CURVATURE = 0.05  # an acceleration step da reads as a jerk of up to 0.75 da / T
 CORNER = 1e-3  # a tangent change (in dq/ds) above this is a corner: stop there unless blended
+TRANSITION_DEVIATION = 0.8  # a transition stays within this share of G64 P (its deviation is sampled)
+TRANSITION_ARC = 0.5  # a transition reaches at most this many radii along an arc (about 29 degrees)
+TRANSITION_SAMPLES = 32  # samples of a transition's deviation on each side of the join
 MAX_OVERRIDE = 2.0
+# Which online inputs a move obeys (LinuxCNC's FS/AF/FH "enables", queued with each move by M48-M53).
+OVR_FEED = 1  # the feed override (M48/M49, M50 P1/P0)
+OVR_ADAPTIVE = 2  # the adaptive feed input (M52 P1/P0); off by default, as in LinuxCNC
+OVR_FEED_STOP = 4  # the feed stop input (M53 P1/P0)
+OVR_DEFAULT = OVR_FEED | OVR_FEED_STOP
 MIN_LENGTH = 1e-10  # moves shorter than this (machine units) are skipped: they take no time
 MIN_ARC_RADIUS = 1e-7  # arcs of smaller radius are run as the straight line to their end
 LOOP_CAP = 100_000  # pieces a single cycle may pass through before the planner gives up loudly
@@ -86,14 +96,20 @@ class Seg:
     """A queued piece of motion with its limits along the path and its lookahead state."""
 
     __slots__ = ("a", "blend_tol", "cap", "cap_geom", "cmd", "events", "feed", "j", "jcap", "jgeom", "kind",
-                 "orig_length", "piece", "qs_a", "qs_j", "rapid", "s0", "stop", "vb")
+                 "orig_length", "ovr", "piece", "qs_a", "qs_j", "rapid", "s0", "sides", "stop", "vb")
 
-    def __init__(self, piece: Piece, kind: str, cmd: C.Canon, feed: float, rapid: bool) -> None:
+    def __init__(self, piece: Piece, kind: str, cmd: C.Canon, feed: float, rapid: bool,
+                 ovr: int = OVR_DEFAULT) -> None:
         self.piece = piece
         self.kind = kind
         self.cmd = cmd
         self.feed = feed
         self.rapid = rapid
+        # The override switches in force when the move was queued (LinuxCNC queues them with each move,
+        # so an M49 changes the moves after it, not the one running). ``sides``: (feed, switches) of
+        # each programmed move the piece belongs to; a corner blend has two and obeys both.
+        self.ovr = ovr
+        self.sides: tuple[tuple[float, int], ...] = ((feed, ovr),)
         self.s0 = 0.0
         self.orig_length = piece.length
         self.events: list[C.Canon] = []
@@ -187,6 +203,9 @@ class Planner:
         self._free_t = 0.0  # earliest start of the next queue item
         self._active: _Active | None = None
         self._override = 1.0
+        self._adaptive = 1.0  # the adaptive feed input, 0 .. 1 (M52)
+        self._feed_stop = False  # the feed stop input (M53)
+        self._ovr = OVR_DEFAULT  # switches M48-M53 give the moves fed from now on
         self._hold = False
         self._abort = False
         self._quick = False
@@ -222,6 +241,20 @@ class Planner:
     def holding(self) -> bool:
         return self._hold
 
+    @property
+    def adaptive_feed(self) -> float:
+        return self._adaptive
+
+    @property
+    def feed_stop(self) -> bool:
+        return self._feed_stop
+
+    @property
+    def feed_override_enabled(self) -> bool:
+        """Whether the feed override acts now: the running move's switch (M48-M50), or when at rest
+        the one the next fed move gets (LinuxCNC reports ``enables_queued`` the same way)."""
+        return bool(self._ovr_now() & OVR_FEED)
+
     # --- feeding ----------------------------------------------------------------------------------
 
     def feed_many(self, commands: Iterable[C.Canon]) -> None:
@@ -253,6 +286,9 @@ class Planner:
             self._mode, self._tolerance = cmd.mode, cmd.tolerance
         elif isinstance(cmd, C.ExactStopBlock):
             self._exact_next = True
+        elif isinstance(cmd, C.SetOverrides):
+            self._set_switches(cmd)
+            self._pending.append(cmd)  # passed on as well: the spindle override switch is the drive's
         elif isinstance(cmd, CONSUMED_TYPES):
             pass
         elif isinstance(cmd, C.DigitalOutput | C.AnalogOutput) and not cmd.synced:
@@ -271,6 +307,13 @@ class Planner:
             if isinstance(cmd, C.SetSpindleSpeed):
                 self._spindle_rpm = abs(cmd.rpm)
             self._pending.append(cmd)
+
+    def _set_switches(self, cmd: C.SetOverrides) -> None:
+        """M48-M53: the switches the moves fed after this obey (None leaves one as it is)."""
+        for flag, on in ((OVR_FEED, cmd.feed), (OVR_ADAPTIVE, cmd.adaptive_feed),
+                         (OVR_FEED_STOP, cmd.feed_hold)):
+            if on is not None:
+                self._ovr = (self._ovr | flag) if on else (self._ovr & ~flag)
 
     @staticmethod
     def _check_orient(cmd: C.SpindleOrient) -> None:
@@ -371,7 +414,7 @@ class Planner:
                 length = max(abs(x) for x in delta)
             piece = Line(tuple(start), tuple(end), length)
         feed = self._feed_speed(cmd, piece.length)
-        seg = Seg(piece, kind, cmd, feed, isinstance(cmd, C.StraightTraverse))
+        seg = Seg(piece, kind, cmd, feed, isinstance(cmd, C.StraightTraverse), self._ovr)
         # the corner at a move's end is blended by the mode the move was programmed in (LinuxCNC)
         seg.blend_tol = self._tolerance if self._mode is C.MotionControlMode.CONTINUOUS else -1.0
         self._limits(seg)
@@ -471,7 +514,13 @@ class Planner:
             src.cap_geom, src.cap, src.a, src.j, src.qs_a, src.qs_j)
 
     def _set_cap(self, seg: Seg) -> None:
-        cap = seg.cap_geom if seg.rapid else min(seg.cap_geom, seg.feed * self._override)
+        cap = seg.cap_geom
+        for feed, ovr in seg.sides:
+            scale = self._adaptive if ovr & OVR_ADAPTIVE else 1.0
+            if seg.rapid:
+                cap = min(cap, seg.cap_geom * scale)
+            else:
+                cap = min(cap, feed * scale * (self._override if ovr & OVR_FEED else 1.0))
         seg.cap = max(cap, 1e-9)
 
     def _junction(self, prev: Seg, nxt: Seg) -> float:
@@ -495,11 +544,16 @@ class Planner:
     # --- blending -----------------------------------------------------------------------------------
 
     def _try_blend(self, new: Seg) -> bool:
-        """In G64, replace the corner between the queued line and ``new`` (a line) by a blend."""
-        if new.kind != "line" or self._h >= len(self._q):
+        """In G64, replace the corner between the queued line and ``new`` (a line) by a blend, or a
+        join involving an arc by a :class:`Transition`."""
+        if self._h >= len(self._q):
             return False
         prev = self._q[-1]
-        if not isinstance(prev, Seg) or prev.kind != "line" or prev.stop or prev.s0 > 0.0:
+        if not isinstance(prev, Seg) or prev.kind not in ("line", "arc") or prev.stop or prev.s0 > 0.0:
+            return False
+        if new.kind == "arc" or prev.kind == "arc":
+            return self._try_transition(prev, new)
+        if new.kind != "line":
             return False
         tolerance = prev.blend_tol
         if tolerance < 0.0:
@@ -526,7 +580,9 @@ class Planner:
         corner = prev.piece.end
         n = self._n
         blend = Blend(corner, w1, w2, d)
-        bseg = Seg(blend, "blend", new.cmd, min(prev.feed, new.feed), prev.rapid and new.rapid)
+        bseg = Seg(blend, "blend", new.cmd, min(prev.feed, new.feed), prev.rapid and new.rapid,
+                   prev.ovr | new.ovr)
+        bseg.sides = prev.sides + new.sides
         self._limits(bseg)
         orig_piece, orig_events = new.piece, new.events
         new.piece = Line(blend.end, orig_piece.end, orig_piece.length - d)  # same direction: same limits
@@ -538,7 +594,7 @@ class Planner:
         items: list[Seg] = []
         if keep > MIN_LENGTH:
             trimmed = Seg(Line(prev.piece.start, tuple(corner[i] - d * w1[i] for i in range(n)), keep),
-                          "line", prev.cmd, prev.feed, prev.rapid)
+                          "line", prev.cmd, prev.feed, prev.rapid, prev.ovr)
             trimmed.orig_length, trimmed.blend_tol = prev.orig_length, prev.blend_tol
             self._copy_limits(trimmed, prev)
             trimmed.events = prev.events
@@ -560,6 +616,141 @@ class Planner:
             seg.vb = vb
         self.stats["blends"] += 1
         return True
+
+    def _try_transition(self, prev: Seg, new: Seg) -> bool:
+        """In G64, replace the join of ``prev`` and ``new`` (one an arc) by a curvature-continuous
+        :class:`Transition` within P, when the join would otherwise cap the speed.
+
+        The transition starts ``d`` before the join on ``prev`` and ends ``d`` after it on ``new``; d
+        is the largest that keeps the sampled deviation within TRANSITION_DEVIATION * P (and at most
+        half of each move), found by shrinking from that bound.
+        """
+        tolerance = prev.blend_tol
+        if tolerance < 0.0:
+            return False
+        a, b = prev.piece, new.piece
+        n = self._n
+        if (max(abs(a.d1_end[i] - b.d1_start[i]) for i in range(n)) <= 1e-12
+                and max(abs(a.d2_end[i] - b.d2_start[i]) for i in range(n)) <= 1e-9):
+            return False  # already continuous in curvature
+        top = min(prev.cap_geom, new.cap_geom, MAX_OVERRIDE * max(prev.feed, new.feed))
+        if self._junction(prev, new) >= top:
+            return False  # the join does not limit the speed: a transition would only add a piece
+        d = min(0.5 * prev.orig_length, a.length, 0.5 * b.length)
+        for piece in (a, b):
+            if isinstance(piece, Arc):
+                d = min(d, TRANSITION_ARC * piece.radius)  # never across a good part of a circle
+        if self._allowed(new.blend_tol) < self._allowed(tolerance):
+            # the checker (and the user) grant P near the start of the next move only within 0.6 of
+            # its chord: stay within half of it
+            d = min(d, 0.5 * math.dist(b.start, b.end))
+        is_head = len(self._q) - 1 == self._h
+        if is_head and self._active is not None and self._v_end > 0.0:
+            d = min(d, a.length - change_distance(self._v_end, 0.0, prev.a, prev.j) - 1e-9)
+        corner = max(abs(a.d1_end[i] - b.d1_start[i]) for i in range(n)) > CORNER
+        target = TRANSITION_DEVIATION * tolerance
+        for _attempt in range(40):
+            if d <= 1e-9:
+                return False
+            head, tr, tail = self._transition(a, b, d)
+            if tolerance <= 0.0:
+                break
+            dev = self._transition_deviation(a, b, tr, d)
+            if dev <= target:
+                break
+            ratio = target / dev
+            d *= max(0.05, min(0.9, ratio if corner else math.sqrt(ratio)))  # dev ~ d (corner), d^2
+        else:
+            return False
+        tseg = Seg(tr, "blend", new.cmd, min(prev.feed, new.feed), prev.rapid and new.rapid,
+                   prev.ovr | new.ovr)
+        tseg.sides = prev.sides + new.sides
+        try:
+            self._limits(tseg)
+        except PlannerError:
+            return False
+        orig_piece, orig_events, orig_limits = new.piece, new.events, self._limits_of(new)
+        new.piece = tail
+        self._limits(new)
+        tseg.events, new.events = list(orig_events), []
+        index = len(self._q) - 1
+        self._q.pop()
+        items: list[Seg] = []
+        if head is not None:
+            trimmed = Seg(head, prev.kind, prev.cmd, prev.feed, prev.rapid, prev.ovr)
+            trimmed.orig_length, trimmed.blend_tol = prev.orig_length, prev.blend_tol
+            trimmed.sides = prev.sides
+            self._limits(trimmed)
+            trimmed.events = prev.events
+            items.append(trimmed)
+        else:
+            tseg.events = prev.events + tseg.events
+        items += [tseg, new]
+        saved = self._save_tail_links(index)
+        for it in items:
+            self._link(it)
+        changes = self._backward(index)
+        if not self._head_feasible(changes):
+            del self._q[index:]
+            self._restore_tail_links(saved)
+            self._q.append(prev)
+            new.piece, new.events = orig_piece, orig_events
+            self._set_limits(new, orig_limits)
+            return False
+        for seg, vb in changes:
+            seg.vb = vb
+        self.stats["blends"] += 1
+        return True
+
+    @staticmethod
+    def _allowed(blend_tol: float) -> float:
+        """The deviation a move's mode allows (as the checker reads it): P, any in G64 without P."""
+        if blend_tol < 0.0:
+            return 1e-3
+        return math.inf if blend_tol == 0.0 else max(blend_tol, 1e-3)
+
+    @staticmethod
+    def _limits_of(seg: Seg) -> tuple[float, ...]:
+        return (seg.cap_geom, seg.cap, seg.a, seg.j, seg.qs_a, seg.qs_j)
+
+    @staticmethod
+    def _set_limits(seg: Seg, values: tuple[float, ...]) -> None:
+        seg.cap_geom, seg.cap, seg.a, seg.j, seg.qs_a, seg.qs_j = values
+
+    @staticmethod
+    def _transition(a: Piece, b: Piece, d: float) -> tuple[Piece | None, Transition, Piece]:
+        """The part of ``a`` kept before the transition (None: none), the transition, the rest of ``b``."""
+        keep = a.length - d
+        head = a.part(0.0, keep) if keep > MIN_LENGTH else None  # type: ignore[attr-defined]
+        tail = b.part(d, b.length)  # type: ignore[attr-defined]
+        if head is None:
+            pa, ta, ka = a.start, a.d1_start, a.d2_start
+        else:
+            pa, ta, ka = head.end, head.d1_end, head.d2_end
+        da = d if head is not None else a.length
+        tr = Transition(pa, ta, ka, tail.start, tail.d1_start, tail.d2_start, da + d)
+        return head, tr, tail
+
+    def _transition_deviation(self, a: Piece, b: Piece, tr: Transition, d: float) -> float:
+        """An upper bound of the distance of ``tr`` from the path it replaces.
+
+        Each sample compares the transition with the original path at the same ``s`` (a point of the
+        path, so at least as far as the path's nearest point); between samples the gap can grow by at
+        most h^2/8 times the sum of both curves' second-derivative bounds. The join itself is a sample.
+        """
+        n = self._n
+        da = tr.length - d  # the transition covers the last da of a and the first d of b
+        worst = 0.0
+        for part, piece, s_base, span in ((0, a, a.length - da, da), (1, b, 0.0, d)):
+            h = span / TRANSITION_SAMPLES
+            for k in range(TRANSITION_SAMPLES + 1):
+                s_loc = k * h
+                p_orig = piece.pos(s_base + s_loc)
+                p_tr = tr.pos((da if part else 0.0) + s_loc)
+                worst = max(worst, math.sqrt(sum((p_orig[i] - p_tr[i]) ** 2 for i in range(n))))
+            curv = math.sqrt(sum(x * x for x in tr.d2_max)) + math.sqrt(sum(x * x for x in piece.d2_max))
+            worst += h * h / 8.0 * curv
+        return worst
 
     def _save_tail_links(self, index: int) -> tuple[Seg, float, float] | None:
         if index - 1 >= self._h:
@@ -666,6 +857,16 @@ class Planner:
         slack = 1e-9 + 1e-9 * length
         if ext.max > length + slack or ext.min < -slack:
             return None
+        if v0 > inp.max_velocity[0] * (1.0 + 1e-9):
+            # Starting above the velocity limit, ruckig brakes first, and its position_extrema do not
+            # cover that phase (seen: a profile that passes its target and comes back, extrema saying
+            # otherwise). Check what the cycle loop will sample.
+            h = 0.5 * self.T
+            steps = min(int(traj.duration / h) + 2, 100_000)
+            for k in range(steps):
+                pos = traj.at_time(min(k * h, traj.duration))[0][0]
+                if pos > length + slack or pos < -slack:
+                    return None
         return traj
 
     def _solve_stop(self, v0: float, a0: float, a: float, j: float) -> Trajectory | None:
@@ -690,7 +891,7 @@ class Planner:
         self.stats["solves"] += 1
         try:
             result = self._otg.calculate(inp, traj)
-        except RuntimeError:
+        except (RuntimeError, RuckigError):  # RuckigError is no RuntimeError: both mean "no profile"
             return None
         if result not in (Result.Working, Result.Finished):
             return None
@@ -699,9 +900,28 @@ class Planner:
     def _stop_limits(self, seg: Seg) -> tuple[float, float]:
         return (seg.qs_a, seg.qs_j) if self._quick else (seg.a, seg.j)
 
+    def _stops(self, ovr: int) -> bool:
+        """Whether a move with switches ``ovr`` must stop now: hold, abort and quick stop always; the
+        feed override at 0, the adaptive feed at 0 and the feed stop input only where switched on."""
+        return (self._hold or self._abort or self._quick
+                or (ovr & OVR_FEED != 0 and self._override <= 0.0)
+                or (ovr & OVR_ADAPTIVE != 0 and self._adaptive <= 0.0)
+                or (ovr & OVR_FEED_STOP != 0 and self._feed_stop))
+
+    def _ovr_now(self) -> int:
+        """The switches of the running move, or at rest those of the next queued move (else the next
+        fed one)."""
+        if self._active is not None:
+            return self._active.seg.ovr
+        for i in range(self._h, len(self._q)):
+            item = self._q[i]
+            if isinstance(item, Seg):
+                return item.ovr
+        return self._ovr
+
     @property
     def _stopping(self) -> bool:
-        return self._hold or self._abort or self._quick or self._override <= 0.0
+        return self._stops(self._ovr_now())
 
     def _start(self, seg: Seg, t0: float) -> None:
         """Commit ``seg``: solve its profile from the current end speed."""
@@ -713,7 +933,7 @@ class Planner:
         v0 = self._v_end
         length = seg.length
         a, j = seg.a, seg.j
-        if self._stopping:
+        if self._stops(seg.ovr):
             a, j = self._stop_limits(seg)
             if change_distance(v0, 0.0, a, j) <= length:
                 traj = self._solve_stop(v0, 0.0, a, j)
@@ -769,7 +989,8 @@ class Planner:
             vb = min(seg.jgeom, seg.cap, head.cap, max_reach(head.vb, head.length, head.a, head.j))
         else:
             vb = 0.0
-        if self._stopping:
+        stopping = self._stops(seg.ovr)
+        if stopping:
             a, j = self._stop_limits(seg)
             traj = self._solve_stop(v, acc, a, j)
             if traj is not None:
@@ -784,7 +1005,7 @@ class Planner:
             top = min(vb, max_reach(max(v, 0.0), remaining, a, j))
             candidates = [top * (1.0 - 0.1 * k) for k in range(11)]
         for target in candidates:
-            if target < 0.0 or (self._stopping and target > act.v1):
+            if target < 0.0 or (stopping and target > act.v1):
                 continue
             traj = self._solve(v, acc, remaining, target, seg.cap, a, j)
             if traj is not None:
@@ -796,7 +1017,13 @@ class Planner:
     # --- online control -----------------------------------------------------------------------------
 
     def set_feed_override(self, factor: float) -> None:
-        """Feed override, 0 to 2 (0 stops on the path as a hold does); takes effect smoothly."""
+        """Feed override, 0 to 2 (0 stops on the path as a hold does); takes effect smoothly.
+
+        It scales the feed of G1/G2/G3 moves (rapids keep their speed, as in LinuxCNC, where they
+        follow a separate rapid override this planner does not have; 0 stops them too). Moves queued
+        while the override is switched off (M49, M50 P0) run at their programmed feed and do not
+        stop at 0; the switch is the one in force when the move was fed, as LinuxCNC queues it.
+        """
         if not math.isfinite(factor):
             raise PlannerError(f"feed override must be a number, got {factor!r}")
         factor = min(max(factor, 0.0), MAX_OVERRIDE)
@@ -805,6 +1032,34 @@ class Planner:
         if factor > 0.0:
             self._recompute_all()
         if self._stopping != was_stopping or factor > 0.0:
+            self._replan()
+
+    def set_adaptive_feed(self, factor: float) -> None:
+        """Adaptive feed input, 0 to 1 (LinuxCNC's ``motion.adaptive-feed``): scales every move, rapids
+        included, queued while M52 P1 is in force, on top of the feed override; 0 stops them on the
+        path. Each change re-plans the queue (O(queue length)): feed it at a modest rate."""
+        if not math.isfinite(factor):
+            raise PlannerError(f"adaptive feed must be a number, got {factor!r}")
+        factor = min(max(factor, 0.0), 1.0)
+        if factor == self._adaptive:
+            return
+        was_stopping = self._stopping
+        self._adaptive = factor
+        if factor > 0.0:
+            self._recompute_all()
+        if self._stopping != was_stopping or factor > 0.0:
+            self._replan()
+
+    def set_feed_stop(self, on: bool) -> None:
+        """Feed stop input (LinuxCNC's ``motion.feed-hold``): while on, moves queued with M53 P1 in
+        force (the default) stop on the path as in a hold; M53 P0 moves ignore it. :meth:`hold` is the
+        operator's pause and is not switched by M53."""
+        on = bool(on)
+        if on == self._feed_stop:
+            return
+        was_stopping = self._stopping
+        self._feed_stop = on
+        if self._stopping != was_stopping:
             self._replan()
 
     def hold(self) -> None:
@@ -941,7 +1196,7 @@ class Planner:
                 elif isinstance(item.cmd, WAIT_TYPES) and not self.auto_release:
                     self.waiting_for = item.cmd
                 break
-            if self._stopping and self._v_end <= 0.0:
+            if self._stops(item.ovr) and self._v_end <= 0.0:
                 if self._abort:
                     self._finish_abort_if_at_rest()
                 pos = self._rest  # held at rest

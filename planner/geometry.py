@@ -77,6 +77,10 @@ class Line(Piece):
         st, d = self.start, self._dir
         return [st[i] + d[i] * s for i in range(len(st))]
 
+    def part(self, s0: float, s1: float) -> Line:
+        """The piece between ``s0`` and ``s1`` (a transition takes the rest)."""
+        return Line(tuple(self.pos(s0)), tuple(self.pos(s1)), s1 - s0)
+
 
 class Arc(Piece):
     """An arc or helix: in-plane angle linear in ``s``, radius linear in angle (start and end radii may
@@ -133,6 +137,16 @@ class Arc(Piece):
         out[self._i1] = self._c1 + r * math.sin(th)
         return out
 
+    @property
+    def radius(self) -> float:
+        """The smaller of the end radii (in its plane)."""
+        return min(self._r0, self._r0 + self._dr * self.length)
+
+    def part(self, s0: float, s1: float) -> Arc:
+        """The piece between ``s0`` and ``s1``: same centre, angle and radius still linear in ``s``."""
+        return Arc(tuple(self.pos(s0)), tuple(self.pos(s1)), self._i0, self._i1, self._c0, self._c1,
+                   self._k * (s1 - s0), s1 - s0)
+
 
 class Blend(Piece):
     """A corner blend between two lines: ``P(s) = A + 2d [w1 x + (w2 - w1) Sigma(x)]``, ``x = s / 2d``.
@@ -175,3 +189,78 @@ class Blend(Piece):
 def deviation_of_blend(w1: Vec, w2: Vec, d: float, linear: Sequence[int]) -> float:
     """Distance of a blend's middle from its corner, over the ``linear`` axes."""
     return 2.0 * d * SIGMA_INT_HALF * math.sqrt(sum((w2[i] - w1[i]) ** 2 for i in linear))
+
+
+class Transition(Piece):
+    """A quintic Hermite join between two pieces of any kind (line, arc, helix): the curve from point
+    ``a`` on the first to point ``b`` on the second that matches, at both ends, the position and the
+    first and second derivatives along ``s`` of the piece it meets.
+
+    Why: a line meeting an arc tangentially still steps in curvature, so the axis accelerations would
+    step by ``v^2 / R`` where they meet, which a finite jerk cannot do; without a transition the join
+    must be passed so slowly that the step fits in one cycle's jerk (a few mm/s). Matching ``q'`` and
+    ``q''`` at both ends makes velocity and acceleration continuous; only the jerk steps, which the
+    path limits (``q'''``) budget like any other piece. ``s`` runs over ``length`` (the original
+    path's length between ``a`` and ``b``), so it is close to arc length on tangent joins and longer
+    than the chord on corners, as in :class:`Blend`.
+    """
+
+    __slots__ = ("_c", "_n")
+
+    def __init__(self, a: Vec, t_a: Vec, k_a: Vec, b: Vec, t_b: Vec, k_b: Vec, length: float) -> None:
+        n = len(a)
+        L = length
+        coeffs = []
+        for i in range(n):
+            c0, c1, c2 = a[i], t_a[i] * L, 0.5 * k_a[i] * L * L
+            e0 = b[i] - (c0 + c1 + c2)
+            e1 = t_b[i] * L - (c1 + 2.0 * c2)
+            e2 = k_b[i] * L * L - 2.0 * c2
+            coeffs.append((c0, c1, c2, 10.0 * e0 - 4.0 * e1 + 0.5 * e2, -15.0 * e0 + 7.0 * e1 - e2,
+                           6.0 * e0 - 3.0 * e1 + 0.5 * e2))
+        self._c = coeffs
+        self._n = n
+        d1, d2, d3 = _hermite_bounds(coeffs, L)
+        super().__init__(L, tuple(a), tuple(b), tuple(t_a), tuple(t_b), tuple(k_a), tuple(k_b),
+                         d1, d2, d3)
+
+    def pos(self, s: float) -> list[float]:
+        if s >= self.length:
+            return list(self.end)
+        if s <= 0.0:
+            return list(self.start)
+        u = s / self.length
+        return [c0 + u * (c1 + u * (c2 + u * (c3 + u * (c4 + u * c5)))) for c0, c1, c2, c3, c4, c5 in self._c]
+
+
+HERMITE_GRID = 64
+
+
+def _hermite_bounds(coeffs: Sequence[Sequence[float]], L: float) -> tuple[Vec, Vec, Vec]:
+    """Upper bounds of |dq/ds|, |d2q/ds2|, |d3q/ds3| per axis of a quintic in ``u = s / L``.
+
+    The third derivative is a quadratic: exact (ends and vertex). The first and second are sampled on
+    a grid and padded by the next derivative's bound times half the grid step, which bounds them
+    rigorously between samples.
+    """
+    d1, d2, d3 = [], [], []
+    h = 1.0 / HERMITE_GRID
+    for _c0, c1, c2, c3, c4, c5 in coeffs:
+        # q''' (in u) = 6 c3 + 24 c4 u + 60 c5 u^2
+        cand = [0.0, 1.0]
+        if c5 != 0.0:
+            v = -24.0 * c4 / (120.0 * c5)
+            if 0.0 < v < 1.0:
+                cand.append(v)
+        m3 = max(abs(6.0 * c3 + 24.0 * c4 * u + 60.0 * c5 * u * u) for u in cand)
+        m2 = m1 = 0.0
+        for k in range(HERMITE_GRID + 1):
+            u = k * h
+            m2 = max(m2, abs(2.0 * c2 + u * (6.0 * c3 + u * (12.0 * c4 + u * 20.0 * c5))))
+            m1 = max(m1, abs(c1 + u * (2.0 * c2 + u * (3.0 * c3 + u * (4.0 * c4 + u * 5.0 * c5)))))
+        m2 += 0.5 * h * m3
+        m1 += 0.5 * h * m2
+        d1.append(m1 / L)
+        d2.append(m2 / (L * L))
+        d3.append(m3 / (L * L * L))
+    return tuple(d1), tuple(d2), tuple(d3)

@@ -129,7 +129,7 @@ def test_line_arc_line_at_high_feed() -> None:
                      ArcFeed(Pose(30, 60, 0), Pose(40, 60, 0), Plane.XY, 1),
                      StraightFeed(Pose(30, 0, 0)), ProgramEnd()])
     sps, report = plan(prog)
-    assert_good(report)
+    assert_good(report, deviation=0.01)  # line-arc joins are now eased within P
     # the long lines reach the programmed feed (within the axis velocity limit)
     assert path_speed(sps, DEMO_MACHINE.cycle_s).max() == pytest.approx(8000 / 60, rel=0.01)
 
@@ -139,7 +139,7 @@ def test_helix(turns: int) -> None:
     prog = numbered([SetFeedRate(1500), StraightFeed(Pose(5, 0, 0)),
                      ArcFeed(Pose(5, 0, -6), Pose(0, 0, 0), Plane.XY, turns), ProgramEnd()])
     sps, report = plan(prog)
-    assert_good(report)
+    assert_good(report, deviation=math.inf)  # G64 without P: the line-helix corner is blended, any size
     z = np.array([s.positions[2] for s in sps])
     assert np.all(np.diff(z) <= 1e-12)  # z goes down monotonically along the helix
     r = np.hypot([s.positions[0] for s in sps], [s.positions[1] for s in sps])
