@@ -15,6 +15,9 @@ How the core uses it
   current programmed position in the plane. ``radius`` is the tool table diameter / 2 or the G4x.1 D
   word / 2; a negative radius swaps the side (as LinuxCNC); a zero radius makes the compensator a
   pass-through (every move comes back unchanged, as LinuxCNC turns compensation into a no-op).
+  ``orientation`` is the lathe tool orientation (tool table Q, G4x.1 L; 0 for a mill cutter, and
+  always 0 or 9 outside G18) and ``normal`` the current coordinate along the plane normal (see
+  "Lathe tools" below).
 * For every G0/G1/G2/G3 while compensation is on, give the *programmed* move as a :class:`Line2` (G0
   with ``rapid=True``) or :class:`Arc2` (centre already found from I/J/K or R and checked by the
   core), with ``start`` equal to :attr:`CutterCompensator.programmed`, ``normal`` the end coordinate
@@ -32,10 +35,10 @@ How the core uses it
   M66, override changes, G61/G64 changes ...); the core keeps those errors.
 * On G40, M2/M30 (or before anything else that needs the path final) call
   :meth:`CutterCompensator.finish`: it returns the held segments (the last one ending at its normal
-  offset point) and the compensator is done. The tool is then at :attr:`CutterCompensator.tool`; the
-  next move after G40 is an ordinary, uncompensated move from there to its programmed end, and must
-  be a straight line (the core raises LinuxCNC's "The move just after exiting cutter compensation mode
-  must be straight, not an arc").
+  offset point) and the compensator is done. The tool is then at :attr:`CutterCompensator.tool`
+  (plus :attr:`CutterCompensator.tip` for a lathe tool); the next move after G40 is an ordinary,
+  uncompensated move from there to its programmed end, and must be a straight line (the core raises
+  LinuxCNC's "The move just after exiting cutter compensation mode must be straight, not an arc").
 * Errors are :class:`~gcode_canon.errors.GCodeError` with ``line`` set to the move being added (the
   core fills in the file with ``located``); ``finish`` raises with no line, so the block that asked
   for it is named. ``ValueError`` means a wiring bug (a move not starting at ``programmed``, a bad
@@ -75,11 +78,40 @@ Rules, as LinuxCNC
   by the tool without gouging" and "Arc move in concave corner ..." when a held move would be cut back
   past its start (checked on every release of a held move, see below).
 
-Known differences from LinuxCNC: lathe tool orientations (G41.1 L, tool table Q) are not handled (the
-point controlled is the centre of the tool nose radius); a move with less than 1e-9 of motion in the
-plane counts as no motion (LinuxCNC: exactly equal coordinates); a held move reversed by its own start
-having been cut forward past its end is an error whatever comes next (LinuxCNC lets it through when
-the next move is an arc or a near-tangent join, gouging the part).
+Lathe tools (tool orientation 1-8)
+----------------------------------
+
+A lathe tool's control point (the one its tool table offsets are measured to) is not the centre of
+its nose radius but the "imaginary tip" where the tangents along Z and X to the nose meet; the
+orientation (tool table Q for G41/G42, the L word of G41.1/G42.1) says on which side of the centre
+that tip lies. LinuxCNC still computes the path of the nose-radius *centre* exactly as for a mill
+cutter and then, as each compensated move leaves its queue (``dequeue_canons`` in
+``interp_queue.cc``), moves the end point (and an arc's centre) of every STRAIGHT_TRAVERSE,
+STRAIGHT_FEED and ARC_FEED by the centre-to-tip vector (``latheorigin_x`` / ``latheorigin_z``), so the
+control point is commanded where the tip is when the nose centre is on its path. The interpreter
+passes ``orientation`` only in G18, where ``(first, second)`` is ``(Z, X)``: see
+:func:`lathe_tip_offset`. Orientations 0 and 9 (and a zero radius) move nothing. The compensator
+does the same: its geometry (``tool``, the corners, the gouge checks) is the nose centre's, and every
+segment it hands out is shifted by :attr:`CutterCompensator.tip`, except the start of the entry move,
+which is where the tool really is (it came there uncompensated).
+
+An entry *arc* with a lathe tool is preceded by a straight feed from the uncompensated start to the
+same point shifted by the tip (``convert_arc_comp1``: "need this move for lathes to move the tool
+origin first. otherwise, the arc isn't an arc"); it keeps the start's normal coordinate and takes the
+arc's end values of the other axes, as LinuxCNC's does. LinuxCNC, though, leaves that straight feed
+in its queue ahead of the held arc, and ``move_endpoint_and_flush`` sets the end of *every* queued
+move: when the next thing after the entry arc is a line around a convex corner, a concave corner,
+G40 or the program end, the straight feed gets the arc's (final) end too, so the control point goes
+straight there and the arc runs from its end to itself; a concave corner there is moreover computed
+as though the held move were a line (its code looks at the head of the queue), and the "h" reversal
+rule (below) does not see the arc. Only a tangent line or an arc next gives what its comment means.
+The compensator emits that straight feed at once and treats the held entry arc as an arc, as after
+a mill entry arc: what LinuxCNC does in the cases where it works, in all cases.
+
+Known differences from LinuxCNC: the lathe entry arc above; a move with less than 1e-9 of motion in
+the plane counts as no motion (LinuxCNC: exactly equal coordinates); a held move reversed by its own
+start having been cut forward past its end is an error whatever comes next (LinuxCNC lets it through
+when the next move is an arc or a near-tangent join, gouging the part).
 """
 
 from __future__ import annotations
@@ -115,6 +147,35 @@ ARC_ARC_SAME_CENTER = "Arc to arc motion is invalid because the arcs have the sa
 FEED_GOUGE = "Straight feed in concave corner cannot be reached by the tool without gouging"
 TRAVERSE_GOUGE = "Straight traverse in concave corner cannot be reached by the tool without gouging"
 ARC_GOUGE = "Arc move in concave corner cannot be reached by the tool without gouging"
+
+_LATHE_TIP: dict[int, Point] = {
+    1: (1.0, -1.0),
+    2: (-1.0, -1.0),
+    3: (-1.0, 1.0),
+    4: (1.0, 1.0),
+    5: (1.0, 0.0),
+    6: (0.0, -1.0),
+    7: (-1.0, 0.0),
+    8: (0.0, 1.0),
+}
+"""Orientation -> (Z, X) direction from the nose-radius centre to the imaginary tip, in units of the
+radius: LinuxCNC's ``latheorigin_z`` / ``latheorigin_x`` (``interp_queue.cc``), X - R for 1 2 6,
+X + R for 3 4 8, Z - R for 2 3 7, Z + R for 1 4 5."""
+
+
+def lathe_tip_offset(orientation: int, radius: float) -> Point:
+    """Vector from the nose-radius centre to the control point of a lathe tool, in G18 plane coordinates
+    ``(Z, X)``: what is added to every compensated point so that the control point is commanded.
+
+    ``(0, 0)`` for orientations 0 and 9 (the control point is the centre, as on a mill) and for a zero
+    radius; ``radius`` is taken as its magnitude (a negative one only swaps the side). ``ValueError``
+    for an orientation outside 0-9 (the interpreter refuses those with a G-code error first).
+    """
+    if isinstance(orientation, bool) or not isinstance(orientation, int) or not 0 <= orientation <= 9:
+        raise ValueError(f"lathe tool orientation must be an integer 0 to 9, not {orientation!r}")
+    dz, dx = _LATHE_TIP.get(orientation, (0.0, 0.0))
+    r = abs(radius)
+    return (dz * r + 0.0, dx * r + 0.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -263,7 +324,14 @@ class _Held:
 class CutterCompensator:
     """One G41/G42 .. G40 stretch of cutter radius compensation (see the module docstring)."""
 
-    def __init__(self, side: Side, radius: float, start: Point) -> None:
+    def __init__(
+        self,
+        side: Side,
+        radius: float,
+        start: Point,
+        orientation: int = 0,
+        normal: float | None = None,
+    ) -> None:
         if side not in ("left", "right"):
             raise ValueError(f"side must be 'left' or 'right', not {side!r}")
         if not math.isfinite(radius):
@@ -276,7 +344,10 @@ class CutterCompensator:
         self._s = 1 if side == "left" else -1
         self._programmed: Point = (float(start[0]), float(start[1]))
         self._tool: Point = self._programmed
-        self._normal: float | None = None
+        self.orientation = orientation
+        self._tip = lathe_tip_offset(orientation, self.radius)
+        self._normal: float | None = None if normal is None else float(normal)
+        self._entered = False  # a segment went out: the next one no longer starts uncompensated
         self._first = True
         self._closed = False
         self._queue: list[object] = []
@@ -291,8 +362,14 @@ class CutterCompensator:
 
     @property
     def tool(self) -> Point:
-        """Where the tool centre is (or will be, once the held move is released)."""
+        """Where the tool centre (a lathe tool's nose-radius centre) is, or will be once the held move
+        is released; the point commanded is this plus :attr:`tip`."""
         return self._tool
+
+    @property
+    def tip(self) -> Point:
+        """Vector from the nose-radius centre to the control point (:func:`lathe_tip_offset`)."""
+        return self._tip
 
     @property
     def pending(self) -> bool:
@@ -322,7 +399,7 @@ class CutterCompensator:
             out = self._entry_arc(seg) if self._first else self._arc(seg)
         self._programmed = seg.end
         self._normal = seg.normal
-        return out
+        return self._to_tip(out)
 
     def finish(self) -> list[object]:
         """Release the held move at its offset end (G40, program end); the compensator is then done."""
@@ -330,7 +407,7 @@ class CutterCompensator:
         self._closed = True
         if not self._queue:
             return []
-        return self._release(self._tool, 0)
+        return self._to_tip(self._release(self._tool, 0))
 
     # --- entry moves ----------------------------------------------------------------------------
 
@@ -373,6 +450,14 @@ class CutterCompensator:
         if abs(cos_a) < 1e-6:
             raise GCodeError(ARC_TOO_SMALL, line=seg.line)
         center = _add(end, _mul(u, _dot(chord, chord) / (2.0 * _dot(chord, u))))
+        first: list[object] = []
+        if self.orientation not in (0, 9):
+            # LinuxCNC's convert_arc_comp1: the control point first goes straight to where it is when
+            # the nose centre is at the arc's start, at the start's normal coordinate and with the
+            # other axes' end values; "otherwise, the arc isn't an arc". Final at once (see the module
+            # docstring on why it is not held with the arc).
+            normal = self._normal if self._normal is not None else seg.normal
+            first.append(Line2(start, start, normal, seg.extra, seg.line))
         out = Arc2(start, end, center, seg.ccw, seg.normal, seg.extra, seg.line, seg.turns)
         self._hold_move(
             out,
@@ -386,7 +471,7 @@ class CutterCompensator:
             ),
         )
         self._first = False
-        return []
+        return first
 
     # --- moves after the entry ------------------------------------------------------------------
 
@@ -473,6 +558,23 @@ class CutterCompensator:
         return out
 
     # --- helpers --------------------------------------------------------------------------------
+
+    def _to_tip(self, items: list[object]) -> list[object]:
+        """Segments from the nose centre's path to the control point's (see "Lathe tools" in the
+        module docstring); the first one ever handed out keeps its start, where the tool really is."""
+        tip = self._tip
+        shift = tip != (0.0, 0.0)
+        out: list[object] = []
+        for item in items:
+            if isinstance(item, Line2 | Arc2):
+                if shift:
+                    start = _add(item.start, tip) if self._entered else item.start
+                    item = replace(item, start=start, end=_add(item.end, tip))
+                    if isinstance(item, Arc2):
+                        item = replace(item, center=_add(item.center, tip))
+                self._entered = True
+            out.append(item)
+        return out
 
     def _check_open(self) -> None:
         if self._closed:

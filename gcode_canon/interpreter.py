@@ -735,8 +735,10 @@ class Interpreter:
             raise GCodeError("Q word with no G or M code that uses it")
         if orient:
             self._check_orient_words(w, ml)
-        if "l" in w and not (g0 == 100 or 66 in ms or 98 in ms or cycle):
-            raise GCodeError("L word with no G10 or M66 to use it")
+        if "l" in w and not (g0 == 100 or 66 in ms or 98 in ms or cycle
+                             or ml.g.get(7) in (410, 420, 411, 421)):
+            # LinuxCNC (check_other_codes) takes L with G41/G42 too, and ignores it there
+            raise GCodeError("L word with no G10, cutter compensation, canned cycle, M66 or M98 to use it")
         if "e" in w and not ms & {66, 67, 68}:
             raise GCodeError("E word with no M66, M67 or M68 to use it")
         if "h" in w and ml.g.get(8) != 430 and g0 != 100:
@@ -1171,7 +1173,12 @@ class Interpreter:
 
     def _step_cutter_comp(self, block: Block, ml: ModalLine) -> None:
         """G40 / G41 / G42 / G41.1 / G42.1: :mod:`gcode_canon.cutter_comp` does the geometry; the
-        modal state, the radius and the block checks are here."""
+        modal state, the radius, the lathe tool orientation and the block checks are here.
+
+        The orientation (tool table Q for G41/G42, L for G41.1/G42.1, 0 without L) and its checks are
+        LinuxCNC's ``convert_cutter_compensation_on`` (``interp_convert.cc``): a lathe orientation
+        (1-8) is only meaningful in G18, so L in any other plane, or a tool with orientation 1-8 there,
+        is an error; a G41/G42 L word is accepted and ignored, as there."""
         code = ml.g.get(7)
         if code is None:
             return
@@ -1185,10 +1192,20 @@ class Interpreter:
             raise GCodeError(f"{name}: cutter radius compensation works in G17 or G18 only, not "
                              f"{self.plane.gcode}")
         d = block.take("d")
+        orientation = 0
         if code in (411, 421):
             if d is None:
                 raise GCodeError(f"{name} needs a D word (the tool diameter)")
             diameter = d * self.scale
+            lword = self._int_word(block, "l", name)
+            if lword is not None:
+                if self.plane is not Plane.XZ:
+                    raise GCodeError(f"{name} with L word, but plane is not G18")
+                if lword > 9:
+                    # *canon*: LinuxCNC's manual makes this an error, its source takes any L >= 0 (and
+                    # an L above 9 then moves nothing but the lathe entry-arc pre-move)
+                    raise GCodeError(f"{name} L{lword}: invalid tool orientation (0 to 9)")
+                orientation = lword
         else:
             number = self.current_tool
             if d is not None:
@@ -1197,14 +1214,19 @@ class Interpreter:
                     raise GCodeError(f"{name} D{number}: negative tool number")
             tool = self._tool(number)
             diameter = float(tool.diameter) if tool is not None else 0.0
-        first, second, _ = self.plane.value
+            orientation = tool.orientation if tool is not None else 0
+            if self.plane is not Plane.XZ and orientation not in (0, 9):
+                raise GCodeError(f"{name} with lathe tool, but plane is not G18 (T{number} has "
+                                 f"orientation Q{orientation})")
+        first, second, normal = self.plane.value
         side = "left" if code in (410, 411) else "right"
         here = self.prog
         if self.xform_on:  # compensation works on the transformed path; a mirror swaps the side
             here = list(self.xform.apply_position(here))
             side = self.xform.comp_side(side, self.plane)
-        self.comp = cutter_comp.CutterCompensator(side, diameter / 2.0, (here[first], here[second]))
-        self._comp_normal = here[self.plane.value[2]]
+        self.comp = cutter_comp.CutterCompensator(side, diameter / 2.0, (here[first], here[second]),
+                                                  orientation, here[normal])
+        self._comp_normal = here[normal]
         self.comp_code = code
         self._after_comp = False
 
