@@ -5,8 +5,15 @@ arguments first (program file, MDI line, axis letters), then its numbers. ``cano
 joins the words into one MDI line. The command is checked here before it is sent, so a typo gets the
 list of verbs at once rather than a refusal from the daemon.
 
-Exit status: 0 the daemon accepted the command, 1 it refused it (or the command line is wrong), 3 no
-reply within ``--timeout`` (the daemon is not running, or listens on another URL).
+The daemon carries out ``enable``, ``disable``, ``estop_reset``, ``reset`` and ``home`` on a thread
+of its own (they talk to the drives for up to tens of seconds, and its command channel must stay free
+for an E-stop): it replies that it accepted them, and reports the result as an event. ``canon ctl``
+waits for that result (``--wait``, 120 s by default) and prints it, so ``canon ctl home`` still says
+whether the machine homed.
+
+Exit status: 0 the daemon accepted the command (and, for the verbs above, carried it out), 1 it
+refused it or the operation failed (or the command line is wrong), 3 no reply within ``--timeout``
+(the daemon is not running, or listens on another URL), or no result within ``--wait``.
 """
 
 from __future__ import annotations
@@ -16,6 +23,7 @@ import json
 import math
 import sys
 
+from motiond.control_client import RESULT_TIMEOUT_S, SERVICE_VERBS
 from telemetry.commands import VERBS
 from telemetry.url import DEFAULT_URL
 
@@ -56,8 +64,9 @@ def verbs_table() -> str:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.epilog = ("verbs:\n" + verbs_table() + "\n\nexit status: 0 accepted, 1 refused or a wrong "
-                     "command line, 3 no reply within --timeout")
+    parser.epilog = ("verbs:\n" + verbs_table() + "\n\nexit status: 0 accepted (and done, for "
+                     f"{', '.join(sorted(SERVICE_VERBS))}), 1 refused, failed or a wrong command line, 3 no "
+                     "reply within --timeout or no result within --wait")
     parser.add_argument("verb", nargs="?", metavar="VERB", help="what to do (listed below)")
     parser.add_argument("arguments", nargs="*", metavar="ARGS", help="the verb's arguments")
     parser.add_argument("--config", metavar="machine.toml",
@@ -68,6 +77,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                         "command lines)")
     parser.add_argument("--timeout", type=float, default=5.0, metavar="S",
                         help="seconds to wait for the reply (default 5)")
+    parser.add_argument("--wait", type=float, default=RESULT_TIMEOUT_S, metavar="S",
+                        help=f"seconds to wait for the result of {', '.join(sorted(SERVICE_VERBS))} "
+                             f"(default {RESULT_TIMEOUT_S:g}; 0: print that it was accepted and return)")
     parser.add_argument("--json", action="store_true", help="print the reply as JSON")
 
 
@@ -125,7 +137,14 @@ def resolve(args: argparse.Namespace) -> tuple[str, str]:
 
 def run(args: argparse.Namespace) -> int:
     from motiond.cli import UserError
-    from motiond.control_client import CommandError, NoReply, client_lcm, no_answer_message, send_command
+    from motiond.control_client import (
+        CommandError,
+        NoReply,
+        NoResult,
+        client_lcm,
+        no_answer_message,
+        send_command,
+    )
     from telemetry.publisher import TelemetryUnavailable
 
     if args.verb is None:
@@ -133,23 +152,29 @@ def run(args: argparse.Namespace) -> int:
     strings, values = split_arguments(args.verb, list(args.arguments))
     if not (math.isfinite(args.timeout) and args.timeout > 0):
         raise UserError(f"--timeout must be a number of seconds > 0, got {args.timeout:g}")
+    if not (math.isfinite(args.wait) and args.wait >= 0):
+        raise UserError(f"--wait must be a number of seconds >= 0, got {args.wait:g}")
     url, token = resolve(args)
     try:
         lc = client_lcm(url)
     except TelemetryUnavailable as exc:
         raise UserError(str(exc)) from None
     try:
-        reply = send_command(lc, args.verb, strings, values, token, args.timeout)
+        reply = send_command(lc, args.verb, strings, values, token, args.timeout, wait_result=args.wait)
     except CommandError as exc:
         raise _usage_error(str(exc), args.verb) from None
     except NoReply:
         print(f"canon ctl: {no_answer_message(f'reply to {args.verb!r}', url, args.timeout)}",
               file=sys.stderr)
         return EXIT_NO_REPLY
+    except NoResult as exc:
+        print(f"canon ctl: {exc}", file=sys.stderr)
+        return EXIT_NO_REPLY
     if args.json:
         print(json.dumps(reply.to_dict()))
     elif reply.ok:
-        print(f"{reply.verb}: ok")
+        accepted_only = args.verb in SERVICE_VERBS and args.wait == 0
+        print(f"{reply.verb}: {'accepted' if accepted_only else 'ok'}")
     if not reply.ok:
         if not args.json:
             print(f"canon ctl: {reply.verb}: {reply.error}", file=sys.stderr)

@@ -16,9 +16,19 @@
 Threads: ``canon-cycle`` (a :class:`~fieldbus.canopen.clock.PeriodicRunner` on absolute deadlines:
 feeds the planner from the queue, one setpoint, one ``master.cycle``, ``io.on_setpoint``); the job
 thread (interpretation; blocks in the machine callbacks for M66 and probes); ``canon-status``
-(builds and publishes ``canon.status`` at ``status_hz``: never on the cycle thread); the CANopen and
+(builds and publishes ``canon.status`` at ``status_hz``: never on the cycle thread); ``canon-service``
+(the slow operations the command channel asked for, one at a time: see below); the CANopen and
 Modbus libraries' own threads; the caller's (commands). Nothing the cycle thread does waits on a
 network: LCM publishing, Modbus traffic and SDO transfers all happen elsewhere.
+
+Slow operations (``enable``, ``disable``, ``estop_reset``, ``reset``, ``home``: SDO conversations of
+tens of milliseconds to tens of seconds) block their caller when called as methods (``canon run``,
+tests, :meth:`Machine.bring_up`). From the command channel, :meth:`Machine.handle_command` checks them
+against the state at once, hands them to the ``canon-service`` thread and returns: the LCM thread
+that answers commands must never wait behind a 30 s homing, or an operator's ``estop``, ``abort`` or
+``pause`` would wait with it. While one runs, another is refused (``busy: homing axis x``); its result
+is an event (``motiond.control_client.result_text``). ``estop`` interrupts a running one: the drives
+are quick-stopped at once (no SDO), and the operation ends failed with the machine left in ESTOP.
 
 Faults (a drive's EMCY or heartbeat, a late cycle beyond ``late_fault_s``, an I/O link, an
 interpreter or planner error) all end in :meth:`Machine._fault`: motion stops (the master quick-stops
@@ -42,7 +52,7 @@ import queue
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -65,6 +75,8 @@ SIM_FEEDBACK_TIMEOUT_S = 0.5
 SIM_HEARTBEAT_CONSUMER_MS = 1500
 """And a heartbeat this late (both ways): on a loaded PC the process can stall for a few 100 ms."""
 """With drives simulated in this process, a TPDO may be this late before it is a fault (real: 0.1 s)."""
+SERVICE_JOIN_S = 5.0
+"""Shutdown waits this long for the service thread to end an interrupted operation."""
 _END = object()  # end of a job's commands in the queue
 
 _instance = itertools.count(1)
@@ -135,6 +147,23 @@ class _Job:
         self.result: JobResult | None = None
         self.line = 0
         self.lines_total = 0
+
+
+@dataclass(eq=False)
+class _ServiceOp:
+    """A slow operation the command channel accepted, for the service thread.
+
+    ``since``: the machine's interruption count when it was accepted, so that an E-stop that comes
+    after the command but before the thread starts it still makes it fail (an ``estop_reset`` must
+    not undo a later ``estop``).
+    """
+
+    verb: str
+    what: str  # "homing axis x": what a refused command is told is busy
+    fn: Callable[[], None]
+    request_id: int
+    sender: str
+    since: int
 
 
 class _Aborted(Exception):
@@ -290,6 +319,17 @@ class Machine:
         self._job: _Job | None = None
         self._last_job: _Job | None = None
         self._ops = threading.RLock()  # one slow operation (enable, home, reset ...) at a time
+        self._activity = ""  # the slow operation holding _ops, in words ("" none)
+        self._service_q: queue.SimpleQueue[_ServiceOp | None] = queue.SimpleQueue()
+        self._service_ops: list[_ServiceOp] = []  # accepted and not finished, in order
+        self._service_lock = threading.Lock()
+        self._service_thread: threading.Thread | None = None
+        self._service_closed = False
+        self._tls = threading.local()  # .since: the running service op's interruption count
+        self._stop_lock = threading.Lock()
+        self._interrupts = 0  # E-stops (and a shutdown) so far: a slow operation compares
+        self._interrupt_reason = ""
+        self._aborts = 0  # 'abort' commands so far: a homing stops before its next axis
         self._fault_lock = threading.Lock()
         self._pending_fault: tuple[str, str] | None = None
         self._estopping = False
@@ -368,6 +408,10 @@ class Machine:
             self.runner = PeriodicRunner(self.T, self._step, on_late=self._on_late, keep_lateness=False,
                                          name="canon-cycle")
             self.runner.start()
+            self._service_closed = False
+            self._service_thread = threading.Thread(target=self._service_main, name="canon-service",
+                                                    daemon=True)
+            self._service_thread.start()
             self._status_thread = threading.Thread(target=self._status_loop, name="canon-status", daemon=True)
             self._status_thread.start()
         except BaseException:
@@ -408,6 +452,7 @@ class Machine:
     def shutdown(self) -> None:
         """Stop everything safely: the job cancelled, drives quick-stopped then disabled, outputs to
         their safe values, parameters saved, telemetry stopped. Safe to call twice."""
+        interrupted = self._stop_service()
         job = self._job
         if job is not None:
             job.cancel.set()
@@ -415,7 +460,7 @@ class Machine:
                 self._sync_cond.notify_all()
             if job.thread is not None:
                 job.thread.join(2.0)
-        if self.master is not None and self.master.streaming:
+        if self.master is not None and (self.master.streaming or interrupted):
             self._hold_stream = True
             try:
                 self._disable_drives()
@@ -488,6 +533,188 @@ class Machine:
         if not wait:
             return None
         return fut.result(timeout)
+
+    # ------------------------------------------------------------------ slow operations
+    def busy(self) -> str:
+        """The slow operation running or accepted now, in words ("homing axis x"); "" when none.
+
+        The command channel refuses another slow operation, and anything that would move, meanwhile.
+        """
+        what = self._activity
+        if what:
+            return what
+        with self._service_lock:
+            return self._service_ops[0].what if self._service_ops else ""
+
+    @contextlib.contextmanager
+    def _operation(self, what: str) -> Iterator[int]:
+        """One slow operation at a time (``_ops``), named for :meth:`busy`; yields the interruption
+        count it runs against (:class:`_ServiceOp`'s ``since`` on the service thread, now otherwise).
+
+        An E-stop (or shutdown) during the operation makes it fail, whatever it got to: the drives are
+        quick-stopped again (it may have enabled some after the E-stop's own quick stop) and the state
+        put back to ESTOP (it may have left ESTOP or enabled), then :class:`CommandRefused` says so.
+        """
+        since = getattr(self._tls, "since", None)
+        with self._ops:
+            if since is None:
+                since = self._interrupts
+            outer, self._activity = self._activity, what
+            try:
+                try:
+                    yield since
+                except Exception as exc:
+                    if self._interrupts == since:
+                        raise
+                    doing = self._activity
+                    self._stop_after_interrupt()
+                    if isinstance(exc, CommandRefused):
+                        raise CommandRefused(f"{doing} interrupted by {self._interrupt_reason} ({exc})") \
+                            from None
+                    raise
+                if self._interrupts != since:
+                    doing = self._activity
+                    self._stop_after_interrupt()
+                    raise CommandRefused(f"{doing} interrupted by {self._interrupt_reason}")
+            finally:
+                self._activity = outer
+
+    def _interrupt(self, reason: str) -> None:
+        """Any thread: every slow operation running or accepted now is to fail (E-stop, shutdown)."""
+        with self._stop_lock:
+            self._interrupt_reason = reason
+            self._interrupts += 1
+
+    def _quick_stop(self, reason: str) -> None:
+        """CiA 402 quick stop on every drive now (RPDOs, no SDO), not reported as a drive fault."""
+        if self.master is None:
+            return
+        with self._stop_lock:
+            self._estopping = True
+            try:
+                self.master.quick_stop(reason)
+            finally:
+                self._estopping = False
+
+    def _stop_after_interrupt(self) -> None:
+        self._quick_stop(self._interrupt_reason or "E-stop")
+        self.states.estop()
+        self._on_cycle(lambda: setattr(self, "planner", None), wait=False)
+
+    def _service_request(self, verb: str, strings: list[str]) -> tuple[Callable[[], None], str]:
+        """Check a slow verb against the state now (its refusal in the state rules' words, as the
+        method itself would give it) and return the method call for the service thread and what it
+        is doing. Nothing here talks to the drives."""
+        snap = self.states.snapshot()
+        if verb == "enable":
+            self._refuse_unless(snap.state is State.IDLE, self.states.enable)
+            return self.enable, "enabling the drives"
+        if verb == "disable":
+            self._refuse_unless(snap.state in (State.IDLE, State.FAULTED), self.states.disable)
+            return self.disable, "disabling the drives"
+        if verb == "estop_reset":
+            self._refuse_unless(snap.state is State.ESTOP, self.states.estop_reset)
+            if self.io is not None and self.io.fault is not None and not self.io.link_up:
+                raise CommandRefused(f"cannot reset the estop: a Modbus link is down ({self.io.fault})")
+            return self.estop_reset, "leaving E-stop (resetting the drives)"
+        if verb == "reset":
+            self._refuse_unless(snap.state is State.FAULTED, self.states.reset)
+            if self.io is not None and self.io.fault is not None and not self.io.link_up:
+                raise CommandRefused(f"cannot reset: a Modbus link is still down ({self.io.fault})")
+            return self.reset, "resetting the fault"
+        if verb == "home":
+            names = self._home_axes(strings)
+            self.states.manual("home")
+            if self.planner is not None and not self.planner.is_idle:
+                raise CommandRefused("cannot home while the axes move")
+            return (lambda: self.home(names)), f"homing axis {names[0]}"
+        raise ValueError(f"{verb!r} is not a slow operation")
+
+    def _refuse_unless(self, allowed: bool, transition: Callable[[], Any]) -> None:
+        """``transition`` is the state rule's method, which raises its refusal when not ``allowed``; the
+        states' lock keeps the state from changing between the snapshot and the call (the call would
+        then perform the transition)."""
+        with self.states._lock:
+            if not allowed:
+                transition()  # raises the refusal
+
+    def _accept(self, cmd: Any) -> str | None:
+        """Command thread: check a slow verb now, queue it for the service thread, return at once."""
+        verb = cmd.verb
+        busy = self.busy()
+        if busy:
+            return f"busy: {busy}"
+        try:
+            fn, what = self._service_request(verb, list(cmd.strings))
+        except CommandRefused as exc:
+            return str(exc)
+        op = _ServiceOp(verb, what, fn, int(cmd.request_id), str(cmd.sender), self._interrupts)
+        with self._service_lock:
+            if self._service_thread is None or self._service_closed or not self._service_thread.is_alive():
+                return "the machine is not running (shutting down?)"
+            if self._service_ops:
+                return f"busy: {self._service_ops[0].what}"
+            self._service_ops.append(op)
+        self._service_q.put(op)
+        self.event("DEBUG", f"command {verb} from {cmd.sender or '?'} accepted: {what}", kind="command",
+                   source="telemetry")
+        return None
+
+    def _service_main(self) -> None:
+        """The ``canon-service`` thread: accepted slow operations, in order; each one's result an event."""
+        from motiond.control_client import RESULT_KIND, result_text
+
+        while True:
+            op = self._service_q.get()
+            if op is None:
+                return
+            error: str | None = "internal error: the operation did not report"
+            try:
+                error = "not run: the machine is shutting down" if self._service_closed else self._run_op(op)
+            finally:  # whatever happened, not busy any more, and before anyone hears the result
+                with self._service_lock:
+                    if op in self._service_ops:
+                        self._service_ops.remove(op)
+                self.event("INFO" if error is None else "ERROR",
+                           result_text(op.verb, op.request_id, op.sender, error),
+                           kind=RESULT_KIND, source="motiond")
+
+    def _run_op(self, op: _ServiceOp) -> str | None:
+        """Run one operation on the service thread: None, or why it failed."""
+        self._tls.since = op.since
+        try:
+            op.fn()
+        except CommandRefused as exc:
+            return str(exc)
+        except concurrent.futures.TimeoutError:
+            return f"{op.what}: the cycle thread did not answer (machine stopping?)"
+        except Exception as exc:  # a bug: reported as the result, never silently
+            log.exception("%s", op.what)
+            return f"internal error while {op.what}: {type(exc).__name__}: {exc}"
+        finally:
+            self._tls.since = None
+        return None
+
+    def _stop_service(self) -> bool:
+        """Shutdown: interrupt the running operation (quick stop), drop those not started, end the
+        thread (waiting at most :data:`SERVICE_JOIN_S`). True when an operation was interrupted and the
+        thread has ended, so that the drives may be disabled by SDO without crossing it."""
+        with self._service_lock:
+            self._service_closed = True
+            running = bool(self._service_ops)
+        thread, self._service_thread = self._service_thread, None
+        if running:
+            self._interrupt("shutdown")
+            self._quick_stop("shutdown")
+        if thread is None:
+            return False
+        self._service_q.put(None)
+        thread.join(SERVICE_JOIN_S)
+        if thread.is_alive():
+            log.warning("the service thread is still in %r %g s after shutdown began; carrying on",
+                        self.busy(), SERVICE_JOIN_S)
+            return False
+        return running
 
     def _on_state_change(self, before: Any, after: Any) -> None:
         if before.state != after.state:
@@ -795,6 +1022,13 @@ class Machine:
             pose[k] = pos[i]
         return C.Pose(*pose)
 
+    def _new_planner_unless_interrupted(self, since: int) -> None:
+        """Cycle thread: :meth:`_new_planner`, unless an E-stop came since ``since`` (it dropped the
+        planner; one made now would outlive it). Deciding on the cycle thread orders this against the
+        E-stop's own drop of the planner, which it posts after counting the interruption."""
+        if self._interrupts == since:
+            self._new_planner()
+
     def _new_planner(self) -> None:
         """Cycle thread: a planner at rest where the drives hold, primed with the interpreter's modes."""
         from planner.core import Planner
@@ -932,14 +1166,11 @@ class Machine:
 
     # ------------------------------------------------------------------ commands
     def estop(self) -> None:
-        """Always accepted: quick stop on every drive now, the job cancelled, ESTOP."""
+        """Always accepted: quick stop on every drive now, the job cancelled, ESTOP. A slow operation
+        running meanwhile (homing, enabling ...) fails (:meth:`_operation`)."""
+        self._interrupt("E-stop")
         self.states.estop()
-        self._estopping = True
-        try:
-            if self.master is not None:
-                self.master.quick_stop("E-stop")
-        finally:
-            self._estopping = False
+        self._quick_stop("E-stop")
 
         def on_cycle() -> None:
             self._cancel_job("E-stop", aborted=True)
@@ -950,7 +1181,7 @@ class Machine:
         self.event("WARNING", "E-stop", kind="estop", source="motiond")
 
     def estop_reset(self) -> None:
-        with self._ops:
+        with self._operation("leaving E-stop (resetting the drives)"):
             if self.states.state is not State.ESTOP:
                 self.states.estop_reset()  # raises the refusal
             if self.io is not None and self.io.fault is not None and not self.io.acknowledge():
@@ -991,7 +1222,7 @@ class Machine:
     def enable(self) -> None:
         from fieldbus.canopen.master import CanopenError
 
-        with self._ops:
+        with self._operation("enabling the drives") as since:
             snap = self.states.snapshot()
             if snap.state is not State.IDLE:
                 self.states.enable()  # raises the refusal
@@ -1002,13 +1233,15 @@ class Machine:
             except CanopenError as exc:
                 raise CommandRefused(f"enable failed: {exc}") from None
             self._hold_stream = False
-            self._on_cycle(self._new_planner)
+            self._on_cycle(lambda: self._new_planner_unless_interrupted(since))
+            if self._interrupts != since:
+                return  # _operation: failed, and the machine left in ESTOP
             self.states.enable()
 
     def disable(self) -> None:
         from fieldbus.canopen.master import CanopenError
 
-        with self._ops:
+        with self._operation("disabling the drives"):
             snap = self.states.snapshot()
             if snap.state not in (State.IDLE, State.FAULTED):
                 self.states.disable()  # raises
@@ -1019,7 +1252,7 @@ class Machine:
             self.states.disable()
 
     def reset(self) -> None:
-        with self._ops:
+        with self._operation("resetting the fault"):
             if self.states.state is not State.FAULTED:
                 self.states.reset()  # raises the refusal
             if self.io is not None and self.io.fault is not None and not self.io.acknowledge():
@@ -1036,7 +1269,11 @@ class Machine:
             self.event("INFO", "fault reset", kind="reset", source="motiond")
 
     def _start_job(self, mode: Mode, program: str, source: Callable[[], Any], lines_total: int = 0) -> _Job:
-        with self._ops:
+        # bounded: the command thread must not wait behind a slow operation called from elsewhere
+        if not self._ops.acquire(timeout=1.0):
+            raise CommandRefused(f"busy: {self.busy() or 'another operation'}")
+        with contextlib.ExitStack() as held:
+            held.callback(self._ops.release)
             if self.states.state is not State.IDLE:
                 self.states.start(mode)  # raises the refusal that names the state
             if self._job is not None or self._aborting or self._stop_then_disable:
@@ -1148,9 +1385,11 @@ class Machine:
         self._on_cycle(on_cycle)
 
     def abort(self) -> None:
+        """Stop the program on the path (module docstring); a homing stops before its next axis."""
         snap = self.states.snapshot()
         if snap.state not in (State.RUNNING, State.PAUSED, State.IDLE):
             self.states.abort()  # raises
+        self._aborts += 1
 
         def on_cycle() -> None:
             self._cancel_job("aborted by the operator", aborted=True)
@@ -1167,30 +1406,42 @@ class Machine:
             raise CommandRefused(f"feed override must be between 0 and 2 (0 to 200 %), got {factor:g}")
         self._on_cycle(lambda: self.planner.set_feed_override(factor) if self.planner is not None else None)
 
-    def home(self, axes: list[str] | tuple[str, ...] = ()) -> None:
-        from fieldbus.canopen.master import CanopenError
-
+    def _home_axes(self, axes: list[str] | tuple[str, ...]) -> list[str]:
         names = [a.lower() for a in axes] or list(self.names)
         for a in names:
             if a not in self.names:
                 raise CommandRefused(f"no axis {a!r} (axes: {' '.join(self.names)})")
-        with self._ops:
+        return names
+
+    def home(self, axes: list[str] | tuple[str, ...] = ()) -> None:
+        """Home ``axes`` (all: none given) one after the other. An E-stop fails it at once (the drive
+        homing is quick-stopped); an ``abort`` before the next axis."""
+        from fieldbus.canopen.master import CanopenError
+
+        names = self._home_axes(axes)
+        with self._operation(f"homing axis {names[0]}") as since:
             self.states.manual("home")
             if self.planner is not None and not self.planner.is_idle:
                 raise CommandRefused("cannot home while the axes move")
+            aborts = self._aborts
             self._hold_stream = True
             try:
                 time.sleep(2 * self.T)  # let the cycle thread see the hold
                 for a in names:
+                    if self._aborts != aborts:
+                        raise CommandRefused(f"homing aborted by the operator before axis {a}")
                     self._homing = a
+                    self._activity = f"homing axis {a}"
                     self.master.home(a)
+                    if self._interrupts != since:
+                        return  # _operation: failed, the axis not marked homed
                     self.homed[self.names.index(a)] = True
                     self.event("INFO", f"axis {a} homed", kind="homed", source="canopen")
             except CanopenError as exc:
                 raise CommandRefused(f"homing failed: {exc}") from None
             finally:
                 self._homing = ""
-                self._on_cycle(self._new_planner)
+                self._on_cycle(lambda: self._new_planner_unless_interrupted(since))
                 self._hold_stream = False
 
     def jog(self, axis: str, velocity: float, distance: float = 0.0) -> None:
@@ -1247,10 +1498,22 @@ class Machine:
 
     # ------------------------------------------------------------------ LCM commands
     def handle_command(self, cmd: Any) -> str | None:
-        """``telemetry.commands.CommandServer``'s handler: None (done / accepted) or the refusal."""
+        """``telemetry.commands.CommandServer``'s handler: None (done / accepted) or the refusal.
+
+        It runs on the LCM thread and never waits for the drives: the slow verbs
+        (``control_client.SERVICE_VERBS``) are checked here and carried out on the service thread,
+        their result an event (``control_client.result_text``)."""
+        from motiond.control_client import SERVICE_VERBS
+
         verb = cmd.verb
         s = list(cmd.strings)
         v = list(cmd.values)
+        if verb in SERVICE_VERBS:
+            return self._accept(cmd)  # the result follows as an event
+        if verb in ("run", "mdi") or (verb == "jog" and v and v[0] != 0.0):
+            busy = self.busy()
+            if busy:
+                return f"busy: {busy}"
         try:
             if verb == "run":
                 self.run(s[0], int(v[0]) if v else 0)
@@ -1266,16 +1529,6 @@ class Machine:
                 self.abort()
             elif verb == "estop":
                 self.estop()
-            elif verb == "estop_reset":
-                self.estop_reset()
-            elif verb == "enable":
-                self.enable()
-            elif verb == "disable":
-                self.disable()
-            elif verb == "reset":
-                self.reset()
-            elif verb == "home":
-                self.home(s)
             elif verb == "jog":
                 self.jog(s[0], v[0], v[1] if len(v) > 1 else 0.0)
             elif verb == "single_block":

@@ -24,11 +24,19 @@ from rich.console import Console
 
 from motiond import control_client
 from motiond.cli import main
-from motiond.control_client import CommandError, NoReply, Reply, send_command, shared_memq
+from motiond.control_client import (
+    SERVICE_VERBS,
+    CommandError,
+    NoReply,
+    Reply,
+    result_text,
+    send_command,
+    shared_memq,
+)
 from motiond.status_view import StatusWatcher, decode_event, decode_status, render_status, to_json
 from telemetry.commands import CommandServer
 from telemetry.lcmtypes.canon import drive_status, event, reply, status
-from telemetry.publisher import CANON_COMMAND, CANON_REPLY, EventPublisher, StatusPublisher
+from telemetry.publisher import CANON_COMMAND, CANON_EVENT, CANON_REPLY, EventPublisher, StatusPublisher
 from telemetry.url import DEFAULT_URL
 
 REMOTE = "udpm://239.255.76.67:7667?ttl=1"  # given to the server for the token rule only
@@ -37,7 +45,11 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 class FakeDaemon:
-    """The daemon's command side: a CommandServer whose handler records commands and refuses ``run``."""
+    """The daemon's command side: a CommandServer whose handler records commands and refuses ``run``.
+
+    Like the daemon, it reports the result of a slow verb (``control_client.SERVICE_VERBS``) as an
+    event after accepting it: done at once here.
+    """
 
     def __init__(self, lc: Any, *, url: str = "memq://", token: str = "", threaded: bool = False) -> None:
         self.commands: list[Any] = []
@@ -49,6 +61,11 @@ class FakeDaemon:
 
     def handler(self, cmd: Any) -> str | None:
         self.commands.append(cmd)
+        if cmd.verb in SERVICE_VERBS:
+            ev = event()
+            ev.severity, ev.kind = event.INFO, "command"
+            ev.text = result_text(cmd.verb, cmd.request_id, cmd.sender, None)
+            self.server.lc.publish(CANON_EVENT, ev.encode())
         return "not homed: home the machine first" if cmd.verb == "run" else None
 
     def stop(self) -> None:

@@ -156,10 +156,14 @@ def test_run_from_idle_to_running_to_idle(daemon: Daemon) -> None:
     switched = [(k, ev) for k, (_c, _t, _p, evs) in enumerate(trace) for ev in evs
                 if type(ev).__name__ == "DigitalOutput"]
     assert [(ev.index, ev.on, ev.line) for _k, ev in switched] == [(0, True, 5), (0, False, 9)]
+    # In G64 P the retract after the arc starts inside a transition that eases the corner, so Z leaves
+    # its rest during the output's cycle rather than exactly at it: at most one cycle of a jerk-limited
+    # start (Z velocity and acceleration both 0 there), j T^3 / 6.
+    one_cycle = daemon.machine.limits.axes[2].max_jerk * daemon.machine.T ** 3 / 6
     for (k, ev), z_rest in zip(switched, (5.0, -1.0), strict=True):
         z = [trace[i][2][2] for i in range(k - 2, k + 2)]
         assert z[0] == z[1] == z_rest, f"line {ev.line}: Z moved before the output's cycle"
-        assert abs(z[2] - z_rest) < 1e-6, f"line {ev.line}: the output came late"
+        assert abs(z[2] - z_rest) <= one_cycle, f"line {ev.line}: the output came late"
         assert z[3] != z_rest, f"line {ev.line}: Z does not start moving with its output"
     module = daemon.machine.sim_io["io"]
     writes = module.writes_to("coil", 0)
