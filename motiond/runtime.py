@@ -406,7 +406,9 @@ class Machine:
             if self.modbus is not None:
                 self._start_io()
             self.runner = PeriodicRunner(self.T, self._step, on_late=self._on_late, keep_lateness=False,
-                                         name="canon-cycle")
+                                         name="canon-cycle",
+                                         realtime_priority=self.canopen.realtime_priority,
+                                         cpu_latency_us=self.canopen.cpu_latency_us)
             self.runner.start()
             self._service_closed = False
             self._service_thread = threading.Thread(target=self._service_main, name="canon-service",

@@ -283,3 +283,67 @@ def test_enable_right_after_a_quick_stop_waits_for_the_ramp(rig):
     assert r.master.fault is None
     for node, p in zip((1, 2), held, strict=True):
         assert r.sim(node).actual / 10000 == pytest.approx(p, abs=1e-3)
+
+
+def test_a_failed_homing_leaves_the_drive_in_csp_holding_where_it_stopped(rig):
+    """A homing that times out must not leave the drive homing by itself: the master stops it, puts
+    it back in cyclic synchronous position, and the axis streams again without a jump."""
+    import dataclasses
+
+    sims = [SimDrive(1, home_switch_counts=10**8)]  # a switch the drive never reaches
+    cfg = make_config(1, homing="cia402", homing_timeout_s=0.3)
+    cfg = dataclasses.replace(cfg, drives=(dataclasses.replace(cfg.drives[0], homing_method=19),))
+    r = Rig(cfg, sims)
+    try:
+        r.up()
+        runner = PeriodicRunner(cfg.cycle_s, lambda k, t: r.master.cycle(None), cycles=1000,
+                                late_s=1.0).start()
+        try:
+            with pytest.raises(CanopenError, match="homing not attained"):
+                r.master.home("x")
+        finally:
+            runner.stop()
+            assert runner.join(5.0)
+        sim = r.sim(1)
+        assert sim.mode == cia402.MODE_CSP and not sim._homing
+        moved = sim.actual
+        assert abs(moved) > 1000  # it did travel before the timeout
+        held = r.master.positions()[0]
+        assert held * 10000 == pytest.approx(moved, abs=2)
+        r.run(20, lambda k: [held + 0.001 * k])
+        assert r.master.fault is None, r.master.fault
+        assert sim.actual == pytest.approx(moved + 190, abs=30)  # 19 * 0.001 mm, minus the servo lag
+    finally:
+        r.close()
+
+
+def test_the_daemon_runs_its_cycle_thread_as_the_machine_file_says(tmp_path, monkeypatch):
+    from motiond.config import load_machine
+    from motiond.runtime import Machine
+
+    qos = tmp_path / "cpu_dma_latency"
+    qos.write_bytes(b"")
+    monkeypatch.setattr(CpuLatencyRequest, "PATH", str(qos))
+    machine_file = tmp_path / "m.toml"
+    machine_file.write_text("""
+[axes.x]
+max_velocity = 100.0
+max_acceleration = 1000.0
+max_jerk = 10000.0
+[canopen]
+simulate = true
+realtime_priority = 1
+cpu_latency_us = 25
+[canopen.axes.x]
+node_id = 1
+""")
+    m = Machine(load_machine(str(machine_file)), lc=None).start()
+    try:
+        runner = m.runner
+        assert runner.realtime_priority == 1
+        assert runner.cpu_latency is not None and runner.cpu_latency.us == 25
+        assert wait_for(lambda: runner.cpu_latency_held, 2.0)
+        assert qos.read_bytes() == (25).to_bytes(4, "little")
+    finally:
+        m.shutdown()
+    assert not runner.cpu_latency.held

@@ -29,6 +29,7 @@ Design choices:
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import struct
@@ -386,6 +387,8 @@ class CanopenMaster:
 
     def _enable_drive(self, d: _Drive) -> None:
         timeout = self.config.state_timeout_s
+        if self._sdo(d, "modes of operation display", 0x6061, 0, "b") != cia402.MODE_CSP:
+            self._back_to_csp(d)
         for _ in range(8):
             sw = self._statusword(d)
             state = cia402.decode(sw)
@@ -594,6 +597,11 @@ class CanopenMaster:
             d.homing = True
         try:
             self._home_cia402(d)
+        except CanopenError:
+            # never leave the drive homing on its own while the master streams to it later
+            with contextlib.suppress(CanopenError):
+                self._back_to_csp(d)
+            raise
         finally:
             with self._lock:
                 d.homing = False
@@ -631,6 +639,17 @@ class CanopenMaster:
             d.target = d.actual = actual
         self._sdo(d, "controlword", 0x6040, 0, "H", cia402.CW_ENABLE_OPERATION)
         self._set_mode(d, cia402.MODE_CSP)
+
+    def _back_to_csp(self, d: _Drive) -> None:
+        """A drive left in another mode (a homing that failed or was cut short): stop that motion
+        (homing start bit cleared), back to cyclic synchronous position, and hold where it stands."""
+        if cia402.decode(self._statusword(d)) == State.OPERATION_ENABLED:
+            self._sdo(d, "controlword (stop homing)", 0x6040, 0, "H", cia402.CW_ENABLE_OPERATION)
+        self._set_mode(d, cia402.MODE_CSP)
+        actual = self._sdo(d, "position actual", 0x6064, 0, "i")
+        with self._lock:
+            d.target = d.actual = actual
+        log.info("%s back in cyclic synchronous position mode", d.describe())
 
     def _set_mode(self, d: _Drive, mode: int) -> None:
         self._sdo(d, "modes of operation", 0x6060, 0, "b", mode)
