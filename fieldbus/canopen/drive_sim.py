@@ -403,6 +403,13 @@ class SimDrive:
                 mode = struct.unpack_from("<b", data)[0]
                 if mode not in (cia402.MODE_CSP, cia402.MODE_HOMING):
                     raise SdoAbortedError(0x06090030)  # value range exceeded
+                if mode != self.mode:
+                    # as drives do on a mode change: the demand starts where the motor is (no jump,
+                    # and a homing travel cut short stops where it is)
+                    self.demand = self.actual
+                    self.target = round(self.actual)
+                    self._pending_target = None
+                    self.velocity = 0.0
                 self.mode = mode
                 self._homing = False
             elif index == SIM_INJECT and subindex == SIM_INJECT_CODE:
