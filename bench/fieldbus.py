@@ -13,7 +13,7 @@ The cycle thread runs as the daemon's does: SCHED_FIFO at ``--rt-priority`` and 
 load column is what the configuration would put on a 1 Mbit/s bus in the chosen PDO layout (the master
 refuses over 70 % there; here a case over it is marked, and runs anyway).
 
-    python bench/fieldbus.py              # 30 s per case, standard PDO layout
+    python bench/fieldbus.py              # 30 s per case; per case the PDO layout that fits 1 Mbit/s
     python bench/fieldbus.py --seconds 10 --rt-priority 80 --layout compact --fe-every 4
 """
 
@@ -37,6 +37,7 @@ import numpy as np  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
+from fieldbus.canopen.busload import fitting_layouts  # noqa: E402
 from fieldbus.canopen.clock import PeriodicRunner  # noqa: E402
 from fieldbus.canopen.config import CanBusConfig, CanopenConfig, DriveConfig  # noqa: E402
 from fieldbus.canopen.drive_sim import SimDrive  # noqa: E402
@@ -69,8 +70,17 @@ def row(label: str, runner: PeriodicRunner, seconds: float, extra: dict) -> dict
 
 RT = 0
 LATENCY: int | None = 0
-LAYOUT = "standard"
+LAYOUT = "auto"
 FE_EVERY = 1
+
+
+def layout_for(n: int, period: float) -> tuple[str, int]:
+    """``--layout auto``: the layout the master would accept on 1 Mbit/s (the standard one with
+    following error every SYNC where it fits, else the first that fits); none fits: standard."""
+    if LAYOUT != "auto":
+        return LAYOUT, FE_EVERY
+    fits = fitting_layouts(n, period, 1_000_000, 0.70, 100, 100)
+    return (fits[0][0].name, fits[0][0].following_error_every) if fits else ("standard", 1)
 
 
 def reference(period: float, seconds: float) -> dict:
@@ -79,7 +89,7 @@ def reference(period: float, seconds: float) -> dict:
     runner.join(seconds * 3 + 10)
     return row(f"reference: Python, empty step, {1000 * period:g} ms", runner, seconds,
                {"setpoints": "-", "cpu": f"{100 * runner.stats.cpu_s / seconds:.0f}", "work": "-",
-                "load": "-"})
+                "load": "-", "layout": "-"})
 
 
 def c_reference(period: float, seconds: float, exe: Path | None) -> dict | None:
@@ -96,7 +106,7 @@ def c_reference(period: float, seconds: float, exe: Path | None) -> dict | None:
         return None
     return {"case": f"reference: C, kernel floor, {1000 * period:g} ms", "period": "-", "p50": p50,
             "p99": p99, "p999": p999, "max": worst, "missed": missed, "setpoints": "-", "cpu": "-",
-            "work": "-", "load": "-"}
+            "work": "-", "load": "-", "layout": "-"}
 
 
 def build_rt_floor(tmp: Path) -> Path | None:
@@ -146,8 +156,9 @@ def case(n: int, period: float, seconds: float, interface: str = "virtual") -> d
         bus = CanBusConfig("virtual", f"bench-{os.getpid()}-{n}-{period}")
     else:
         bus = CanBusConfig("udp_multicast", f"239.74.165.{1 + os.getpid() % 250}")
+    layout, every = layout_for(n, period)
     config = CanopenConfig(bus, drives, cycle_s=period, feedback_timeout_s=1.0, heartbeat_consumer_ms=2000,
-                           pdo_layout=LAYOUT, following_error_every=FE_EVERY)
+                           pdo_layout=layout, following_error_every=every)
     tmp = tempfile.TemporaryDirectory()
     sims: SimBus | DriveProcess
     if interface == "virtual":
@@ -192,6 +203,7 @@ def case(n: int, period: float, seconds: float, interface: str = "virtual") -> d
         "cpu": f"{100 * (st.cpu_s + reader_cpu) / seconds:.0f}",
         "work": f"{1e6 * st.work_s / max(st.cycles, 1):.0f}",
         "load": f"{100 * master.load.fraction:.0f}" + (" over" if master.load.fraction > 0.70 else ""),
+        "layout": f"{layout}, FE/{every}",
     })
 
 
@@ -205,7 +217,8 @@ def main() -> int:
     ap.add_argument("--cpu-latency-us", type=int, default=0,
                     help="CPU wake-up latency requested on /dev/cpu_dma_latency while cycling (needs root; "
                          "default 0, as the daemon; -1: no request)")
-    ap.add_argument("--layout", choices=("standard", "compact"), default="standard", help="PDO layout")
+    ap.add_argument("--layout", choices=("auto", "standard", "compact"), default="auto",
+                    help="PDO layout (default auto: per case, the one the master accepts on 1 Mbit/s)")
     ap.add_argument("--fe-every", type=int, default=1, help="following error TPDO every n SYNCs (default 1)")
     ap.add_argument("--switch-interval-ms", type=float, default=0.5,
                     help="the interpreter's thread switch interval (default 0.5; Python's own is 5)")
@@ -220,7 +233,7 @@ def main() -> int:
     RT = args.rt_priority
     LATENCY = None if args.cpu_latency_us < 0 else args.cpu_latency_us
     LAYOUT, FE_EVERY = args.layout, args.fe_every
-    make_layout(LAYOUT, FE_EVERY)  # a bad --fe-every fails here, before any case runs
+    make_layout("standard" if LAYOUT == "auto" else LAYOUT, FE_EVERY)  # a bad --fe-every fails here
     tmp = tempfile.TemporaryDirectory()
     exe = build_rt_floor(Path(tmp.name))
     sys.setswitchinterval(args.switch_interval_ms / 1000.0)
@@ -235,7 +248,7 @@ def main() -> int:
     where = "virtual bus, drives in this process" if args.bus == "virtual" else \
         "udp_multicast, drives in another process"
     tmp.cleanup()
-    table = Table(title=f"CANopen master, {where}, {LAYOUT} PDO layout (following error every {FE_EVERY}), "
+    table = Table(title=f"CANopen master, {where}, PDO layout {LAYOUT}, "
                         f"{args.seconds:g} s per case, {os.cpu_count()} CPUs, load average "
                         f"{os.getloadavg()[0]:.1f}, SCHED_FIFO {RT or 'off'}, CPU latency request "
                         f"{'off' if LATENCY is None else f'{LATENCY} us'}, switch interval "
@@ -243,12 +256,12 @@ def main() -> int:
     cols = [("case", "case"), ("period", "period ms"), ("p50", "late p50 us"), ("p99", "p99 us"),
             ("p999", "p99.9 us"), ("max", "max us"), ("missed", "missed cycles"),
             ("setpoints", "drive missed setpoints"), ("cpu", "master CPU %"), ("work", "cycle work us"),
-            ("load", "bus load % at 1 Mbit/s")]
+            ("load", "bus load % at 1 Mbit/s"), ("layout", "PDO layout")]
     for _, title in cols:
         table.add_column(title, justify="right")
     for r in rows:
         table.add_row(*(r[k] for k, _ in cols))
-    Console(width=170).print(table)
+    Console(width=190).print(table)
     return 0
 
 

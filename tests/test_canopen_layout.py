@@ -347,3 +347,15 @@ node_id = 1
     finally:
         m.shutdown()
     assert not runner.cpu_latency.held
+
+
+def test_fitting_layouts_prefer_the_following_error_every_sync():
+    from fieldbus.canopen.busload import fitting_layouts
+
+    def names(n: int, cycle: float) -> list[tuple[str, int]]:
+        return [(lay.name, lay.following_error_every)
+                for lay, _ in fitting_layouts(n, cycle, 1_000_000, 0.70, 100, 100)]
+
+    assert names(3, 0.002) == [("standard", 1), ("compact", 1)]
+    assert names(6, 0.002) == [("compact", 4)]  # standard cannot: 71.7 % even without following error
+    assert names(6, 0.001) == []

@@ -58,20 +58,36 @@ def bus_load(n_drives: int, cycle_s: float, bitrate: int, heartbeat_ms: int = 0,
     return BusLoad(frames, bits, bitrate)
 
 
+_EVERY = (1, 2, 3, 4, 5, 8, 10, 16, 20, 25, 50, 100, 240)
+
+
+def fitting_layouts(n_drives: int, cycle_s: float, bitrate: int, limit: float, heartbeat_ms: int = 0,
+                    master_heartbeat_ms: int = 0,
+                    status_refresh_ms: int = 100) -> list[tuple[PdoLayout, BusLoad]]:
+    """For each layout, the one with the fewest following-error PDOs that keeps ``n_drives`` at
+    ``cycle_s`` under ``limit`` (layouts that cannot are left out), best first: following error most
+    often, then the standard layout."""
+    out = []
+    for name in LAYOUTS:
+        for every in _EVERY:
+            layout = make_layout(name, every, status_refresh_ms)
+            load = bus_load(n_drives, cycle_s, bitrate, heartbeat_ms, master_heartbeat_ms, layout)
+            if load.fraction <= limit:
+                out.append((layout, load))
+                break
+    return sorted(out, key=lambda f: f[0].following_error_every)
+
+
 def alternatives(n_drives: int, cycle_s: float, bitrate: int, limit: float, heartbeat_ms: int = 0,
                  master_heartbeat_ms: int = 0, status_refresh_ms: int = 100) -> list[str]:
     """Settings that would fit ``n_drives`` under ``limit``: for each layout the fewest following-error
     PDOs needed at this cycle, and the shortest whole-millisecond cycle with following error every SYNC.
     For the refusal message: the user chooses, the master never silently drops traffic."""
-    out = []
-    for name in LAYOUTS:
-        for every in (1, 2, 3, 4, 5, 8, 10, 16, 20, 25, 50, 100, 240):
-            layout = make_layout(name, every, status_refresh_ms)
-            load = bus_load(n_drives, cycle_s, bitrate, heartbeat_ms, master_heartbeat_ms, layout)
-            if load.fraction <= limit:
-                out.append(f'pdo_layout = "{name}" with following_error_every = {every} '
-                           f"({100 * load.fraction:.1f} %)")
-                break
+    out = [f'pdo_layout = "{layout.name}" with following_error_every = {layout.following_error_every} '
+           f"({100 * load.fraction:.1f} %)"
+           for layout, load in sorted(fitting_layouts(n_drives, cycle_s, bitrate, limit, heartbeat_ms,
+                                                      master_heartbeat_ms, status_refresh_ms),
+                                      key=lambda f: LAYOUTS.index(f[0].name))]
     for name in LAYOUTS:
         layout = make_layout(name, 1, status_refresh_ms)
         for ms in range(max(1, int(cycle_s * 1000) + 1), 11):
