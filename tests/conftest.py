@@ -7,7 +7,9 @@ that ``tests/run`` makes (CANON_NETNS=1), and otherwise skip with that reason.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -24,3 +26,21 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if "multicast" in item.keywords:
             item.add_marker(skip)
+
+
+@pytest.fixture
+def rig() -> Iterator[Callable[..., Any]]:
+    """``rig(n, sims=None, up=True, **config)``: simulated drives and a master on a fresh virtual
+    channel (``canopen_helpers.Rig``), booted and enabled unless ``up`` is False; closed at the end."""
+    from canopen_helpers import Rig, make_config
+
+    rigs: list[Any] = []
+
+    def make(n: int = 3, sims: list[Any] | None = None, up: bool = True, **kw: object) -> Any:
+        r = Rig(make_config(n, **kw), sims)
+        rigs.append(r)
+        return r.up() if up else r
+
+    yield make
+    for r in rigs:
+        r.close()

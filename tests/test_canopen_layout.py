@@ -22,18 +22,6 @@ from fieldbus.canopen.pdo import make_layout
 pytestmark = pytest.mark.timeout(60)
 
 
-@pytest.fixture
-def rig():
-    rigs: list[Rig] = []
-
-    def make(n: int = 2, sims: list[SimDrive] | None = None, up: bool = True, **kw: object) -> Rig:
-        r = Rig(make_config(n, **kw), sims)
-        rigs.append(r)
-        return r.up() if up else r
-
-    yield make
-    for r in rigs:
-        r.close()
 
 
 class Recorder(can.Listener):

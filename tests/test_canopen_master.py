@@ -19,18 +19,6 @@ from fieldbus.canopen.master import CanopenError
 pytestmark = pytest.mark.timeout(60)
 
 
-@pytest.fixture
-def rig():
-    rigs: list[Rig] = []
-
-    def make(n: int = 3, sims: list[SimDrive] | None = None, up: bool = True, **kw: object) -> Rig:
-        r = Rig(make_config(n, **kw), sims)
-        rigs.append(r)
-        return r.up() if up else r
-
-    yield make
-    for r in rigs:
-        r.close()
 
 
 def test_boot_configures_drives_and_enables(rig):
