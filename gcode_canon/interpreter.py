@@ -23,6 +23,12 @@ Public API (for the planner, the daemon and ``canon check``):
   ``active_gcodes()``, ``active_mcodes()``, ``file``/``line``, ``current_tool``, ``selected_tool``,
   ``parameter(5221)`` / ``parameter("_x")``, ``params`` (the store), ``frames`` (offsets).
 * Errors: only :class:`~gcode_canon.errors.GCodeError`, always with file and line.
+* ``before_line``: None, or a function called with no arguments before each line the program's flow
+  reads (``file``/``line``/``source``/``flow`` say which; lines passed over by a false ``if``, a
+  ``sub`` definition or a ``break`` are not reported); it may raise GCodeError. The daemon's "run
+  from line" uses it to find the start line as the program's own control flow reaches it.
+* ``modal_key()``: a cheap value that changes whenever the modal state shown by ``active_gcodes()``,
+  ``active_mcodes()``, the feed, the speed or the tool does (for following the state line by line).
 
 Decisions a machine builder should know:
 
@@ -155,6 +161,8 @@ class Interpreter:
         self.flow = FlowControl(self)
         self.source: LineSource = LineSource.from_string("", "<none>")
         self.seen_code = False
+        self.before_line: Callable[[], None] | None = None
+        """Called before each line the flow reads (module docstring); None: nothing."""
         self._persist_keys: set[int] = set()
         self._missing_axes = frozenset(AXIS_LETTERS) - frozenset((self.settings.axes or AXIS_LETTERS).lower())
         self._reset_modes()
@@ -437,6 +445,18 @@ class Interpreter:
         return (spindle, *(coolant or ["M9"]), "M48" if self.overrides["feed"] and
                 self.overrides["spindle"] else "M49")
 
+    def modal_key(self) -> tuple[object, ...]:
+        """A cheap value (about a microsecond; ``active_gcodes()`` costs tens) that changes whenever
+        ``active_gcodes()``, ``active_mcodes()``, ``feed``, ``speed``, ``current_tool`` or the tool length
+        offset may: a consumer that follows the modal state line by line (the daemon's status, which
+        shows the state of the block being executed) compares it and rebuilds the codes only then."""
+        return (self.motion, self.plane, self.inch, self.absolute, self.ijk_absolute, self.feed_mode,
+                self.comp_code, self.tool_length_mode, self.retract, self.frames.g5x_index, self.control[0],
+                self.polar_on, self.scale_code, self.rotation_code,
+                self.xform.mirrored if self.xform_on else (), self.spindle, self.mist, self.flood,
+                self.overrides["feed"], self.overrides["spindle"], self.feed, self.speed, self.current_tool,
+                self.params.numbered[5403])
+
     def shutdown(self) -> None:
         """Write the parameter file (unless dry run) and close LOG files."""
         self.logs.close()
@@ -485,6 +505,8 @@ class Interpreter:
             in_main = source is main
             for raw in source:
                 self.line = source.line
+                if self.before_line is not None:
+                    self.before_line()
                 if self._fast_ok:
                     m = fast_match(raw)
                     if m is not None:

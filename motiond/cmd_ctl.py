@@ -119,6 +119,9 @@ def split_arguments(verb: str, words: list[str]) -> tuple[list[str], list[float]
     lo, hi = spec.strings
     if not lo <= len(strings) <= hi or not spec.values[0] <= len(values) <= spec.values[1]:
         raise _usage_error(f"{verb}: wrong number of arguments ({len(words)} given)", verb)
+    if verb == "run" and values and (values[0] < 1 or values[0] != int(values[0])):
+        # the daemon would truncate 2.5 to 2: a start line is a whole line number, said here at once
+        raise _usage_error(f"run: the start line must be a line number (1 or more), got {rest[0]!r}", verb)
     return strings, values
 
 

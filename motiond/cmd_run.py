@@ -6,6 +6,10 @@ URL (a host with no multicast route gets one warning line and telemetry inside t
 It is the daemon's core (:class:`motiond.runtime.Machine`) doing what an operator would: leave
 E-stop, enable the drives, run the file, then shut down safely.
 
+``--start-line N`` runs from line N (:meth:`motiond.runtime.Machine.run`, docs/daemon.md): a start
+line the program never reaches, or one inside a subroutine or loop body, exits 1 with ``FILE:LINE:``
+and the reason, nothing moved.
+
 Exit status 0 when the program ran to its end; 1 with ``FILE:LINE: message`` (a G-code error) or the
 fault's reason (a drive, the I/O, a late cycle) on stderr; 130 on Ctrl-C or SIGTERM (motion stopped).
 """
@@ -27,9 +31,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_interp_arguments(parser, block_delete=False)
     parser.add_argument("--no-telemetry", action="store_true", help="publish nothing on LCM")
     parser.add_argument("--url", help="LCM URL for status and events (default: [telemetry] url)")
+    parser.add_argument("--start-line", type=_line_number, default=1, metavar="N",
+                        help="run from line N: the lines before it are interpreted without moving, then "
+                             "tool, spindle, coolant and override switches are restored and the machine "
+                             "approaches the start point (Z up, X Y, Z down) (default 1: the whole file)")
     parser.add_argument("--late-fault-ms", type=float, metavar="MS",
                         help="a cycle starting later than this is a fault (default: 10 cycles, at least "
                              "50 ms; 1 s with simulated drives)")
+
+
+def _line_number(text: str) -> int:
+    """``--start-line``: a line number, 1 or more (argparse reports the error as a usage error)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"a line number (1 or more) is needed, got {text!r}")
+    return value
 
 
 def _fmt(v: float) -> str:
@@ -162,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             machine.start()
             machine.bring_up()
-            job = machine.run(path)
+            job = machine.run(path, args.start_line)
         except (MachineError, CommandRefused) as exc:
             raise UserError(str(exc)) from None
         result = None

@@ -55,7 +55,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from gcode_canon import commands as C
 from gcode_canon.errors import GCodeError
@@ -128,6 +128,73 @@ class JobResult:
     first_cycle: int = 0
 
 
+@dataclass(frozen=True, slots=True)
+class ModalState(C.Canon):
+    """The interpreter's modal state after a line, travelling with the commands to the status.
+
+    Not a machining command. The interpreter reads up to :data:`QUEUE_MAX` commands ahead of the
+    motion, so its own state describes text not yet cut. The job thread puts one of these in front of
+    the first command of a line whose modal state differs from the previous line's; the planner passes
+    it on as an event riding on the first setpoint of the next motion (or sync point), exactly as it
+    does a synchronized output (M62), and the cycle thread shows it in the status from that setpoint
+    on: the state of the block being executed.
+    """
+
+    NAME: ClassVar[str] = "MODAL_STATE"
+    gcodes: tuple[str, ...] = ()
+    mcodes: tuple[str, ...] = ()
+    feed: float = 0.0
+    tool: int = 0
+    tool_length_offset: float = 0.0
+
+
+@dataclass
+class _StartState:
+    """Run from line: what the lines before the start line left active, read from the interpreter
+    just before it executes the start line (so the start line's own words are not in it)."""
+
+    target: C.Pose  # where the skipped part left the tool: the start of the first move (machine)
+    tool: int
+    selected: int
+    spindle: int  # 1 M3, -1 M4, 0 M5
+    speed: float
+    mist: bool
+    flood: bool
+    overrides: dict[str, bool]
+    feed_mode: C.FeedMode
+    feed: float
+    control: tuple[Any, float, float]
+    modal: ModalState
+    key: object
+
+
+class _RunFrom:
+    """Run from line: the job thread's bookkeeping while the lines before the start line are
+    interpreted with their commands withheld from the planner (:meth:`Machine._job_main`)."""
+
+    def __init__(self, line: int, tool: int) -> None:
+        self.line = line
+        self.tool0 = tool  # the tool in the spindle when the job started
+        self.main: Any = None  # the main program's LineSource (the first one the hook sees)
+        self.reached = False  # the interpreter is about to execute the start line (state captured)
+        self.started = False  # the restore and the approach are queued: commands go to the planner
+        self.skipped = 0
+        self.outputs: list[C.DigitalOutput | C.AnalogOutput] = []
+        self.tool_cmd: C.ToolChange | C.SetToolNumber | None = None
+        self.end_line = 0  # where a skipped M2/M30 ended the program
+        self.state: _StartState | None = None
+
+    def note(self, cmd: C.Canon) -> None:
+        """A command of the skipped part: nothing is sent, but what must be reported is kept."""
+        self.skipped += 1
+        if isinstance(cmd, C.DigitalOutput | C.AnalogOutput):
+            self.outputs.append(cmd)
+        elif isinstance(cmd, C.ToolChange | C.SetToolNumber):
+            self.tool_cmd = cmd
+        elif isinstance(cmd, C.ProgramEnd):
+            self.end_line = cmd.line
+
+
 class _Job:
     def __init__(self, program: str, mode: Mode, n_axes: int) -> None:
         self.program = program
@@ -147,6 +214,12 @@ class _Job:
         self.result: JobResult | None = None
         self.line = 0
         self.lines_total = 0
+        self.run_from: _RunFrom | None = None
+
+    @property
+    def skipping(self) -> bool:
+        """Run from line, before the start: commands are withheld and nothing may wait for motion."""
+        return self.run_from is not None and not self.run_from.started
 
 
 @dataclass(eq=False)
@@ -192,7 +265,9 @@ class _Callbacks:
         io = self.m.io
         if io is None:
             raise GCodeError("M66: this machine has no Modbus I/O configured ([modbus])", cmd.file, cmd.line)
-        if job.mode is Mode.AUTO:
+        # before the start line of a run from line nothing moves: the input is read (waited for) now
+        synced = job.mode is Mode.AUTO and not job.skipping
+        if synced:
             self.m._wait_sync_point(cmd, job)
         from fieldbus.modbus.faults import IoError, WaitAborted
 
@@ -202,12 +277,17 @@ class _Callbacks:
             raise _Aborted() from None
         except IoError as exc:
             raise GCodeError(str(exc), cmd.file, cmd.line) from None
-        if job.mode is Mode.AUTO:
+        if synced:
             self.m._on_cycle(self.m._release_wait, wait=False)
         return value
 
     def probe(self, cmd: C.Probe) -> tuple[C.Pose, bool]:
         job = self._job()
+        if job.skipping:
+            assert job.run_from is not None
+            raise GCodeError(f"cannot start at line {job.run_from.line}: the probe at line {cmd.line} comes "
+                             "before it, and its result (#5061-#5070) needs the probing move; start at or "
+                             "before the probe", cmd.file, cmd.line)
         if not self.m.simulated:
             raise GCodeError("probing (G38.x) needs a probe input, and this machine has none configured",
                              cmd.file, cmd.line)
@@ -221,9 +301,10 @@ class _Callbacks:
     def current_position(self) -> C.Pose | None:
         """At the start of a program or MDI line: where the machine is (it may have been jogged, homed
         or stopped by an abort since the interpreter last commanded it). Later (after M0, M6): None,
-        the machine went exactly where the interpreter sent it."""
+        the machine went exactly where the interpreter sent it; also after an M6 before the start line
+        of a run from line (nothing moved: the interpreter's own position is the program's)."""
         job = self.m._job
-        if job is None or job.queued:
+        if job is None or job.queued or (job.run_from is not None and job.run_from.skipped):
             return None
         return self.m._machine_pose()
 
@@ -362,6 +443,7 @@ class Machine:
         self._spindle = (0, 0.0)
         self._coolant = (False, False)
         self._tool_prepared = 0
+        self._modal: ModalState | None = None  # the executing block's modal state (a job running)
         self.first_setpoint_t: float | None = None
         self.status_seq = 0
         self._status_stop = threading.Event()
@@ -928,6 +1010,8 @@ class Machine:
                 self._coolant = (ev.mist, ev.flood)
             elif isinstance(ev, C.SelectTool):
                 self._tool_prepared = ev.tool
+            elif isinstance(ev, ModalState):
+                self._modal = ev
 
     def _on_wait(self, w: Any) -> None:
         """Cycle thread: the planner stands at a sync point that waits for the machine."""
@@ -1011,15 +1095,16 @@ class Machine:
         elif job.aborted:
             self.event("WARNING", f"{job.program} aborted", kind="program_abort", source="motiond")
 
-    def _machine_pose(self) -> C.Pose:
-        """Where the machine stands, as a full pose (axes the machine lacks: the interpreter's)."""
+    def _machine_pose(self, base: C.Pose | None = None) -> C.Pose:
+        """Where the machine stands, as a full pose (axes the machine lacks: ``base``'s, by default the
+        interpreter's)."""
         def where() -> tuple[float, ...]:
             if self.planner is not None:
                 return self.planner.position
             return self.master.positions() if self.master is not None else self._commanded
 
         pos = self._on_cycle(where)
-        pose = list(self.interp.position)
+        pose = list(self.interp.position if base is None else base)
         for i, k in enumerate(self.limits.pose_index):
             pose[k] = pos[i]
         return C.Pose(*pose)
@@ -1112,7 +1197,10 @@ class Machine:
         s.following_error = [float(v) for v in self._fe]
         lin = [self._velocity[i] for i, a in enumerate(self.limits.axes) if not a.rotary]
         s.path_velocity = math.sqrt(sum(v * v for v in lin))
-        s.feed_rate = float(self.interp.feed)
+        modal = self._modal if job is not None else None
+        if modal is None:  # no job: the interpreter's state is the machine's
+            modal = self._modal_state("", 0)
+        s.feed_rate = modal.feed
         p = self.planner
         s.feed_override = float(p.feed_override) if p is not None else 1.0
         s.rapid_override = 1.0
@@ -1141,13 +1229,12 @@ class Machine:
                 drives.append(ds)
         s.num_drives = len(drives)
         s.drives = drives
-        g = list(self.interp.active_gcodes())
-        m = list(self.interp.active_mcodes())
+        g, m = list(modal.gcodes), list(modal.mcodes)
         s.num_gcodes, s.gcodes = len(g), g
         s.num_mcodes, s.mcodes = len(m), m
-        s.tool = int(self.interp.current_tool)
+        s.tool = modal.tool
         s.tool_prepared = int(self._tool_prepared)
-        s.tool_length_offset = float(self.interp.parameter(5403))
+        s.tool_length_offset = modal.tool_length_offset
         s.spindle_direction, s.spindle_speed = self._spindle[0], float(self._spindle[1])
         s.mist, s.flood = self._coolant
         if self.io is not None:
@@ -1270,7 +1357,8 @@ class Machine:
             self.last_error = ""
             self.event("INFO", "fault reset", kind="reset", source="motiond")
 
-    def _start_job(self, mode: Mode, program: str, source: Callable[[], Any], lines_total: int = 0) -> _Job:
+    def _start_job(self, mode: Mode, program: str, source: Callable[[], Any], lines_total: int = 0,
+                   start_line: int = 0) -> _Job:
         # bounded: the command thread must not wait behind a slow operation called from elsewhere
         if not self._ops.acquire(timeout=1.0):
             raise CommandRefused(f"busy: {self.busy() or 'another operation'}")
@@ -1285,6 +1373,9 @@ class Machine:
             self.states.start(mode)  # raises the refusal
             job = _Job(program, mode, self.n)
             job.lines_total = lines_total
+            if start_line > 1:
+                job.run_from = _RunFrom(start_line, int(self.interp.current_tool))
+            self._modal = self._modal_state("", 0)  # until the motion reaches the job's first line
             job.cycle0 = self.cycle
             job.late0 = self.late_cycles
             self._wait_seen = None
@@ -1299,9 +1390,16 @@ class Machine:
             return job
 
     def run(self, path: str | os.PathLike[str], start_line: int = 0) -> _Job:
-        """Start a program file (IDLE, enabled). Returns the job (``job.done``, ``job.result``)."""
-        if start_line > 1:
-            raise CommandRefused("starting a program at a line other than the first is not supported")
+        """Start a program file (IDLE, enabled). Returns the job (``job.done``, ``job.result``).
+
+        ``start_line`` above 1: run from that line. The lines before it are interpreted as in a full
+        run (modal state, parameters, offsets, tool, o-word flow) with their commands withheld, then
+        the machine restores what they left active and approaches the start point in a safe order
+        (:meth:`_start_from`); refusals end the job with the reason, nothing moved (docs/daemon.md).
+        A start line beyond the end of the file is refused here, before anything starts.
+        """
+        if start_line < 0:
+            raise CommandRefused(f"start line must be 1 or more, got {start_line}")
         p = Path(path)
         if not p.is_file():
             raise CommandRefused(f"{path}: no such file")
@@ -1310,32 +1408,261 @@ class Machine:
                 total = sum(1 for _ in fh)
         except OSError as exc:
             raise CommandRefused(f"{path}: cannot read: {exc.strerror}") from None
+        if start_line > total:
+            raise CommandRefused(f"{path}:{start_line}: cannot start at line {start_line}: the program has "
+                                 f"only {total} lines")
         linecache.checkcache(str(path))  # the file may have changed since it last ran
-        return self._start_job(Mode.AUTO, str(path), lambda: self.interp.run_file(p), total)
+        return self._start_job(Mode.AUTO, str(path), lambda: self.interp.run_file(p), total, start_line)
 
     def mdi(self, line: str) -> _Job:
         return self._start_job(Mode.MDI, line, lambda: iter(self.interp.execute_mdi(line)))
 
+    def _modal_state(self, file: str, line: int) -> ModalState:
+        """The interpreter's modal state now, for the status (job thread, or before it starts)."""
+        interp = self.interp
+        return ModalState(tuple(interp.active_gcodes()), tuple(interp.active_mcodes()), float(interp.feed),
+                          int(interp.current_tool), float(interp.parameter(5403)), file=file, line=line)
+
     def _job_main(self, job: _Job, source: Callable[[], Any]) -> None:
+        interp = self.interp
+        run_from = job.run_from
+        hook: Callable[[], None] | None = None
+        if run_from is not None:
+            def before_line() -> None:
+                self._before_line(job, run_from)
+            hook = interp.before_line = before_line
         last_line = 0
+        place: tuple[str, int] = ("", -1)
+        key: object = None
         try:
             for cmd in source():
+                if run_from is not None and not run_from.started:
+                    if job.cancel.is_set():
+                        return
+                    if not run_from.reached:
+                        run_from.note(cmd)
+                        continue
+                    if not self._start_from(job, run_from):
+                        return
+                    assert run_from.state is not None
+                    key = run_from.state.key
                 if (self.single_block and job.mode is Mode.AUTO and last_line and cmd.line != last_line
                         and not self._single_block_stop(job, last_line)):
                     return
                 last_line = cmd.line
+                if cmd.line != place[1] or cmd.file != place[0]:
+                    # a new line: its modal state travels with it to the status (ModalState); the cheap
+                    # key is compared on every line, the codes built only when it changed
+                    place = (cmd.file, cmd.line)
+                    k = interp.modal_key()
+                    if k != key:
+                        key = k
+                        if not self._put(self._modal_state(cmd.file, cmd.line), job):
+                            return
                 if not self._put(cmd, job):
+                    return
+            if run_from is not None and not run_from.started:
+                if not run_from.reached:
+                    raise GCodeError(self._never_reached(job, run_from), job.program, run_from.line)
+                if not self._start_from(job, run_from):
                     return
             self._put(_END, job)
         except _Aborted:
             return
         except GCodeError as exc:
             if not job.cancel.is_set():
-                self._post_fault(str(exc), "gcode")
+                if job.skipping:  # nothing was sent to the machine: a refusal, not a fault
+                    self._refuse_start(job, exc)
+                else:
+                    self._post_fault(str(exc), "gcode")
         except Exception as exc:  # never silently: an interpreter bug faults the machine
             log.exception("interpreter thread")
             if not job.cancel.is_set():
                 self._post_fault(f"internal error in the interpreter: {exc!r}", "gcode")
+        finally:
+            if hook is not None and interp.before_line is hook:
+                interp.before_line = None
+
+    # ------------------------------------------------------------------ run from line
+    def _before_line(self, job: _Job, run_from: _RunFrom) -> None:
+        """Job thread, the interpreter's ``before_line`` hook: is it about to execute the start line?
+
+        Only the main program's own line counts, reached by the program's flow. Inside a subroutine
+        (LinuxCNC refuses that too) or a loop body (which pass would be meant?), or with cutter
+        compensation on (its path depends on the moves before), the start is refused naming the place.
+        Otherwise the state the skipped part left is captured here, before the start line's own words
+        change it, and the hook removes itself (no cost on the remaining lines).
+        """
+        interp = self.interp
+        if run_from.main is None:
+            run_from.main = interp.source  # the first line read is the main program's
+        if interp.line != run_from.line or interp.source is not run_from.main:
+            return
+        n = run_from.line
+        flow = interp.flow
+        if flow.frames:
+            inner, outer = flow.frames[-1], flow.frames[0]
+            raise GCodeError(f"cannot start at line {n}: it is inside subroutine {inner.label} (sub at line "
+                             f"{inner.sub_line}), here called from {outer.caller_file}:{outer.call_line}; "
+                             "start at or before the call, or after it", interp.file, n)
+        loops = [b for b in flow.blocks if b.kind in ("while", "do", "repeat")]
+        if loops:
+            b = loops[0]
+            raise GCodeError(f"cannot start at line {n}: it is inside the body of loop {b.label} {b.kind} "
+                             f"(line {b.line}), and which pass is meant is not defined; start at line "
+                             f"{b.line} or after the loop", interp.file, n)
+        if interp.active_gcodes(extensions=False)[6] != "G40":
+            raise GCodeError(f"cannot start at line {n}: cutter radius compensation "
+                             f"({interp.active_gcodes(extensions=False)[6]}) is on there, and its path "
+                             "depends on the moves before; start before its G41/G42 or after its G40",
+                             interp.file, n)
+        run_from.state = _StartState(
+            target=interp.position, tool=int(interp.current_tool), selected=int(interp.selected_tool),
+            spindle=(1 if interp.parameter("_spindle_cw") else -1) if interp.parameter("_spindle_on") else 0,
+            speed=float(interp.speed), mist=bool(interp.parameter("_mist")),
+            flood=bool(interp.parameter("_flood")),
+            overrides={"feed": bool(interp.parameter("_feed_override")),
+                       "spindle": bool(interp.parameter("_speed_override")),
+                       "adaptive_feed": bool(interp.parameter("_adaptive_feed")),
+                       "feed_hold": bool(interp.parameter("_feed_hold"))},
+            feed_mode=interp.feed_mode, feed=float(interp.feed), control=interp.control,
+            modal=self._modal_state(interp.file, n), key=interp.modal_key())
+        run_from.reached = True
+        interp.before_line = None
+
+    def _never_reached(self, job: _Job, run_from: _RunFrom) -> str:
+        """Why the program's flow never executed the start line, in words (the error's message)."""
+        from gcode_canon.owords import o_head
+
+        n = run_from.line
+        open_sub: tuple[str, int] | None = None
+        with contextlib.suppress(OSError), open(job.program, encoding="utf-8-sig",
+                                               errors="surrogateescape") as fh:
+            for k, raw in enumerate(fh, 1):
+                head = o_head(raw)
+                if head is not None and head[1] == "sub" and open_sub is None:
+                    open_sub = (head[0], k)
+                elif head is not None and head[1] == "endsub" and open_sub and head[0] == open_sub[0]:
+                    if open_sub[1] < n < k:
+                        return (f"cannot start at line {n}: it is inside the definition of subroutine "
+                                f"{open_sub[0]} (lines {open_sub[1]}-{k}), and the program never ran it "
+                                "(and a start inside a subroutine is refused anyway); start at or before "
+                                "a call, or outside the subroutine")
+                    open_sub = None
+                if k >= n and open_sub is None:
+                    break
+        if run_from.end_line and run_from.end_line < n:
+            return (f"cannot start at line {n}: the program ends at line {run_from.end_line} (M2/M30) "
+                    "before its flow reaches it")
+        return (f"cannot start at line {n}: the program's flow never executes it (a branch not taken, a "
+                "loop that does not run, or after the end of the program); nothing was moved")
+
+    def _refuse_start(self, job: _Job, exc: GCodeError) -> None:
+        """Job thread: a run from line refused, or a G-code error, before anything was queued. Nothing
+        was sent to the drives, so there is nothing to stop and no fault: the job ends with the reason
+        (``last_error``, an ERROR event), the machine back to IDLE with the drives still enabled."""
+        reason = str(exc)
+
+        def on_cycle() -> None:
+            if self._job is not job:
+                return
+            job.error = job.error or reason
+            self.last_error = reason
+            self.last_error_utime = time.time_ns() // 1000
+            self._finish_job()
+            if self.states.state in (State.RUNNING, State.PAUSED):
+                self.states.finished()
+            self.event("ERROR", reason, kind="run_from_line", source="gcode", file=exc.file, line=exc.line)
+
+        self._on_cycle(on_cycle, wait=False)
+
+    def _start_from(self, job: _Job, run_from: _RunFrom) -> bool:
+        """Job thread, run from line: queue what restores the skipped part's state, then the approach.
+
+        In this order, each at rest (G61.1 for the approach, the operator's feed override and feed hold
+        on for it):
+
+        1. feed mode and rate (state only);
+        2. the tool: a tool change (M6, an event and a sync point as any) to the tool the skipped part
+           left in the spindle, when it differs from the one there at the start (M61 when the skipped
+           part declared it with M61); then the prepared tool (T);
+        3. Z up, alone, to the higher of where it stands and the start point's Z;
+        4. spindle speed, spindle on (M3/M4) or off (M5), coolant (mist, flood);
+        5. the other axes (X Y and any rotary) to the start point, at that Z;
+        6. Z down to the start point;
+        7. the skipped part's path control mode (G61/G64 P) and override switches (M48-M53).
+
+        Machine coordinates; Z is the tool axis whatever G17/G18/G19 selects (those choose the arc
+        plane, not the spindle's direction; the tool length offset is along Z too), and up is +Z. A
+        machine without a Z axis moves all axes together. Outputs (M62-M65, M67, M68), dwells, stops
+        and messages of the skipped part are not replayed: a WARNING lists the outputs.
+        False when the job was cancelled meanwhile.
+        """
+        run_from.started = True
+        st = run_from.state
+        assert st is not None
+        f, n = job.program, run_from.line
+        seq: list[C.Canon] = [st.modal, C.SetFeedMode(st.feed_mode, file=f, line=n),
+                              C.SetFeedRate(st.feed, file=f, line=n),
+                              C.SetMotionControlMode(C.MotionControlMode.EXACT_STOP_MODAL, file=f, line=n),
+                              C.SetOverrides(feed=True, spindle=True, adaptive_feed=False, feed_hold=True,
+                                             file=f, line=n)]
+        did: list[str] = []
+        if st.tool != run_from.tool0:
+            if isinstance(run_from.tool_cmd, C.SetToolNumber):
+                seq.append(C.SetToolNumber(st.tool, file=f, line=n))
+                did.append(f"M61 Q{st.tool}")
+            else:
+                seq += [C.SelectTool(st.tool, file=f, line=n), C.ToolChange(st.tool, file=f, line=n)]
+                did.append(f"T{st.tool} M6")
+        if st.selected >= 0 and st.selected != st.tool:
+            seq.append(C.SelectTool(st.selected, file=f, line=n))
+            did.append(f"T{st.selected}")
+        target = st.target
+        current = self._machine_pose(target)
+        zi = self.names.index("z") if "z" in self.names else None
+        if zi is None:
+            moves = [target]
+        else:
+            k = self.limits.pose_index[zi]
+            z_safe = max(current[k], target[k])
+            moves = [current._replace(**{C.AXES[k]: z_safe}), target._replace(**{C.AXES[k]: z_safe}), target]
+        restore: list[C.Canon] = [C.SetSpindleSpeed(st.speed, file=f, line=n)]
+        if st.spindle:
+            restore.append(C.SpindleOn(C.SpindleDirection.CW if st.spindle > 0 else C.SpindleDirection.CCW,
+                                       st.speed, file=f, line=n))
+            did.append(f"{'M3' if st.spindle > 0 else 'M4'} S{st.speed:g}")
+        else:
+            restore.append(C.SpindleOff(file=f, line=n))
+            did.append("M5")
+        restore.append(C.Coolant(st.mist, st.flood, file=f, line=n))
+        did.append(" ".join(c for c, on in (("M7", st.mist), ("M8", st.flood)) if on) or "M9")
+        where = current
+        for i, pose in enumerate(moves):
+            if i == 1 or len(moves) == 1:
+                seq += restore
+            if any(abs(a - b) > 1e-9 for a, b in zip(pose, where, strict=True)):
+                seq.append(C.StraightTraverse(pose, file=f, line=n))
+                where = pose
+        seq += [C.SetMotionControlMode(*st.control, file=f, line=n),
+                C.SetOverrides(**st.overrides, file=f, line=n)]
+        ovr = st.overrides
+        did.append("M48" if ovr["feed"] and ovr["spindle"] else "M49")
+        axes = " ".join(f"{a.upper()}{target[k]:.4f}" for a, k in zip(self.names, self.limits.pose_index,
+                                                                      strict=True))
+        self.event("INFO", f"run from line {n}: {run_from.skipped} commands of the lines before it not "
+                           f"sent (nothing moved); restoring {', '.join(did)}; approach to {axes} "
+                           "(Z up first, then the other axes, then Z down)",
+                   kind="run_from_line", source="motiond", file=f, line=n)
+        if run_from.outputs:
+            words = [f"{'D' if isinstance(o, C.DigitalOutput) else 'A'}{o.index}="
+                     f"{(int(o.on) if isinstance(o, C.DigitalOutput) else o.value):g} (line {o.line})"
+                     for o in run_from.outputs[:10]]
+            more = f" and {len(run_from.outputs) - 10} more" if len(run_from.outputs) > 10 else ""
+            self.event("WARNING", f"run from line {n}: outputs switched before it are not replayed: "
+                                  f"{', '.join(words)}{more}",
+                       kind="run_from_line", source="motiond", file=f, line=n)
+        return all(self._put(cmd, job) for cmd in seq)
 
     def _single_block_stop(self, job: _Job, line: int) -> bool:
         """Job thread, single block on: let the machine finish the block (``line``), pause, and wait for
