@@ -10,6 +10,9 @@ Design (see docs/planner.md for the whole story):
   and joins with arcs by curvature-continuous transitions (quintic Hermite) inside P. Every other
   junction gets a speed cap from the step it makes in axis velocity (tangent change) or acceleration
   (curvature change) within one cycle; a real corner caps it to zero (a stop).
+* Chains of short lines in G64 P that turn by little at each vertex (CAM surfacing) are smoothed
+  instead: each line becomes a quintic span through its own end points with a tangent and curvature
+  shared at each vertex, within P, and spans of similar limits run as one profile (``_try_smooth``).
 * Override switches (M48-M53) are queued with each move, as LinuxCNC does.
 * Lookahead: each queued segment keeps ``vb``, the fastest speed at its end from which everything
   queued behind it can still be travelled and stopped at the end of the queue. It is maintained
@@ -36,7 +39,20 @@ from ruckig import ControlInterface, InputParameter, Result, Ruckig, RuckigError
 
 from gcode_canon import commands as C
 from gcode_canon.errors import GCodeError
-from planner.geometry import Arc, Blend, Line, Piece, Transition, deviation_of_blend
+from planner.geometry import (
+    SIGMA1_MAX,
+    SIGMA2_MAX,
+    Arc,
+    Blend,
+    Chain,
+    Line,
+    Piece,
+    Span,
+    Transition,
+    deviation_of_blend,
+    vertex_tangent_curvature,
+    vertex_tangent_curvature4,
+)
 from planner.kinematics import change_distance, max_reach, min_reach
 from planner.machine import DEMO_MACHINE, MachineLimits
 from planner.setpoints import Setpoint
@@ -54,6 +70,13 @@ CORNER = 1e-3  # a tangent change (in dq/ds) above this is a corner: stop there 
 TRANSITION_DEVIATION = 0.8  # a transition stays within this share of G64 P (its deviation is sampled)
 TRANSITION_ARC = 0.5  # a transition reaches at most this many radii along an arc (about 29 degrees)
 TRANSITION_SAMPLES = 32  # samples of a transition's deviation on each side of the join
+SMOOTH_TURN = 0.2  # chains of short lines are smoothed only where they turn by less (|w2 - w1|, ~11 deg)
+SMOOTH_DEVIATION = 0.8  # a smoothed span stays within this share of G64 P of its line (rigorous bound)
+SMOOTH_GAIN = 2.0  # a chain starts only where a span inside it would be this much faster than the blends
+SMOOTH_START = 0.25  # and its first and last spans (from and to zero curvature) at least this fast
+SMOOTH_PAUSE = 16  # after a chain ended on a bad span (not a corner), blend this many vertices
+SMOOTH_MERGE = 0.85  # a span joins the chain's profile if the chain keeps this share of its limits
+SMOOTH_MERGE_ACC = 0.3  # path acceleration may fall further: it only matters where the speed changes
 MAX_OVERRIDE = 2.0
 # Which online inputs a move obeys (LinuxCNC's FS/AF/FH "enables", queued with each move by M48-M53).
 OVR_FEED = 1  # the feed override (M48/M49, M50 P1/P0)
@@ -82,21 +105,51 @@ class PlannerError(GCodeError):
     """A command the planner cannot execute (bad value, impossible move), or an internal failure."""
 
 
+_FIELD_NAMES: dict[type, tuple[str, ...]] = {}
+
+
 def _finite(cmd: C.Canon) -> None:
-    for f in dataclasses.fields(cmd):
-        value = getattr(cmd, f.name)
+    names = _FIELD_NAMES.get(type(cmd))
+    if names is None:  # dataclasses.fields() is slow: once per command type
+        names = _FIELD_NAMES[type(cmd)] = tuple(f.name for f in dataclasses.fields(cmd))
+    for name in names:
+        value = getattr(cmd, name)
         if isinstance(value, float) and not math.isfinite(value):
-            raise PlannerError(f"{cmd.NAME}: {f.name} is not a finite number ({value})", cmd.file, cmd.line)
+            raise PlannerError(f"{cmd.NAME}: {name} is not a finite number ({value})", cmd.file, cmd.line)
         if isinstance(value, C.Pose) and not all(math.isfinite(x) for x in value):
-            raise PlannerError(f"{cmd.NAME}: {f.name} has a coordinate that is not a finite number",
+            raise PlannerError(f"{cmd.NAME}: {name} has a coordinate that is not a finite number",
                                cmd.file, cmd.line)
 
 
 class Seg:
     """A queued piece of motion with its limits along the path and its lookahead state."""
 
-    __slots__ = ("a", "blend_tol", "cap", "cap_geom", "cmd", "events", "feed", "j", "jcap", "jgeom", "kind",
-                 "orig_length", "ovr", "piece", "qs_a", "qs_j", "rapid", "s0", "sides", "stop", "vb")
+    __slots__ = (
+        "a",
+        "best",
+        "blend_tol",
+        "cap",
+        "cap_geom",
+        "chord_before",
+        "cmd",
+        "events",
+        "feed",
+        "j",
+        "jcap",
+        "jgeom",
+        "kind",
+        "orig_length",
+        "ovr",
+        "piece",
+        "qs_a",
+        "qs_j",
+        "rapid",
+        "s0",
+        "sides",
+        "smooth_in",
+        "stop",
+        "vb",
+    )
 
     def __init__(self, piece: Piece, kind: str, cmd: C.Canon, feed: float, rapid: bool,
                  ovr: int = OVR_DEFAULT) -> None:
@@ -119,6 +172,12 @@ class Seg:
         self.jcap = 0.0
         self.vb = 0.0
         self.cap = self.cap_geom = self.a = self.j = self.qs_a = self.qs_j = 0.0
+        # A line whose start continues a smoothed chain: the (tangent, curvature) its span must start
+        # with once the next vertex is known (until then it is queued as the plain line).
+        # Also the chord before it (direction, length), for the next vertex's four-point estimate.
+        self.smooth_in: tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...], float] | None = None
+        self.best = (0.0, 0.0, 0.0)  # a chain's best single-span (speed cap, a, j): merging keeps near it
+        self.chord_before: tuple[tuple[float, ...], float] | None = None  # the line fed before this one
 
     @property
     def length(self) -> float:
@@ -168,6 +227,11 @@ class Planner:
         self._A = [a.max_acceleration for a in machine.axes]
         self._J = [a.max_jerk for a in machine.axes]
         self._QS = [a.quick_stop for a in machine.axes]
+        # per-axis budgets of _path_limits, computed once
+        self._JC = [JERK_CONTINUOUS * j for j in self._J]
+        self._CA = [CENTRIPETAL_ACC * a for a in self._A]
+        self._JCENT = [JERK_CENTRIPETAL * j for j in self._JC]
+        self._JCROSS = [JERK_CROSS * j / 3.0 for j in self._JC]
         self._soft = [(a.min_position, a.max_position) for a in machine.axes]
         groups = []
         for names in ("xyz", "uvw", "abc"):
@@ -191,6 +255,9 @@ class Planner:
         self._exact_next = False
         self._spindle_rpm = 0.0
         self._pending: list[C.Canon] = []  # ride on the start of the next motion
+        # direction and length of the last line fed (a hint for where a smoothed chain may start)
+        self._last_chord: tuple[tuple[float, ...], float] | None = None
+        self._smooth_pause = 0  # vertices to blend before trying to smooth again (after a failed chain)
         self._immediate: list[C.Canon] = []  # ride on the next setpoint emitted
         self._flushed = False
         # queue: a list with a head index (cheap pops at the front, indexing near the tail)
@@ -340,6 +407,7 @@ class Planner:
 
     def _close_tail(self) -> None:
         """The last queued segment must end at rest (already so for the backward pass: mark it)."""
+        self._finish_chain()
         if self._h < len(self._q):
             last = self._q[-1]
             if isinstance(last, Seg):
@@ -415,6 +483,10 @@ class Planner:
             piece = Line(tuple(start), tuple(end), length)
         feed = self._feed_speed(cmd, piece.length)
         seg = Seg(piece, kind, cmd, feed, isinstance(cmd, C.StraightTraverse), self._ovr)
+        if kind == "line":
+            seg.chord_before, self._last_chord = self._last_chord, (piece.d1_start, piece.length)
+        else:
+            self._last_chord = None
         # the corner at a move's end is blended by the mode the move was programmed in (LinuxCNC)
         seg.blend_tol = self._tolerance if self._mode is C.MotionControlMode.CONTINUOUS else -1.0
         self._limits(seg)
@@ -424,8 +496,10 @@ class Planner:
         self._exact_next = False
         self._end = end
         self.stats["segments"] += 1
-        if not self._try_blend(seg):
-            self._append(seg)
+        if not self._try_smooth(seg):
+            self._finish_chain()
+            if not self._try_blend(seg):
+                self._append(seg)
         if exact:
             self._close_tail()
 
@@ -476,36 +550,76 @@ class Planner:
     def _limits(self, seg: Seg) -> None:
         """Speed cap and path acceleration/jerk limits that keep every axis inside its limits."""
         p = seg.piece
-        d1, d2, d3 = p.d1_max, p.d2_max, p.d3_max
-        cap = math.inf
-        for i in range(self._n):
-            jc = JERK_CONTINUOUS * self._J[i]
-            if d1[i] > 0.0:
-                cap = min(cap, self._V[i] / d1[i])
-            if d2[i] > 0.0:
-                cap = min(cap, math.sqrt(CENTRIPETAL_ACC * self._A[i] / d2[i]))
-            if d3[i] > 0.0:
-                cap = min(cap, (JERK_CENTRIPETAL * jc / d3[i]) ** (1.0 / 3.0))
-        seg.cap_geom = cap
-        vb = min(cap, MAX_OVERRIDE * seg.feed)
+        (seg.cap_geom, seg.a, seg.j, seg.qs_a, seg.qs_j) = self._path_limits(
+            p.d1_max, p.d2_max, p.d3_max, seg.feed, seg.cmd)
+        self._set_cap(seg)
+
+    def _path_limits(self, d1: Sequence[float], d2: Sequence[float], d3: Sequence[float], feed: float,
+                     cmd: C.Canon) -> tuple[float, float, float, float, float]:
+        """(speed cap, path acceleration, path jerk, quick-stop acceleration and jerk) for derivative
+        bounds ``d1 d2 d3`` at ``feed``: tangential, centripetal and cross terms budgeted together."""
+        if not any(d2) and not any(d3):
+            return self._line_limits(d1, cmd)
+        cap = self._speed_cap(d1, d2, d3)
+        vb = min(cap, MAX_OVERRIDE * feed)
+        vb2 = vb * vb
         a = j = qs = math.inf
-        for i in range(self._n):
-            if d1[i] > 0.0:
-                a = min(a, (self._A[i] - vb * vb * d2[i]) / d1[i])
-                qs = min(qs, self._QS[i] / d1[i])
-            if d2[i] > 0.0 and vb > 0.0:
-                a = min(a, JERK_CROSS * JERK_CONTINUOUS * self._J[i] / (3.0 * vb * d2[i]))
-        for i in range(self._n):
-            if d1[i] > 0.0:
-                jc = JERK_CONTINUOUS * self._J[i]
-                j = min(j, (jc - vb ** 3 * d3[i] - 3.0 * vb * a * d2[i]) / d1[i])
+        for acc, qs_acc, jcross, e1, e2 in zip(self._A, self._QS, self._JCROSS, d1, d2, strict=True):
+            if e1 > 0.0:
+                x = (acc - vb2 * e2) / e1
+                if x < a:
+                    a = x
+                x = qs_acc / e1
+                if x < qs:
+                    qs = x
+            if e2 > 0.0 and vb > 0.0:
+                x = jcross / (vb * e2)
+                if x < a:
+                    a = x
+        vb3, va3 = vb2 * vb, 3.0 * vb * a
+        for jc, e1, e2, e3 in zip(self._JC, d1, d2, d3, strict=True):
+            if e1 > 0.0:
+                x = (jc - vb3 * e3 - va3 * e2) / e1
+                if x < j:
+                    j = x
         if not (a > 0.0 and j > 0.0 and cap > 0.0 and math.isfinite(a) and math.isfinite(j)):
             raise PlannerError(f"cannot derive path limits for this move (a={a:g}, j={j:g}, v={cap:g})",
-                               seg.cmd.file, seg.cmd.line)
-        seg.a, seg.j = a, j
-        seg.qs_a = max(qs, a)
-        seg.qs_j = j * seg.qs_a / a
-        self._set_cap(seg)
+                               cmd.file, cmd.line)
+        qs_a = max(qs, a)
+        return cap, a, j, qs_a, j * qs_a / a
+
+    def _speed_cap(self, d1: Sequence[float], d2: Sequence[float], d3: Sequence[float]) -> float:
+        """The speed cap of :meth:`_path_limits` alone: axis velocities, centripetal acceleration and
+        centripetal jerk budgets."""
+        cap = math.inf
+        for v_max, ca, jcent, e1, e2, e3 in zip(self._V, self._CA, self._JCENT, d1, d2, d3, strict=True):
+            if e1 > 0.0 and v_max < cap * e1:
+                cap = v_max / e1
+            if e2 > 0.0 and ca < cap * cap * e2:
+                cap = math.sqrt(ca / e2)
+            if e3 > 0.0 and jcent < cap * cap * cap * e3:
+                cap = (jcent / e3) ** (1.0 / 3.0)
+        return cap
+
+    def _line_limits(self, d1: Sequence[float], cmd: C.Canon) -> tuple[float, float, float, float, float]:
+        """:meth:`_path_limits` without curvature (a line): the axis limits projected on it. The same
+        values, for the cost of a third: every fed line comes here."""
+        cap = a = j = qs = math.inf
+        for v_max, acc, qs_acc, jc, d in zip(self._V, self._A, self._QS, self._JC, d1, strict=True):
+            if d > 0.0:  # the smallest of each limit over d: the largest d (ties keep the first)
+                if v_max < cap * d:
+                    cap = v_max / d
+                if acc < a * d:
+                    a = acc / d
+                if qs_acc < qs * d:
+                    qs = qs_acc / d
+                if jc < j * d:
+                    j = jc / d
+        if not (math.isfinite(a) and math.isfinite(j)):
+            raise PlannerError(f"cannot derive path limits for this move (a={a:g}, j={j:g}, v={cap:g})",
+                               cmd.file, cmd.line)
+        qs_a = max(qs, a)
+        return cap, a, j, qs_a, j * qs_a / a
 
     @staticmethod
     def _copy_limits(dst: Seg, src: Seg) -> None:
@@ -542,6 +656,272 @@ class Planner:
         return cap
 
     # --- blending -----------------------------------------------------------------------------------
+
+    def _euclidean(self, seg: Seg) -> bool:
+        """Whether ``s`` is the Euclidean length over all axes (no axis outside the group that measures
+        it moves), so that unit tangents and curvature vectors mean what the vertex estimate says."""
+        p = seg.piece
+        return abs(math.dist(p.start, p.end) - p.length) <= 1e-9 * (1.0 + p.length)
+
+    def _try_smooth(self, new: Seg) -> bool:
+        """In G64 P, smooth a chain of short lines that turn by little at each vertex (a sampled curve, as
+        CAM surfacing writes it) instead of blending each corner separately.
+
+        Why: a corner blend returns to zero curvature on both sides, so a chain of 0.2 mm lines that
+        approximates a smooth surface becomes a chain of blends whose curvature rises and falls every
+        segment; its jerk term ``v^3 q'''`` caps the speed far below the feed. Here each line becomes a
+        :class:`Span` through its own end points with the tangent and curvature of the circle through
+        each vertex and its neighbours, shared by both spans at the vertex: curvature is continuous
+        along the chain and close to the smooth curve's. The vertex of ``prev`` and ``new`` is known now,
+        so ``prev`` becomes its span; ``new`` stays queued as a line until the next vertex (or
+        :meth:`_finish_chain`). Spans of similar limits share one profile (:class:`Chain`), so the path
+        acceleration does not return to zero at every programmed point. Each span stays within
+        SMOOTH_DEVIATION * P of its line (a rigorous bound), else the chain ends there.
+        """
+        q = self._q
+        h = self._h
+        if h >= len(q):
+            return False
+        prev = q[-1]
+        if not isinstance(prev, Seg) or prev.kind != "line" or new.kind != "line":
+            return False
+        if (prev.stop or prev.s0 > 0.0 or prev.rapid or new.rapid or prev.blend_tol <= 0.0
+                or new.blend_tol <= 0.0):
+            return False
+        n = self._n
+        a, b = prev.piece, new.piece
+        w1, w2 = a.d1_end, b.d1_start
+        turn2 = sum((x - y) ** 2 for x, y in zip(w2, w1, strict=True))
+        if turn2 > SMOOTH_TURN * SMOOTH_TURN or (prev.smooth_in is None and turn2 <= 1e-24):
+            return False  # a real corner (blended as such), or collinear lines with nothing to smooth
+        running = self._active is not None and self._v_end > 0.0
+        if running and len(q) - 1 == h:
+            return False  # the running profile ends into prev at speed: its limits must not change
+        if not (self._euclidean(prev) and self._euclidean(new)):
+            return False
+        if prev.smooth_in is not None:
+            t_in, k_in, w0, l0 = prev.smooth_in
+            t, k = vertex_tangent_curvature4(w0, l0, w1, prev.orig_length, w2, b.length)
+        elif self._smooth_pause > 0:
+            self._smooth_pause -= 1
+            return False
+        else:
+            t_in, k_in = w1, (0.0,) * n
+            t, k = vertex_tangent_curvature(w1, prev.orig_length, w2, b.length)
+        span = Span(a.start, t_in, k_in, a.end, t, k, a.length)
+        if span.chord_deviation() > SMOOTH_DEVIATION * prev.blend_tol:
+            self._smooth_pause = SMOOTH_PAUSE
+            return False
+        span_cap = min(self._speed_cap(span.d1_max, span.d2_max, span.d3_max), prev.feed)
+        if prev.smooth_in is not None:
+            # noisy points (or a large P): corner blends, free to cut within P, do better; and do not
+            # try again at once (each chain's ends cost)
+            if span_cap < SMOOTH_MERGE * prev.feed and span_cap < SMOOTH_MERGE * self._blend_cap(prev, new):
+                self._smooth_pause = SMOOTH_PAUSE
+                return False
+        elif not self._worth_starting(prev, new, span_cap, t, k):
+            return False
+        chain = q[-2] if len(q) - 2 >= h else None
+        merged = None
+        if (isinstance(chain, Seg) and chain.kind == "smooth" and chain.s0 == 0.0 and not chain.stop
+                and not prev.events and chain.feed == prev.feed and chain.ovr == prev.ovr
+                and chain.blend_tol == prev.blend_tol and chain.sides == prev.sides
+                and not (running and len(q) - 2 == h)):
+            merged = self._merged_limits(chain, span, span_cap)
+        limits: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+        if merged is None:
+            try:
+                limits = self._path_limits(span.d1_max, span.d2_max, span.d3_max, prev.feed, prev.cmd)
+            except PlannerError:
+                return False
+        snapshot = self._snapshot(len(q) - (3 if merged else 2))
+        q.pop()  # prev
+        old_limits, old_best = (), (0.0, 0.0, 0.0)
+        if merged is not None and isinstance(chain, Seg):
+            # the chain grows in place: its start and its link to the item before stay, only its
+            # limits (hence that item's jcap) and its end change
+            old_limits, old_best = self._limits_of(chain), chain.best
+            chain.piece.add(span, prev.cmd)  # type: ignore[attr-defined]
+            chain.orig_length = chain.piece.length
+            chain.cap_geom, chain.a, chain.j, chain.qs_a, chain.qs_j = merged
+            self._set_cap(chain)
+            chain.best = (max(old_best[0], span_cap), max(old_best[1], merged[1]),
+                          max(old_best[2], merged[2]))
+            if len(q) - 2 >= h:
+                before = q[-2]
+                if isinstance(before, Seg):
+                    before.jcap = min(before.jgeom, before.cap, chain.cap)
+            index = len(q) - 1
+        else:
+            index = len(q)
+            self._link(self._span_seg(span, prev, limits, (min(limits[0], prev.feed), limits[1], limits[2])))
+        new.smooth_in = (t, k, w1, prev.orig_length)
+        self._link(new)
+        changes = self._backward(index)
+        if not self._head_feasible(changes):
+            del q[index:]
+            new.smooth_in = None
+            if merged is not None and isinstance(chain, Seg):
+                chain.piece.drop_last()  # type: ignore[attr-defined]
+                chain.orig_length = chain.piece.length
+                self._set_limits(chain, old_limits)
+                chain.best = old_best
+                q.append(chain)
+            q.append(prev)
+            self._restore(snapshot)
+            return False
+        for seg, vb in changes:
+            seg.vb = vb
+        return True
+
+    def _worth_starting(self, prev: Seg, new: Seg, span_cap: float, t: Sequence[float],
+                        k: Sequence[float]) -> bool:
+        """Whether to start a smoothed chain at the vertex of ``prev`` and ``new`` (``prev``'s span, from
+        zero curvature, has the speed cap ``span_cap``; ``t k`` the vertex's tangent and curvature).
+
+        Start only if a span between two vertices of this stretch (``prev`` as it would be inside a
+        chain, estimated with the line fed before it) is clearly faster than the blends (nothing to gain
+        where blends already run at the feed; noisy points fail, their vertex estimates disagree so the
+        spans wiggle), and if the chain's end spans, from and to zero curvature, are not much slower
+        than the blends they replace (they are slower than the spans between, the more so where a
+        corner blend has already taken most of ``prev``).
+        """
+        blend = min(self._blend_cap(prev, new), prev.feed)
+        if SMOOTH_GAIN * blend > prev.feed:
+            return False  # the blends run at (nearly) the feed: nothing to gain
+        b = new.piece
+        half = 0.5 * b.length
+        end = Span(b.start, t, k, tuple(b.pos(half)), b.d1_start, (0.0,) * self._n, half)
+        if end.chord_deviation() > SMOOTH_DEVIATION * new.blend_tol:
+            return False  # the chain could not end on new
+        if min(span_cap, self._speed_cap(end.d1_max, end.d2_max, end.d3_max)) < SMOOTH_START * blend:
+            return False
+        before = prev.chord_before
+        if before is None:
+            return False
+        w1, l1 = prev.piece.d1_end, prev.orig_length
+        tb, kb = vertex_tangent_curvature(before[0], before[1], w1, l1)
+        end_pt = prev.piece.end
+        start_pt = tuple(end_pt[i] - l1 * w1[i] for i in range(self._n))
+        inner = Span(start_pt, tb, kb, end_pt, t, k, l1)
+        if inner.chord_deviation() > SMOOTH_DEVIATION * prev.blend_tol:
+            return False  # the chain would end at the next vertex
+        inner_cap = self._speed_cap(inner.d1_max, inner.d2_max, inner.d3_max)
+        return min(inner_cap, prev.feed) >= SMOOTH_GAIN * blend
+
+    def _blend_cap(self, prev: Seg, new: Seg) -> float:
+        """The speed cap of the corner blend :meth:`_try_blend` would make between the lines ``prev`` and
+        ``new`` (without making it), to choose between smoothing and blending at this vertex."""
+        w1, w2 = prev.piece.d1_end, new.piece.d1_start
+        unit = deviation_of_blend(w1, w2, 1.0, self._linear)
+        d = min(0.5 * prev.orig_length, prev.piece.length, 0.5 * new.piece.length)
+        if unit > 0.0:
+            d = min(d, prev.blend_tol / unit)
+        if d <= 1e-9:
+            return 0.0
+        span = 2.0 * d
+        dw = [abs(x - y) for x, y in zip(w2, w1, strict=True)]
+        return self._speed_cap([max(abs(x), abs(y)) for x, y in zip(w1, w2, strict=True)],
+                               [x * SIGMA1_MAX / span for x in dw],
+                               [x * SIGMA2_MAX / (span * span) for x in dw])
+
+    def _span_seg(self, span: Span, line: Seg, limits: tuple[float, ...],
+                  best: tuple[float, float, float]) -> Seg:
+        """A queue item for ``span`` (its path limits ``limits``), which replaces (part of) the
+        programmed ``line``."""
+        sseg = Seg(Chain(span, line.cmd), "smooth", line.cmd, line.feed, False, line.ovr)
+        sseg.sides = line.sides
+        sseg.orig_length = span.length
+        sseg.blend_tol = line.blend_tol
+        sseg.events = line.events
+        sseg.cap_geom, sseg.a, sseg.j, sseg.qs_a, sseg.qs_j = limits
+        self._set_cap(sseg)
+        sseg.best = best
+        return sseg
+
+    def _merged_limits(self, chain: Seg, span: Span, span_cap: float,
+                       ) -> tuple[float, float, float, float, float] | None:
+        """The chain's limits with ``span`` (its own speed cap at the feed: ``span_cap``) added, or None
+        when they would fall below SMOOTH_MERGE of the best seen in the chain or of the span's own cap
+        (then the span starts a new profile: one slow place must not slow a whole row; the path
+        acceleration may fall to SMOOTH_MERGE_ACC, as it only matters where the speed changes).
+        Compared at the programmed feed; the limits themselves hold at any override, as every piece's
+        do. (The span's own acceleration and jerk limits are not computed: a cost per fed segment for
+        little; a span better than its chain in those only makes the chain's speed changes slower.)"""
+        cp = chain.piece
+        d1 = tuple(map(max, cp.d1_max, span.d1_max))
+        d2 = tuple(map(max, cp.d2_max, span.d2_max))
+        d3 = tuple(map(max, cp.d3_max, span.d3_max))
+        if d1 == cp.d1_max and d2 == cp.d2_max and d3 == cp.d3_max:
+            # the span is within the chain's bounds: the same limits (most spans of a long chain)
+            merged = (chain.cap_geom, chain.a, chain.j, chain.qs_a, chain.qs_j)
+        else:
+            try:
+                merged = self._path_limits(d1, d2, d3, chain.feed, chain.cmd)
+            except PlannerError:
+                return None
+        top = chain.best
+        if (min(merged[0], chain.feed) < SMOOTH_MERGE * max(top[0], span_cap)
+                or merged[1] < SMOOTH_MERGE_ACC * top[1] or merged[2] < SMOOTH_MERGE * top[2]):
+            return None
+        return merged
+
+    def _finish_chain(self) -> None:
+        """End a smoothed chain at the queue's tail: the pending line becomes a span from the chain's
+        tangent and curvature to its own direction with zero curvature at its middle, then the straight
+        second half (which a corner blend, a transition or a stop may then take as any line).
+
+        If this cannot be done (the running profile ends into it, or the span would leave
+        SMOOTH_DEVIATION * P), the line stays: the join then caps the speed as any tangent or
+        curvature step does (:meth:`_junction`), which is safe.
+        """
+        q = self._q
+        if self._h >= len(q):
+            return
+        tail = q[-1]
+        if not isinstance(tail, Seg) or tail.smooth_in is None:
+            return
+        t, k, _w0, _l0 = tail.smooth_in
+        tail.smooth_in = None
+        if tail.s0 > 0.0 or (len(q) - 1 == self._h and self._active is not None and self._v_end > 0.0):
+            return
+        b = tail.piece
+        half = 0.5 * b.length
+        mid = tuple(b.pos(half))
+        span = Span(b.start, t, k, mid, b.d1_end, (0.0,) * self._n, half)
+        if span.chord_deviation() > SMOOTH_DEVIATION * tail.blend_tol:
+            return
+        try:
+            limits = self._path_limits(span.d1_max, span.d2_max, span.d3_max, tail.feed, tail.cmd)
+        except PlannerError:
+            return
+        sseg = self._span_seg(span, tail, limits, (min(limits[0], tail.feed), limits[1], limits[2]))
+        rest = Seg(Line(mid, b.end, b.length - half), "line", tail.cmd, tail.feed, tail.rapid, tail.ovr)
+        rest.sides, rest.orig_length, rest.blend_tol = tail.sides, tail.orig_length, tail.blend_tol
+        self._copy_limits(rest, tail)
+        snapshot = self._snapshot(len(q) - 2)
+        q.pop()
+        index = len(q)
+        for it in (sseg, rest):
+            self._link(it)
+        changes = self._backward(index)
+        if not self._head_feasible(changes):
+            del q[index:]
+            q.append(tail)
+            self._restore(snapshot)
+            return
+        for seg, vb in changes:
+            seg.vb = vb
+
+    def _snapshot(self, first: int) -> list[tuple[Seg, float, float, float]]:
+        """Links and end speeds of the queued segments from ``first`` on (for a rollback)."""
+        return [(it, it.jgeom, it.jcap, it.vb) for it in self._q[max(first, self._h):] if isinstance(it, Seg)]
+
+    @staticmethod
+    def _restore(snapshot: list[tuple[Seg, float, float, float]]) -> None:
+        for it, jgeom, jcap, vb in snapshot:
+            it.jgeom, it.jcap, it.vb = jgeom, jcap, vb
+
 
     def _try_blend(self, new: Seg) -> bool:
         """In G64, replace the corner between the queued line and ``new`` (a line) by a blend, or a
@@ -1101,6 +1481,7 @@ class Planner:
             self.waiting_for = None
             self._end = list(self._rest)
             self._v_end = 0.0
+            self._last_chord = None  # the next line does not continue the dropped ones
             for i, p in enumerate(self._pose_index):
                 self._pose[p] = self._rest[i]
 
@@ -1159,7 +1540,7 @@ class Planner:
                     if p > act.s_end:
                         p = act.s_end
                     pos = act.seg.piece.pos(p)
-                    src = act.seg.cmd
+                    src = act.seg.cmd if act.seg.kind != "smooth" else act.seg.piece.cmd_at(p)  # type: ignore[attr-defined]
                     moving = True
                     if act.first:
                         act.first = False

@@ -1,4 +1,5 @@
-"""Path geometry along one parameter ``s``: lines, arcs/helices and corner blends.
+"""Path geometry along one parameter ``s``: lines, arcs/helices, corner blends, transitions, and the
+smoothed spans of chains of short lines (one :class:`Chain` of :class:`Span` under one parameter).
 
 Every piece maps ``s`` in ``[0, length]`` to the positions of the configured axes (a list in the
 machine's axis order) and knows bounds on the first three derivatives of each axis with respect to
@@ -16,8 +17,10 @@ so that a feed in units per minute is a speed along ``s``.
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 Vec = tuple[float, ...]
 
@@ -210,19 +213,16 @@ class Transition(Piece):
     def __init__(self, a: Vec, t_a: Vec, k_a: Vec, b: Vec, t_b: Vec, k_b: Vec, length: float) -> None:
         n = len(a)
         L = length
-        coeffs = []
-        for i in range(n):
-            c0, c1, c2 = a[i], t_a[i] * L, 0.5 * k_a[i] * L * L
-            e0 = b[i] - (c0 + c1 + c2)
-            e1 = t_b[i] * L - (c1 + 2.0 * c2)
-            e2 = k_b[i] * L * L - 2.0 * c2
-            coeffs.append((c0, c1, c2, 10.0 * e0 - 4.0 * e1 + 0.5 * e2, -15.0 * e0 + 7.0 * e1 - e2,
-                           6.0 * e0 - 3.0 * e1 + 0.5 * e2))
+        coeffs = hermite_coefficients(a, t_a, k_a, b, t_b, k_b, L)
         self._c = coeffs
         self._n = n
-        d1, d2, d3 = _hermite_bounds(coeffs, L)
+        d1, d2, d3 = self._bounds(coeffs, L)
         super().__init__(L, tuple(a), tuple(b), tuple(t_a), tuple(t_b), tuple(k_a), tuple(k_b),
                          d1, d2, d3)
+
+    @staticmethod
+    def _bounds(coeffs: Sequence[Sequence[float]], L: float) -> tuple[Vec, Vec, Vec]:
+        return _hermite_bounds(coeffs, L)
 
     def pos(self, s: float) -> list[float]:
         if s >= self.length:
@@ -264,3 +264,224 @@ def _hermite_bounds(coeffs: Sequence[Sequence[float]], L: float) -> tuple[Vec, V
         d2.append(m2 / (L * L))
         d3.append(m3 / (L * L * L))
     return tuple(d1), tuple(d2), tuple(d3)
+
+
+def bernstein_max(coeffs: Sequence[float]) -> float:
+    """Upper bound of |p(u)| on [0, 1] for p(u) = sum coeffs[i] u^i (degree 2 to 5).
+
+    The polynomial lies within the range of its Bernstein coefficients on [0, 1] (the k-th is
+    ``sum_i C(k, i) / C(n, i) a_i``), so their largest magnitude is a rigorous bound, and a tight one for
+    the smooth spans it is used on. Written out per degree: it runs several times per fed segment.
+    """
+    n = len(coeffs) - 1
+    if n == 5:
+        a0, a1, a2, a3, a4, a5 = coeffs
+        return max(abs(a0), abs(a0 + 0.2 * a1), abs(a0 + 0.4 * a1 + 0.1 * a2),
+                   abs(a0 + 0.6 * a1 + 0.3 * a2 + 0.1 * a3),
+                   abs(a0 + 0.8 * a1 + 0.6 * a2 + 0.4 * a3 + 0.2 * a4),
+                   abs(a0 + a1 + a2 + a3 + a4 + a5))
+    if n == 4:
+        a0, a1, a2, a3, a4 = coeffs
+        return max(abs(a0), abs(a0 + 0.25 * a1), abs(a0 + 0.5 * a1 + a2 / 6.0),
+                   abs(a0 + 0.75 * a1 + 0.5 * a2 + 0.25 * a3), abs(a0 + a1 + a2 + a3 + a4))
+    if n == 3:
+        a0, a1, a2, a3 = coeffs
+        return max(abs(a0), abs(a0 + a1 / 3.0), abs(a0 + 2.0 * a1 / 3.0 + a2 / 3.0), abs(a0 + a1 + a2 + a3))
+    a0, a1, a2 = coeffs
+    return max(abs(a0), abs(a0 + 0.5 * a1), abs(a0 + a1 + a2))
+
+
+def _bernstein_bounds(coeffs: Sequence[Sequence[float]], L: float) -> tuple[Vec, Vec, Vec]:
+    """As :func:`_hermite_bounds`, from Bernstein coefficients instead of a 64-point grid: rigorous
+    too, and much cheaper, which matters for a span per fed segment (:func:`bernstein_max` written
+    out for the derivatives of a quintic: the first of degree 4, the second 3, the third 2)."""
+    d1, d2, d3 = [], [], []
+    L2 = L * L
+    L3 = L2 * L
+    for _c0, c1, c2, c3, c4, c5 in coeffs:
+        if c1 == c2 == c3 == c4 == c5 == 0.0:  # an axis that does not move
+            d1.append(0.0)
+            d2.append(0.0)
+            d3.append(0.0)
+            continue
+        # q'(u) = c1 + 2 c2 u + 3 c3 u^2 + 4 c4 u^3 + 5 c5 u^4
+        b1 = c1 + 0.5 * c2
+        b2 = c1 + c2 + 0.5 * c3
+        b3 = c1 + 1.5 * c2 + 1.5 * c3 + c4
+        b4 = c1 + 2.0 * c2 + 3.0 * c3 + 4.0 * c4 + 5.0 * c5
+        d1.append(max(abs(c1), abs(b1), abs(b2), abs(b3), abs(b4)) / L)
+        # q''(u) = 2 c2 + 6 c3 u + 12 c4 u^2 + 20 c5 u^3
+        e0 = 2.0 * c2
+        e1 = e0 + 2.0 * c3
+        e2 = e0 + 4.0 * c3 + 4.0 * c4
+        e3 = e0 + 6.0 * c3 + 12.0 * c4 + 20.0 * c5
+        d2.append(max(abs(e0), abs(e1), abs(e2), abs(e3)) / L2)
+        # q'''(u) = 6 c3 + 24 c4 u + 60 c5 u^2
+        f0 = 6.0 * c3
+        f1 = f0 + 12.0 * c4
+        f2 = f0 + 24.0 * c4 + 60.0 * c5
+        d3.append(max(abs(f0), abs(f1), abs(f2)) / L3)
+    return tuple(d1), tuple(d2), tuple(d3)
+
+
+def hermite_coefficients(a: Vec, t_a: Vec, k_a: Vec, b: Vec, t_b: Vec, k_b: Vec, length: float,
+                         ) -> list[tuple[float, float, float, float, float, float]]:
+    """Per axis, the power coefficients in ``u = s / length`` of the quintic that has position, first and
+    second derivative (along ``s``) ``a t_a k_a`` at ``u = 0`` and ``b t_b k_b`` at ``u = 1``."""
+    L = length
+    coeffs = []
+    for i in range(len(a)):
+        c0, c1, c2 = a[i], t_a[i] * L, 0.5 * k_a[i] * L * L
+        e0 = b[i] - (c0 + c1 + c2)
+        e1 = t_b[i] * L - (c1 + 2.0 * c2)
+        e2 = k_b[i] * L * L - 2.0 * c2
+        coeffs.append((c0, c1, c2, 10.0 * e0 - 4.0 * e1 + 0.5 * e2, -15.0 * e0 + 7.0 * e1 - e2,
+                       6.0 * e0 - 3.0 * e1 + 0.5 * e2))
+    return coeffs
+
+
+def chord_deviation(coeffs: Sequence[Sequence[float]], end: Vec) -> float:
+    """Upper bound of the distance of a quintic (:func:`hermite_coefficients`) from its chord.
+
+    The curve minus the chord's point at the same ``u`` is a quintic vanishing at both ends; the
+    distance to the line is at most its norm, bounded per axis by its Bernstein coefficients.
+    """
+    total = 0.0
+    for (c0, c1, c2, c3, c4, c5), e in zip(coeffs, end, strict=True):
+        r1 = c1 - (e - c0)
+        if r1 == c2 == c3 == c4 == c5 == 0.0:
+            continue
+        m = bernstein_max((0.0, r1, c2, c3, c4, c5))
+        total += m * m
+    return math.sqrt(total)
+
+
+class Span(Transition):
+    """One short line of a smoothed chain: the quintic from its start to its end point with the tangent
+    and curvature estimated at each vertex (shared with the neighbouring spans, so velocity and
+    acceleration are continuous where spans meet). It passes through the programmed vertices; only
+    between them it leaves the line, by at most :meth:`chord_deviation`."""
+
+    __slots__ = ()
+
+    @staticmethod
+    def _bounds(coeffs: Sequence[Sequence[float]], L: float) -> tuple[Vec, Vec, Vec]:
+        return _bernstein_bounds(coeffs, L)
+
+    def chord_deviation(self) -> float:
+        """Upper bound of the distance of the curve from its chord (the programmed line)."""
+        return chord_deviation(self._c, self.end)
+
+
+def vertex_tangent_curvature(w1: Vec, l1: float, w2: Vec, l2: float) -> tuple[Vec, Vec]:
+    """Tangent and curvature vector at the vertex between chords ``l1 w1`` and ``l2 w2`` (unit
+    directions): those of the circle through the vertex and both far ends, the curve a sampled smooth
+    path most likely came from."""
+    n = len(w1)
+    t = [l2 * w1[i] + l1 * w2[i] for i in range(n)]
+    norm = math.sqrt(sum(x * x for x in t))
+    t = [x / norm for x in t]
+    dw = [w2[i] - w1[i] for i in range(n)]
+    along = sum(dw[i] * t[i] for i in range(n))
+    perp = [dw[i] - along * t[i] for i in range(n)]
+    pn = math.sqrt(sum(x * x for x in perp))
+    if pn <= 1e-15:
+        return tuple(t), (0.0,) * n
+    cross = sum(w1[i] * w2[i] for i in range(n))
+    sin_turn = math.sqrt(max(0.0, 1.0 - cross * cross))
+    chord = math.sqrt(sum((l1 * w1[i] + l2 * w2[i]) ** 2 for i in range(n)))
+    kappa = 2.0 * sin_turn / chord
+    return tuple(t), tuple(kappa * x / pn for x in perp)
+
+
+class Chain(Piece):
+    """Consecutive spans of a smoothed chain of short lines under one path parameter, so that one
+    profile runs over all of them: the path acceleration need not return to zero where the
+    programmed lines meet. The derivative bounds are the largest of the spans'. ``cmds`` says which
+    programmed move each span comes from (for the setpoints' file and line)."""
+
+    __slots__ = ("_i", "cmds", "spans", "starts")
+
+    def __init__(self, first: Span, cmd: Any) -> None:
+        super().__init__(first.length, first.start, first.end, first.d1_start, first.d1_end, first.d2_start,
+                         first.d2_end, first.d1_max, first.d2_max, first.d3_max)
+        self.spans: list[Span] = [first]
+        self.starts: list[float] = [0.0]
+        self.cmds: list[Any] = [cmd]
+        self._i = 0
+
+    def add(self, span: Span, cmd: Any) -> None:
+        """Append ``span`` (it starts where the chain ends, with the chain's end tangent and curvature)."""
+        self.spans.append(span)
+        self.starts.append(self.length)
+        self.cmds.append(cmd)
+        self._set_end()
+        self.d1_max = tuple(map(max, self.d1_max, span.d1_max))
+        self.d2_max = tuple(map(max, self.d2_max, span.d2_max))
+        self.d3_max = tuple(map(max, self.d3_max, span.d3_max))
+
+    def drop_last(self) -> None:
+        """Undo :meth:`add` (the planner's rollback when the longer chain turns out infeasible)."""
+        self.spans.pop()
+        self.starts.pop()
+        self.cmds.pop()
+        self._i = 0
+        self._set_end()
+        self.d1_max, self.d2_max, self.d3_max = (
+            tuple(max(xs) for xs in zip(*(getattr(sp, name) for sp in self.spans), strict=True))
+            for name in ("d1_max", "d2_max", "d3_max"))
+
+    def _set_end(self) -> None:
+        last = self.spans[-1]
+        self.length = self.starts[-1] + last.length
+        self.end, self.d1_end, self.d2_end = last.end, last.d1_end, last.d2_end
+
+    def _index(self, s: float) -> int:
+        i = self._i  # the cycle loop samples forward: the last span found is almost always right
+        st = self.starts
+        if not (st[i] <= s and (i + 1 == len(st) or s < st[i + 1])):
+            i = max(bisect_right(st, s) - 1, 0)
+            self._i = i
+        return i
+
+    def pos(self, s: float) -> list[float]:
+        if s >= self.length:
+            return list(self.end)
+        if s <= 0.0:
+            return list(self.start)
+        i = self._index(s)
+        return self.spans[i].pos(s - self.starts[i])
+
+    def cmd_at(self, s: float) -> Any:
+        return self.cmds[self._index(min(max(s, 0.0), self.length))]
+
+
+def vertex_tangent_curvature4(w0: Vec, l0: float, w1: Vec, l1: float, w2: Vec, l2: float,
+                              ) -> tuple[Vec, Vec]:
+    """Tangent and curvature vector at the vertex between chords ``l1 w1`` and ``l2 w2``, with the
+    chord ``l0 w0`` before them: from the cubic through the four points (chord-length parameter).
+
+    Why not the circle of three points: its tangent is off by about ``h^2 q'''/6``, and a quintic span
+    of length h turns a tangent error e into a third derivative of order ``36 e / h^2``, which caps the
+    speed (``v^3 q'''``). The cubic's tangent is off by ``O(h^3)``, its curvature by ``O(h^2)``.
+    """
+    # Lagrange weights at the vertex (node 0) of the nodes -(l1 + l0), -l1, l2; the vertex's own
+    # value is 0. For node j with the other roots r: first derivative sum(r_a r_b) / D_j, second
+    # -2 sum(r) / D_j, D_j = prod(node_j - r).
+    s0, s1, s3 = -(l1 + l0), -l1, l2
+    den0 = (s0 - s1) * s0 * (s0 - s3)
+    den1 = (s1 - s0) * s1 * (s1 - s3)
+    den3 = (s3 - s0) * (s3 - s1) * s3
+    f0, f1, f3 = s1 * s3 / den0, s0 * s3 / den1, s0 * s1 / den3
+    g0, g1, g3 = -2.0 * (s1 + s3) / den0, -2.0 * (s0 + s3) / den1, -2.0 * (s0 + s1) / den3
+    # points: p0 = -(l1 w1 + l0 w0), p1 = -l1 w1, p3 = l2 w2
+    a0, a1, a2 = -f0 * l0, -(f0 + f1) * l1, f3 * l2
+    b0, b1, b2 = -g0 * l0, -(g0 + g1) * l1, g3 * l2
+    n = len(w1)
+    d1 = [a0 * w0[i] + a1 * w1[i] + a2 * w2[i] for i in range(n)]
+    d2 = [b0 * w0[i] + b1 * w1[i] + b2 * w2[i] for i in range(n)]
+    norm = math.sqrt(sum(x * x for x in d1))
+    t = [x / norm for x in d1]
+    along = sum(d2[i] * t[i] for i in range(n))
+    k = [(d2[i] - along * t[i]) / (norm * norm) for i in range(n)]
+    return tuple(t), tuple(k)
