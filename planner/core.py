@@ -227,6 +227,8 @@ class Planner:
         self._A = [a.max_acceleration for a in machine.axes]
         self._J = [a.max_jerk for a in machine.axes]
         self._QS = [a.quick_stop for a in machine.axes]
+        # quick stop: how much each axis may exceed its acceleration (and, in proportion, its jerk)
+        self._QR = [max(1.0, a.quick_stop / a.max_acceleration) for a in machine.axes]
         # per-axis budgets of _path_limits, computed once
         self._JC = [JERK_CONTINUOUS * j for j in self._J]
         self._CA = [CENTRIPETAL_ACC * a for a in self._A]
@@ -563,15 +565,18 @@ class Planner:
         cap = self._speed_cap(d1, d2, d3)
         vb = min(cap, MAX_OVERRIDE * feed)
         vb2 = vb * vb
-        a = j = qs = math.inf
-        for acc, qs_acc, jcross, e1, e2 in zip(self._A, self._QS, self._JCROSS, d1, d2, strict=True):
+        a = j = qs = ratio = math.inf
+        for acc, qs_acc, qr, jcross, e1, e2 in zip(self._A, self._QS, self._QR, self._JCROSS, d1, d2,
+                                                   strict=True):
             if e1 > 0.0:
                 x = (acc - vb2 * e2) / e1
                 if x < a:
                     a = x
-                x = qs_acc / e1
+                x = (qs_acc - vb2 * e2) / e1
                 if x < qs:
                     qs = x
+                if qr < ratio:
+                    ratio = qr
             if e2 > 0.0 and vb > 0.0:
                 x = jcross / (vb * e2)
                 if x < a:
@@ -585,8 +590,15 @@ class Planner:
         if not (a > 0.0 and j > 0.0 and cap > 0.0 and math.isfinite(a) and math.isfinite(j)):
             raise PlannerError(f"cannot derive path limits for this move (a={a:g}, j={j:g}, v={cap:g})",
                                cmd.file, cmd.line)
-        qs_a = max(qs, a)
-        return cap, a, j, qs_a, j * qs_a / a
+        # Quick stop: the tangential deceleration that keeps every axis within its
+        # quick_stop_deceleration with the centripetal part at this speed counted (it only shrinks as
+        # the axis slows), never weaker than a normal stop; the path jerk scaled with it but by no more
+        # than the smallest quick-stop ratio of the moving axes. An emergency stop keeps its braking
+        # distance short: on a tight curve the axes' jerk may still exceed ratio x max_jerk through
+        # the cross term 3 q'' v a (a drive's own quick-stop ramp has no jerk limit at all).
+        qs_a = max(qs, a) if math.isfinite(qs) else a
+        ratio = ratio if math.isfinite(ratio) else 1.0
+        return cap, a, j, qs_a, j * min(qs_a / a, ratio)
 
     def _speed_cap(self, d1: Sequence[float], d2: Sequence[float], d3: Sequence[float]) -> float:
         """The speed cap of :meth:`_path_limits` alone: axis velocities, centripetal acceleration and
@@ -604,9 +616,12 @@ class Planner:
     def _line_limits(self, d1: Sequence[float], cmd: C.Canon) -> tuple[float, float, float, float, float]:
         """:meth:`_path_limits` without curvature (a line): the axis limits projected on it. The same
         values, for the cost of a third: every fed line comes here."""
-        cap = a = j = qs = math.inf
-        for v_max, acc, qs_acc, jc, d in zip(self._V, self._A, self._QS, self._JC, d1, strict=True):
+        cap = a = j = qs = ratio = math.inf
+        for v_max, acc, qs_acc, qr, jc, d in zip(self._V, self._A, self._QS, self._QR, self._JC, d1,
+                                                 strict=True):
             if d > 0.0:  # the smallest of each limit over d: the largest d (ties keep the first)
+                if qr < ratio:
+                    ratio = qr
                 if v_max < cap * d:
                     cap = v_max / d
                 if acc < a * d:
@@ -619,7 +634,9 @@ class Planner:
             raise PlannerError(f"cannot derive path limits for this move (a={a:g}, j={j:g}, v={cap:g})",
                                cmd.file, cmd.line)
         qs_a = max(qs, a)
-        return cap, a, j, qs_a, j * qs_a / a
+        # the jerk scaled as the acceleration, but by no more than the smallest quick-stop ratio of
+        # the moving axes, so each axis's jerk stays within its ratio x max_jerk
+        return cap, a, j, qs_a, j * min(qs_a / a, ratio)
 
     @staticmethod
     def _copy_limits(dst: Seg, src: Seg) -> None:
@@ -1326,6 +1343,8 @@ class Planner:
             target = min(seg.vb, max_reach(v0, length * SLACK, a, j))
             lo = target
             if target < v0 and change_distance(v0, target, a, j) > length:
+                if target <= 0.0 and self._tight_stop(seg, t0, v0, length, a, j):
+                    return
                 lo = target = min_reach(v0, length, a, j)  # after an override cut: brake all the way
         for _attempt in range(60):
             traj = self._solve(v0, 0.0, length, target, seg.cap, a, j)
@@ -1343,6 +1362,8 @@ class Planner:
             if target <= lo * (1 + 1e-12):
                 break
             target = lo + 0.5 * (target - lo) if target - lo > 1e-9 else lo
+        if seg.vb <= 0.0 and self._tight_stop(seg, t0, v0, length, a, j):
+            return
         for eps in (1e-9, 1e-7, 1e-5, 1e-3):  # at the very edge of feasibility: a hair faster
             target = min(lo + eps * (v0 + lo + 1e-9), max(v0, lo))
             traj = self._solve(v0, 0.0, length, target, max(seg.cap, v0), a, j)
@@ -1351,6 +1372,21 @@ class Planner:
                 return
         raise PlannerError(f"no feasible profile for this move (length {length:g}, from speed {v0:g} to "
                            f"{target:g})", seg.cmd.file, seg.cmd.line)
+
+    def _tight_stop(self, seg: Seg, t0: float, v0: float, length: float, a: float, j: float) -> bool:
+        """Start ``seg`` as a stop at its end when that stop is at the very edge of what its length
+        allows (rounding): with a hair more acceleration and jerk (at most 1e-4), never with an end
+        speed above 0. ``seg`` must end at rest (a stop, the end of the queue), and braking to a low
+        speed needs more room than stopping (the mean speed is higher), so the lowest speed reachable
+        short of a stop may be far above 0: taking it would end the stream while moving."""
+        for eps in (0.0, 1e-9, 1e-7, 1e-6, 1e-5, 1e-4):
+            traj = self._solve(v0, 0.0, length, 0.0, max(seg.cap, v0), a * (1 + eps), j * (1 + eps))
+            if traj is not None:
+                self._active = _Active(seg, t0, traj, seg.s0, seg.piece.length, 0.0, True)
+                return True
+        log.warning("%s:%d: cannot stop at the end of this move from %g (length %g)", seg.cmd.file,
+                    seg.cmd.line, v0, length)
+        return False
 
     def _replan(self) -> None:
         """Re-solve the running profile from the current state (override, hold, resume, stops)."""
@@ -1366,7 +1402,9 @@ class Planner:
         self._set_cap(seg)
         head = self._q[self._h] if self._h < len(self._q) else None
         if isinstance(head, Seg) and not seg.stop:
-            vb = min(seg.jgeom, seg.cap, head.cap, max_reach(head.vb, head.length, head.a, head.j))
+            # as the backward pass plans it (length * SLACK): a hair more and the head could not keep
+            # its own end speed (at the end of the queue: stop) within its length
+            vb = min(seg.jgeom, seg.cap, head.cap, max_reach(head.vb, head.length * SLACK, head.a, head.j))
         else:
             vb = 0.0
         stopping = self._stops(seg.ovr)
