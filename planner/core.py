@@ -999,6 +999,13 @@ class Planner:
         else:
             bseg.events = prev.events + bseg.events
         items += [bseg, new]
+        return self._splice(index, prev, new, items, orig_piece, orig_events)
+
+    def _splice(self, index: int, prev: Seg, new: Seg, items: list[Seg], orig_piece: Piece,
+                orig_events: list[C.Canon], orig_limits: tuple[float, ...] | None = None) -> bool:
+        """Put ``items`` (``prev`` trimmed, a blend or transition, ``new`` shortened) in the queue at
+        ``index`` where ``prev`` was, and walk the speeds back. When the running profile could then no
+        longer keep its committed speed, undo it all (``prev`` back, ``new`` as it was) and say False."""
         saved = self._save_tail_links(index)
         for it in items:
             self._link(it)
@@ -1008,6 +1015,8 @@ class Planner:
             self._restore_tail_links(saved)
             self._q.append(prev)
             new.piece, new.events = orig_piece, orig_events
+            if orig_limits is not None:
+                self._set_limits(new, orig_limits)
             return False
         for seg, vb in changes:
             seg.vb = vb
@@ -1083,21 +1092,7 @@ class Planner:
         else:
             tseg.events = prev.events + tseg.events
         items += [tseg, new]
-        saved = self._save_tail_links(index)
-        for it in items:
-            self._link(it)
-        changes = self._backward(index)
-        if not self._head_feasible(changes):
-            del self._q[index:]
-            self._restore_tail_links(saved)
-            self._q.append(prev)
-            new.piece, new.events = orig_piece, orig_events
-            self._set_limits(new, orig_limits)
-            return False
-        for seg, vb in changes:
-            seg.vb = vb
-        self.stats["blends"] += 1
-        return True
+        return self._splice(index, prev, new, items, orig_piece, orig_events, orig_limits)
 
     @staticmethod
     def _allowed(blend_tol: float) -> float:
