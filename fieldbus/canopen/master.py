@@ -245,7 +245,9 @@ class CanopenMaster:
 
     # ------------------------------------------------------------------ SDO helpers
     def _sdo(self, d: _Drive, what: str, index: int, sub: int, fmt: str | None = None,
-             value: int | None = None) -> int:
+             value: int | None = None, ok_aborts: tuple[int, ...] = ()) -> int:
+        """One SDO read (``value`` None) or write; an abort or timeout is a :class:`CanopenError`
+        naming the node, the object and ``what`` it is, except aborts in ``ok_aborts`` (then 0)."""
         where = f"0x{index:04X}:{sub:02X} ({what})"
         try:
             if fmt is not None and value is not None:
@@ -253,6 +255,8 @@ class CanopenMaster:
                 return value
             raw = d.node.sdo.upload(index, sub)
         except SdoAbortedError as exc:
+            if exc.code in ok_aborts:
+                return 0
             raise CanopenError(f"{d.describe()}: SDO {'write' if value is not None else 'read'} of {where} "
                                f"aborted by the drive: 0x{exc.code:08X} {exc}") from None
         except SdoCommunicationError:
@@ -261,20 +265,6 @@ class CanopenMaster:
         if fmt is None:
             fmt = {1: "B", 2: "H", 4: "I"}.get(len(raw), "I")
         return struct.unpack_from("<" + fmt, raw.ljust(struct.calcsize(fmt), b"\0"))[0]
-
-    def _disable_pdo(self, d: _Drive, p: Pdo) -> None:
-        """COB-ID bit 31 on a PDO the layout does not use; a drive without that PDO has nothing to
-        disable (its abort for a missing object is fine)."""
-        try:
-            d.node.sdo.download(p.comm_index, 1, struct.pack("<I", 0x80000000 | p.cob_id(d.cfg.node_id)))
-        except SdoAbortedError as exc:
-            if exc.code not in _NO_SUCH_OBJECT:
-                raise CanopenError(f"{d.describe()}: SDO write of 0x{p.comm_index:04X}:01 ({p.name} COB-ID "
-                                   f"(disable)) aborted by the drive: 0x{exc.code:08X} {exc}") from None
-        except SdoCommunicationError:
-            raise CanopenError(f"{d.describe()}: SDO write of 0x{p.comm_index:04X}:01 ({p.name} COB-ID "
-                               f"(disable)) timed out: no answer in {self.config.sdo_timeout_s:g} s "
-                               "(twice)") from None
 
     def _statusword(self, d: _Drive) -> int:
         return self._sdo(d, "statusword", 0x6041, 0, "H")
@@ -330,7 +320,9 @@ class CanopenMaster:
              (conf.master_node_id << 16) | (conf.heartbeat_consumer_ms if conf.heartbeat_producer_ms else 0)),
         ]
         for p in self.layout.unused_pdos():
-            self._disable_pdo(d, p)
+            # COB-ID bit 31; a drive without that PDO has nothing to disable
+            self._sdo(d, f"{p.name} COB-ID (disable)", p.comm_index, 1, "I",
+                      0x80000000 | p.cob_id(cfg.node_id), ok_aborts=_NO_SUCH_OBJECT)
         for what, index, sub, fmt, value in steps:
             self._sdo(d, what, index, sub, fmt, value)
         mode = self._sdo(d, "modes of operation display", 0x6061, 0, "b")
