@@ -56,16 +56,17 @@ def surfacing(segments: int, step: float, feed: float, mode: SetMotionControlMod
     return prog
 
 
-def lower_bound(prog: list, machine=DEMO_MACHINE) -> float:
-    """Each segment at its feed capped by the axis velocities, acceleration limit alone, from rest
-    at the start to rest at the end (time-optimal bang-bang on the path length)."""
-    names = machine.names
-    pos = [0.0] * len(names)
-    caps: list[tuple[float, float, float]] = []  # (length, speed cap, path acceleration limit)
-    feed = 0.0
+def straight_lines(prog: list, machine=DEMO_MACHINE):
+    """The program's straight moves (feeds and traverses) of non-zero length, each as ``(command,
+    length, unit direction, feed in units/s, G64 tolerance in force: 0 outside G64 P)``: what both
+    bounds walk."""
+    pos = [0.0] * len(machine.axes)
+    feed, tol = 0.0, 0.0
     for cmd in prog:
         if isinstance(cmd, SetFeedRate):
             feed = cmd.rate / 60.0
+        if isinstance(cmd, SetMotionControlMode):
+            tol = cmd.tolerance if cmd.mode is MotionControlMode.CONTINUOUS else 0.0
         if not isinstance(cmd, StraightFeed | StraightTraverse):
             continue
         end = [cmd.end[i] for i in machine.pose_index]
@@ -73,13 +74,20 @@ def lower_bound(prog: list, machine=DEMO_MACHINE) -> float:
         length = math.sqrt(sum(x * x for x in d))
         if length == 0:
             continue
-        u = [abs(x) / length for x in d]
-        v = min(a.max_velocity / ui for a, ui in zip(machine.axes, u, strict=True) if ui > 0)
-        acc = min(a.max_acceleration / ui for a, ui in zip(machine.axes, u, strict=True) if ui > 0)
+        yield cmd, length, [x / length for x in d], feed, tol
+        pos = end
+
+
+def lower_bound(prog: list, machine=DEMO_MACHINE) -> float:
+    """Each segment at its feed capped by the axis velocities, acceleration limit alone, from rest
+    at the start to rest at the end (time-optimal bang-bang on the path length)."""
+    caps: list[tuple[float, float, float]] = []  # (length, speed cap, path acceleration limit)
+    for cmd, length, u, feed, _tol in straight_lines(prog, machine):
+        v = min(a.max_velocity / abs(ui) for a, ui in zip(machine.axes, u, strict=True) if ui != 0.0)
+        acc = min(a.max_acceleration / abs(ui) for a, ui in zip(machine.axes, u, strict=True) if ui != 0.0)
         if isinstance(cmd, StraightFeed):
             v = min(v, feed)
         caps.append((length, v, acc))
-        pos = end
     # forward and backward passes with the acceleration limit (v^2 = v0^2 + 2 a s)
     n = len(caps)
     fwd = [0.0] * (n + 1)
@@ -119,29 +127,16 @@ def jerk_bound(prog: list, machine=DEMO_MACHINE) -> float:
     rest) is then one time-optimal jerk-limited 1-D move, solved with ruckig; where ruckig finds none,
     the acceleration-only time of that stretch is used, which is smaller still.
     """
-    pos = [0.0] * len(machine.axes)
-    feed, tol = 0.0, 0.0
     lines: list[tuple[float, list[float], float, float, float]] = []  # length, u, v cap, a, j
-    for cmd in prog:
-        if isinstance(cmd, SetFeedRate):
-            feed = cmd.rate / 60.0
-        if isinstance(cmd, SetMotionControlMode):
-            tol = cmd.tolerance if cmd.mode is MotionControlMode.CONTINUOUS else 0.0
-        if not isinstance(cmd, StraightFeed | StraightTraverse):
-            continue
-        end = [cmd.end[i] for i in machine.pose_index]
-        d = [e - p for e, p in zip(end, pos, strict=True)]
-        length = math.sqrt(sum(x * x for x in d))
-        if length == 0:
-            continue
-        u = [x / length for x in d]
+    tol = 0.0  # the corners below use the G64 P in force (the bench program sets it once)
+    for cmd, length, u, feed, line_tol in straight_lines(prog, machine):
+        tol = line_tol
         limits = [(a.max_velocity / abs(ui), a.max_acceleration / abs(ui), a.max_jerk / abs(ui))
                   for a, ui in zip(machine.axes, u, strict=True) if ui != 0.0]
         v = min(x[0] for x in limits)
         if isinstance(cmd, StraightFeed):
             v = min(v, feed)
         lines.append((length, u, v, min(x[1] for x in limits), min(x[2] for x in limits)))
-        pos = end
     # speed caps at the joins (0 at both ends of the program)
     caps = [0.0] + [math.inf] * (len(lines) - 1) + [0.0]
     for k in range(1, len(lines)):
