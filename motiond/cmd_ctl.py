@@ -72,9 +72,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", metavar="machine.toml",
                         help="take the URL and the token from its [telemetry] table")
     parser.add_argument("--url", help=f"LCM URL of the daemon (default: [telemetry] url, else {DEFAULT_URL})")
-    parser.add_argument("--token", help="the daemon's [telemetry] token, needed when its URL leaves this "
-                                        "host (default: from --config; note that other users see "
-                                        "command lines)")
+    parser.add_argument("--key-file", metavar="FILE",
+                        help="the daemon's command key file (default: $CANON_KEY, $CANON_KEY_FILE, the "
+                             "--config file's [telemetry] key_file, ~/.local/state/canon/command.key, "
+                             "/var/lib/canon/command.key); never the key itself on the command line")
+    parser.add_argument("--token", help=argparse.SUPPRESS)  # removed: refused with the new way
     parser.add_argument("--timeout", type=float, default=5.0, metavar="S",
                         help="seconds to wait for the reply (default 5)")
     parser.add_argument("--wait", type=float, default=RESULT_TIMEOUT_S, metavar="S",
@@ -125,17 +127,30 @@ def split_arguments(verb: str, words: list[str]) -> tuple[list[str], list[float]
     return strings, values
 
 
-def resolve(args: argparse.Namespace) -> tuple[str, str]:
-    """The URL and the token: ``--url`` / ``--token``, else the ``--config`` file's, else defaults."""
-    url, token = args.url, args.token
-    if getattr(args, "config", None) and (url is None or token is None):
+def resolve(args: argparse.Namespace) -> tuple[str, bytes]:
+    """The URL (``--url``, else the ``--config`` file's, else the default) and the command key
+    (``--key-file``, else :func:`telemetry.auth.client_key`: ``$CANON_KEY``, ``$CANON_KEY_FILE``, the
+    ``--config`` file's ``key_file``, the default places)."""
+    from motiond.cli import UserError
+    from telemetry.auth import ENV_KEY_FILE, CommandKeyError, client_key, read_key
+
+    if args.token is not None:
+        raise UserError("--token is no longer accepted (a secret on the command line is visible to every "
+                        "user): commands are signed with the daemon's command key; give its file with "
+                        f"--key-file FILE, ${ENV_KEY_FILE} or --config (docs/telemetry.md)")
+    url, config_key_file = args.url, None
+    if getattr(args, "config", None):
         from motiond.config import load_machine
         from telemetry.config import TelemetryConfig
 
         cfg = TelemetryConfig.from_table(load_machine(args.config).telemetry)
         url = url if url is not None else cfg.url
-        token = token if token is not None else cfg.token
-    return (url or DEFAULT_URL), (token or "")
+        config_key_file = cfg.key_file or None
+    try:  # --key-file, else $CANON_KEY, $CANON_KEY_FILE, the machine file's, the default places
+        key = read_key(args.key_file) if args.key_file else client_key(config_key_file)
+    except CommandKeyError as exc:
+        raise UserError(str(exc)) from None
+    return (url or DEFAULT_URL), key
 
 
 def run(args: argparse.Namespace) -> int:
@@ -157,13 +172,13 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--timeout must be a number of seconds > 0, got {args.timeout:g}")
     if not (math.isfinite(args.wait) and args.wait >= 0):
         raise UserError(f"--wait must be a number of seconds >= 0, got {args.wait:g}")
-    url, token = resolve(args)
+    url, key = resolve(args)
     try:
         lc = client_lcm(url)
     except TelemetryUnavailable as exc:
         raise UserError(str(exc)) from None
     try:
-        reply = send_command(lc, args.verb, strings, values, token, args.timeout, wait_result=args.wait)
+        reply = send_command(lc, args.verb, strings, values, key, args.timeout, wait_result=args.wait)
     except CommandError as exc:
         raise _usage_error(str(exc), args.verb) from None
     except NoReply:

@@ -74,11 +74,34 @@ def parameter_file(var: str | None, config: Any, state_directory: str | None) ->
     return default_var_file(config.limits.name, directory)
 
 
-def start(config: Any, lc: Any, tele: Any, *, var_file: str | os.PathLike[str] | None = None,
+def key_file(tele: Any, state_directory: str | None) -> Path:
+    """The command key's file: ``[telemetry] key_file``, else ``command.key`` in the state directory."""
+    from telemetry.auth import KEY_FILE_NAME
+
+    if tele.key_file:
+        return Path(tele.key_file)
+    return state_dir(state_directory) / KEY_FILE_NAME
+
+
+def load_key(path: Path) -> bytes:
+    """The daemon's command key, created at first start (mode 0640); a ``UserError`` says what is wrong."""
+    from motiond.cli import UserError
+    from telemetry.auth import CommandKeyError, load_or_create_key
+
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return load_or_create_key(path)
+    except OSError as exc:
+        raise UserError(f"{path.parent}: {exc.strerror or exc}") from None
+    except CommandKeyError as exc:
+        raise UserError(str(exc)) from None
+
+
+def start(config: Any, lc: Any, tele: Any, *, key: bytes, var_file: str | os.PathLike[str] | None = None,
           tool_table: str | None = None, late_fault_s: float | None = None,
           modbus_port: int | None = None, feedback_timeout_s: float | None = None) -> tuple[Any, Any]:
     """Start a :class:`motiond.runtime.Machine` and its :class:`telemetry.commands.CommandServer` on
-    ``lc``; returns both (stop the server, then shut the machine down)."""
+    ``lc``, commands signed with ``key``; returns both (stop the server, then shut the machine down)."""
     from motiond.runtime import Machine
     from telemetry.commands import CommandServer
 
@@ -86,7 +109,8 @@ def start(config: Any, lc: Any, tele: Any, *, var_file: str | os.PathLike[str] |
                       late_fault_s=late_fault_s, modbus_port=modbus_port,
                       feedback_timeout_s=feedback_timeout_s)
     machine.start()
-    server = CommandServer(lc, machine.handle_command, url=tele.url, token=tele.token).start()
+    server = CommandServer(lc, machine.handle_command, key=key, url=tele.url,
+                           on_security=machine.security_event).start()
     return machine, server
 
 
@@ -112,12 +136,14 @@ def run(args: argparse.Namespace) -> int:
     except TelemetryUnavailable as exc:
         raise UserError(str(exc)) from None
     var = parameter_file(args.var, config, args.state_dir)
+    key_path = key_file(tele, args.state_dir)
+    key = load_key(key_path)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     machine = server = None
     try:
         try:
-            machine, server = start(config, lc, tele, var_file=var, tool_table=args.tool_table,
+            machine, server = start(config, lc, tele, key=key, var_file=var, tool_table=args.tool_table,
                                     late_fault_s=_seconds(args.late_fault_ms),
                                     feedback_timeout_s=_seconds(args.feedback_timeout_ms))
             if args.enable:
@@ -125,7 +151,9 @@ def run(args: argparse.Namespace) -> int:
         except (MachineError, CommandRefused) as exc:
             raise UserError(str(exc)) from None
         print(f"canon daemon: machine {config.limits.name!r} up ({machine.n} axes, cycle "
-              f"{machine.T * 1e3:g} ms); commands on CANON_COMMAND at {tele.url}; parameters in {var}",
+              f"{machine.T * 1e3:g} ms); commands on CANON_COMMAND at {tele.url} "
+              f"(signed with the key in {key_path}); "
+              f"parameters in {var}",
               file=sys.stderr, flush=True)
         while not stop.wait(0.2):
             pass

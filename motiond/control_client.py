@@ -34,6 +34,7 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 from typing import Any
 
+from telemetry.auth import client_key, sign
 from telemetry.commands import check_command, make_command
 from telemetry.publisher import CANON_COMMAND, CANON_EVENT, CANON_REPLY, open_lcm
 from telemetry.url import parse_url
@@ -194,7 +195,7 @@ def handle_one(lc: Any, timeout: float) -> bool:
 
 
 def send_command(lc: Any, verb: str, strings: Sequence[str] = (), values: Sequence[float] = (),
-                 token: str = "", timeout: float = 5.0, *, sender: str | None = None,
+                 key: bytes | None = None, timeout: float = 5.0, *, sender: str | None = None,
                  request_id: int | None = None, handle: bool = True, channel: str = CANON_COMMAND,
                  reply_channel: str = CANON_REPLY, wait_result: float = RESULT_TIMEOUT_S,
                  event_channel: str = CANON_EVENT) -> Reply:
@@ -210,6 +211,10 @@ def send_command(lc: Any, verb: str, strings: Sequence[str] = (), values: Sequen
     reason when the operation failed); :class:`NoResult` when it does not come. ``wait_result`` 0
     returns the acceptance at once.
 
+    ``key``: the command key the command is signed with (:mod:`telemetry.auth`); None:
+    :func:`telemetry.auth.client_key` (``$CANON_KEY``, ``$CANON_KEY_FILE``, the default key files),
+    which raises ``telemetry.auth.CommandKeyError`` saying where to put it when there is none.
+
     ``handle``: True (a client of its own) handles ``lc`` here while waiting. LCM lets one thread at a
     time handle an instance, so when another thread already does (a ``CommandServer.start()`` or an
     HMI's loop on the same instance), pass False: that thread's dispatch delivers the reply.
@@ -220,10 +225,11 @@ def send_command(lc: Any, verb: str, strings: Sequence[str] = (), values: Sequen
         raise ValueError(f"wait_result must be >= 0, got {wait_result!r}")
     sender = sender if sender is not None else new_sender()
     rid = request_id if request_id is not None else secrets.randbits(62) + 1
-    cmd = make_command(verb, list(strings), list(values), request_id=rid, sender=sender, token=token)
+    cmd = make_command(verb, list(strings), list(values), request_id=rid, sender=sender)
     problem = check_command(cmd)
     if problem is not None:
         raise CommandError(problem)
+    sign(cmd, client_key() if key is None else key)
 
     from telemetry.lcmtypes.canon import event, reply
 

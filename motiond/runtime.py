@@ -1826,6 +1826,10 @@ class Machine:
         self.interp.settings.block_delete = on
 
     # ------------------------------------------------------------------ LCM commands
+    def security_event(self, text: str) -> None:
+        """A command refused by its authentication (telemetry.commands.CommandServer): an event."""
+        self.event("WARNING", text, kind="security", source="telemetry")
+
     def handle_command(self, cmd: Any) -> str | None:
         """``telemetry.commands.CommandServer``'s handler: None (done / accepted) or the refusal.
 

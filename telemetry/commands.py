@@ -1,9 +1,10 @@
 """Commands over LCM: the verbs, their arguments, and a server that checks and answers them.
 
-A client publishes a ``canon.command`` on ``CANON_COMMAND``; :class:`CommandServer` decodes it,
-refuses it if :func:`telemetry.publisher.authorize` or :func:`check_command` says so, else passes it
-to the daemon's handler, and publishes one ``canon.reply`` with the same ``request_id`` and ``sender``
-on ``CANON_REPLY``. The handler runs on the LCM thread: it should queue the work and return at once.
+A client publishes a signed ``canon.command`` on ``CANON_COMMAND``; :class:`CommandServer` decodes
+it, refuses it if :class:`telemetry.auth.Verifier` (MAC, time, sequence) or :func:`check_command`
+says so, else passes it to the daemon's handler, and publishes one ``canon.reply`` with the same
+``request_id`` and ``sender`` on ``CANON_REPLY``. The handler runs on the LCM thread: it should
+queue the work and return at once.
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from telemetry.publisher import CANON_COMMAND, CANON_REPLY, authorize, now_utime
+from telemetry.auth import WINDOW_S, RateLimiter, Verifier, sign
+from telemetry.publisher import CANON_COMMAND, CANON_REPLY, now_utime
 from telemetry.worker import Worker
 
 log = logging.getLogger(__name__)
@@ -73,48 +75,66 @@ def check_command(command: Any) -> str | None:
 
 def make_command(verb: str, strings: tuple[str, ...] | list[str] = (),
                  values: tuple[float, ...] | list[float] = (), *, request_id: int = 0,
-                 sender: str = "", token: str = "") -> Any:
-    """A ``canon.command`` filled in (``utime`` now)."""
+                 sender: str = "", key: bytes | None = None, seq: int | None = None) -> Any:
+    """A ``canon.command`` filled in (``utime`` now), signed with ``key`` when given
+    (:func:`telemetry.auth.sign`: ``seq`` and ``mac``)."""
     from telemetry.lcmtypes.canon import command
 
     cmd = command()
     cmd.utime = now_utime()
     cmd.request_id = request_id
     cmd.sender = sender
-    cmd.token = token
     cmd.verb = verb
     cmd.strings = list(strings)
     cmd.num_strings = len(cmd.strings)
     cmd.values = [float(v) for v in values]
     cmd.num_values = len(cmd.values)
+    if key is not None:
+        sign(cmd, key, seq)
+    elif seq is not None:
+        cmd.seq = int(seq)
     return cmd
 
 
 Handler = Callable[[Any], "str | None"]
+SecurityHook = Callable[[str], None]
+
+REFUSAL_REPLIES_PER_S = 10.0
+"""Replies to refused (unauthenticated) commands, all senders together: a flood of forged packets
+must not turn the daemon into a flood of replies and events. Beyond it they are counted, not sent."""
 
 
 class CommandServer(Worker):
-    """Answers ``canon.command`` messages: authorize, check, call ``handler``, publish the reply.
+    """Answers ``canon.command`` messages: authenticate, check, call ``handler``, publish the reply.
 
-    ``handler(command)`` returns None when the command is accepted, or the reason it is not. Call
-    :meth:`subscribe` if the daemon runs its own ``lc.handle()`` loop, or :meth:`start` for a thread
-    that does. ``replies`` / ``refused`` / ``bad_messages`` count what happened.
+    Every command must be signed with ``key`` (:mod:`telemetry.auth`: MAC, time window, per-sender
+    sequence), whatever the URL. A refused one gets a reply with the reason and ``on_security(text)``
+    (the daemon publishes it as a ``security`` event); both at most :data:`REFUSAL_REPLIES_PER_S`
+    per second, the rest counted in ``unanswered``. ``handler(command)`` returns None when the
+    command is accepted, or the reason it is not. Call :meth:`subscribe` if the daemon runs its own
+    ``lc.handle()`` loop, or :meth:`start` for a thread that does. ``replies`` / ``refused`` /
+    ``bad_messages`` count what happened.
     """
 
     thread_name = "canon-command-server"
 
-    def __init__(self, lc: Any, handler: Handler, *, url: str, token: str = "",
-                 channel: str = CANON_COMMAND, reply_channel: str = CANON_REPLY) -> None:
+    def __init__(self, lc: Any, handler: Handler, *, key: bytes, url: str = "",
+                 channel: str = CANON_COMMAND, reply_channel: str = CANON_REPLY,
+                 window_s: float = WINDOW_S, on_security: SecurityHook | None = None,
+                 refusal_rate: float = REFUSAL_REPLIES_PER_S) -> None:
         self.lc = lc
         self.handler = handler
         self.url = url
-        self.token = token
+        self.verifier = Verifier(key, window_s=window_s)
+        self.on_security = on_security
         self.channel = channel
         self.reply_channel = reply_channel
         self.replies = 0
         self.refused = 0
+        self.unanswered = 0
         self.bad_messages = 0
         self.errors = 0
+        self._refusals = RateLimiter(refusal_rate, 2 * refusal_rate)
         self._subscription: Any = None
         Worker.__init__(self)
 
@@ -129,15 +149,18 @@ class CommandServer(Worker):
             cmd = command.decode(data)
         except Exception as exc:  # a foreign type on our channel: nothing to answer
             self.bad_messages += 1
-            log.warning("ignoring a message on %s that is not a canon.command: %s", channel, exc)
+            if self._refusals.allow():
+                log.warning("ignoring a message on %s that is not a canon.command: %s", channel, exc)
             return
-        self.answer(cmd)
+        self.answer(cmd, data)
 
-    def answer(self, cmd: Any) -> Any:
-        """Decide on ``cmd`` and publish the reply; returns the reply."""
-        from telemetry.lcmtypes.canon import reply
-
-        error = authorize(cmd, self.url, self.token) or check_command(cmd)
+    def answer(self, cmd: Any, data: bytes | None = None) -> Any:
+        """Decide on ``cmd`` (``data``: the bytes it came as; None: its own encoding) and publish the
+        reply; returns the reply, or None when a refusal went unanswered (rate limit)."""
+        denied = self.verifier.check(cmd, cmd.encode() if data is None else data)
+        if denied is not None:
+            return self._refuse_unauthenticated(cmd, denied)
+        error = check_command(cmd)
         if error is None:
             try:
                 error = self.handler(cmd)
@@ -147,6 +170,28 @@ class CommandServer(Worker):
         else:
             self.refused += 1
             log.warning("command %s from %r refused: %s", cmd.verb, cmd.sender, error)
+        return self._reply(cmd, error)
+
+    def _refuse_unauthenticated(self, cmd: Any, reason: str) -> Any:
+        self.refused += 1
+        if not self._refusals.allow():
+            self.unanswered += 1
+            return None
+        text = f"refused: {reason}"
+        note = (f"command {str(cmd.verb)[:40]!r} from {str(cmd.sender)[:80]!r} refused: {reason}"
+                + (f" ({self.unanswered} more refusals not answered before this one)" if self.unanswered
+                   else ""))
+        log.warning("%s", note)
+        if self.on_security is not None:
+            try:
+                self.on_security(note)
+            except Exception:
+                log.exception("reporting a refused command")
+        return self._reply(cmd, text)
+
+    def _reply(self, cmd: Any, error: str | None) -> Any:
+        from telemetry.lcmtypes.canon import reply
+
         rep = reply()
         rep.utime = now_utime()
         rep.request_id = cmd.request_id
@@ -157,7 +202,6 @@ class CommandServer(Worker):
         self.lc.publish(self.reply_channel, rep.encode())
         self.replies += 1
         return rep
-
     def start(self) -> CommandServer:
         """Subscribe and handle LCM traffic on a thread of our own."""
         self.subscribe()

@@ -5,12 +5,13 @@ that every reader agrees on them, written as complaint functions that fit ``Tabl
 
     url = "udpm://239.255.76.67:7667?ttl=0"   # any LCM URL; ttl=0 keeps traffic on this host
     status_hz = 50                           # status publish rate, > 0 and <= 1000
-    token = ""                               # required in commands when the URL leaves the host
+    key_file = ""                            # the command key (telemetry.auth); "": <state dir>/command.key
     event_queue = 1000                       # events waiting to be published before drops
 """
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import Any
 
@@ -32,7 +33,7 @@ def check_event_queue(v: int) -> str | None:
 class TelemetryConfig:
     url: str = DEFAULT_URL
     status_hz: float = DEFAULT_STATUS_HZ
-    token: str = ""
+    key_file: str = ""
     event_queue: int = DEFAULT_EVENT_QUEUE
 
     def __post_init__(self) -> None:
@@ -49,7 +50,7 @@ class TelemetryConfig:
         config = cls(
             url=table.get("url", str, DEFAULT_URL, check=check_url),
             status_hz=table.get("status_hz", float, DEFAULT_STATUS_HZ, check=check_status_hz),
-            token=table.get("token", str, ""),
+            key_file=_key_file(table),
             event_queue=table.get("event_queue", int, DEFAULT_EVENT_QUEUE, check=check_event_queue),
         )
         table.check_unknown()
@@ -57,5 +58,18 @@ class TelemetryConfig:
 
     @property
     def leaves_host(self) -> bool:
-        """Traffic on ``url`` can reach other hosts: commands then need ``token``."""
+        """Traffic on ``url`` can reach other hosts (commands are signed whatever the URL)."""
         return parse_url(self.url).leaves_host
+
+
+def _key_file(table: Any) -> str:
+    """``key_file``, relative to the machine file's directory; the old ``token`` refused with the way
+    that replaced it (a token in the machine file travelled in clear text in every command)."""
+    if "token" in table:
+        raise table.error("token", "no longer used: commands are signed with the command key (key_file, "
+                                   "created by the daemon at first start); remove the token "
+                                   "(docs/telemetry.md, 'Who may command the machine')")
+    text = table.get("key_file", str, "")
+    if text and not os.path.isabs(text) and getattr(table, "file", ""):
+        text = os.path.join(os.path.dirname(os.path.abspath(table.file)), text)
+    return text

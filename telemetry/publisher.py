@@ -9,8 +9,7 @@
   run on the caller's thread, and a slow network cannot delay a cycle.
 * :class:`EventPublisher` publishes events as they happen from its own thread through a bounded
   queue: when the queue is full the event is dropped and counted, never waited for.
-* :func:`authorize` is the command rule: control is free on a URL that keeps traffic on this host
-  (``ttl=0``); on one that lets it leave, a command must carry the configured token.
+* Who may command the machine is :mod:`telemetry.auth` (signed commands), whatever the URL.
 
 Both publishers accept ``lc=None`` (no telemetry) and then do nothing, so callers need no branches.
 """
@@ -18,7 +17,6 @@ Both publishers accept ``lc=None`` (no telemetry) and then do nothing, so caller
 from __future__ import annotations
 
 import errno
-import hmac
 import itertools
 import logging
 import queue
@@ -132,32 +130,6 @@ def open_lcm(url: str = DEFAULT_URL, *,
             return lcm.LCM("memq://")
         log.warning("%s Carrying on without telemetry.", exc)
         return None
-
-
-def authorize(command: Any, url: str, token: str) -> str | None:
-    """Whether ``command`` (a ``canon.command``) may be obeyed: None, or why it is refused.
-
-    On a URL whose traffic stays on this host (``udpm`` with ``ttl=0``, ``memq``) every command is
-    accepted: anyone who can send is logged in on this machine. On one that lets traffic leave it
-    (``ttl`` > 0, ``tcpq``; an unparsable URL counts as leaving), the command must carry ``token``,
-    the configured ``[telemetry] token``, and with no token configured every command is refused.
-    Status and events stay readable either way. Tokens are compared in constant time.
-    """
-    try:
-        leaves = parse_url(url).leaves_host
-    except ValueError:
-        leaves = True
-    if not leaves:
-        return None
-    if not token:
-        return (f"refused: the LCM URL {url} lets traffic leave this host and no [telemetry] token is "
-                "configured, so remote control is off (set a token, or keep ttl=0)")
-    given = getattr(command, "token", "") or ""
-    if not given:
-        return "refused: this LCM URL lets traffic leave the host, so commands must carry the token"
-    if not hmac.compare_digest(given.encode(), token.encode()):
-        return "refused: wrong token"
-    return None
 
 
 class StatusPublisher(Worker):

@@ -12,8 +12,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from keys import TEST_KEY
 
 ROOT = Path(__file__).resolve().parent.parent
+os.environ["CANON_KEY"] = TEST_KEY.hex()  # clients sign with it; the daemons under test get it given
 PROGRAMS = Path(__file__).resolve().parent / "programs"
 
 

@@ -20,6 +20,7 @@ from typing import Any
 
 import lcm
 import pytest
+from keys import TEST_KEY, write_key_file
 from rich.console import Console
 
 from motiond import control_client
@@ -39,7 +40,6 @@ from telemetry.lcmtypes.canon import drive_status, event, reply, status
 from telemetry.publisher import CANON_COMMAND, CANON_EVENT, CANON_REPLY, EventPublisher, StatusPublisher
 from telemetry.url import DEFAULT_URL
 
-REMOTE = "udpm://239.255.76.67:7667?ttl=1"  # given to the server for the token rule only
 CANON = str(Path(sys.executable).parent / "canon")
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -51,9 +51,10 @@ class FakeDaemon:
     event after accepting it: done at once here.
     """
 
-    def __init__(self, lc: Any, *, url: str = "memq://", token: str = "", threaded: bool = False) -> None:
+    def __init__(self, lc: Any, *, url: str = "memq://", key: bytes = TEST_KEY,
+                 threaded: bool = False) -> None:
         self.commands: list[Any] = []
-        self.server = CommandServer(lc, self.handler, url=url, token=token)
+        self.server = CommandServer(lc, self.handler, key=key, url=url)
         if threaded:
             self.server.start()
         else:
@@ -139,16 +140,14 @@ def test_send_command_picks_its_own_reply(memq: Any) -> None:
     assert (rep.ok, rep.error, rep.request_id, rep.sender) == (True, "", 5, "me")
 
 
-@pytest.mark.parametrize(("token", "ok", "error"), [
-    ("s3cret", True, ""),
-    ("wrong", False, "refused: wrong token"),
-    ("", False, "must carry the token"),
+@pytest.mark.parametrize(("key", "ok", "error"), [
+    (TEST_KEY, True, ""),
+    (bytes(32), False, "refused: bad MAC"),
 ])
-def test_the_server_enforces_the_token_on_a_url_that_leaves_the_host(
-        memq: Any, token: str, ok: bool, error: str) -> None:
-    d = FakeDaemon(memq, url=REMOTE, token="s3cret")
+def test_the_server_checks_the_signature(memq: Any, key: bytes, ok: bool, error: str) -> None:
+    d = FakeDaemon(memq)
     try:
-        rep = send_command(memq, "estop", token=token, timeout=5)
+        rep = send_command(memq, "estop", key=key, timeout=5)
     finally:
         d.stop()
     assert rep.ok is ok and error in rep.error
@@ -188,7 +187,7 @@ def test_ctl_ok(daemon: FakeDaemon, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["ctl", "--url", "memq://", "jog", "x", "-10", "2.5"]) == 0
     assert capsys.readouterr().out == "jog: ok\n"
     cmd = daemon.commands[0]
-    assert (cmd.verb, list(cmd.strings), list(cmd.values), cmd.token) == ("jog", ["x"], [-10.0, 2.5], "")
+    assert (cmd.verb, list(cmd.strings), list(cmd.values), cmd.mac_len) == ("jog", ["x"], [-10.0, 2.5], 32)
 
 
 def test_ctl_refused_exits_1_with_the_reason(daemon: FakeDaemon, capsys: pytest.CaptureFixture[str]) -> None:
@@ -258,24 +257,44 @@ max_acceleration = 1000.0
 max_jerk = 10000.0
 [telemetry]
 url = "memq://"
-token = "abc"
+key_file = "operator.key"
 """
 
 
-@pytest.mark.parametrize(("extra", "ok"), [([], True), (["--token", "abc"], True), (["--token", "x"], False)])
-def test_ctl_takes_url_and_token_from_the_machine_file(memq: Any, tmp_path: Path, extra: list[str], ok: bool,
-                                                       capsys: pytest.CaptureFixture[str]) -> None:
-    pytest.importorskip("motiond.config")
+def test_ctl_takes_url_and_key_file_from_the_machine_file(memq: Any, tmp_path: Path,
+                                                          monkeypatch: pytest.MonkeyPatch,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
     machine = tmp_path / "machine.toml"
     machine.write_text(MACHINE)
-    d = FakeDaemon(memq, url=REMOTE, token="abc")  # the daemon's URL leaves the host: the token counts
+    other = bytes(range(100, 132))
+    write_key_file(tmp_path / "operator.key", other)
+    monkeypatch.delenv("CANON_KEY")
+    d = FakeDaemon(memq, key=other)
     try:
-        rc = main(["ctl", "--config", str(machine), *extra, "estop"])
+        rc = main(["ctl", "--config", str(machine), "estop"])
+        assert rc == 0 and len(d.commands) == 1
+        # --key-file names another file: its key is used, and the daemon refuses it
+        write_key_file(tmp_path / "wrong.key", TEST_KEY)
+        rc = main(["ctl", "--config", str(machine), "--key-file", str(tmp_path / "wrong.key"), "estop"])
     finally:
         d.stop()
+    assert rc == 1 and capsys.readouterr().err.startswith("canon ctl: estop: refused: bad MAC")
+
+
+def test_ctl_refuses_a_token_on_the_command_line(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["ctl", "--url", "memq://", "--token", "s3cret", "estop"]) == 1
     err = capsys.readouterr().err
-    assert rc == (0 if ok else 1)
-    assert ok or err == "canon ctl: estop: refused: wrong token\n"
+    assert "--token is no longer accepted" in err and "--key-file" in err and "Traceback" not in err
+
+
+def test_ctl_without_a_key_says_where_to_put_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.delenv("CANON_KEY")
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path))
+    monkeypatch.setattr("telemetry.auth.SYSTEM_KEY_FILE", tmp_path / "none")
+    assert main(["ctl", "--url", "memq://", "estop"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("canon ctl: no command key") and "CANON_KEY_FILE" in err
 
 
 def test_ctl_bad_url(capsys: pytest.CaptureFixture[str]) -> None:

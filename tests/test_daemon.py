@@ -15,10 +15,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from keys import TEST_KEY
 
 from motiond.cmd_daemon import start
 from motiond.config import load_machine
 from motiond.control_client import send_command, shared_memq
+from telemetry.commands import make_command
 from telemetry.config import TelemetryConfig
 from telemetry.lcmtypes.canon import event, status
 
@@ -60,7 +62,8 @@ class Daemon:
         self.tmp = tmp
         self.subs = [self.lc.subscribe("CANON_STATUS", self._on_status),
                      self.lc.subscribe("CANON_EVENT", self._on_event)]
-        self.machine, self.server = start(load_machine(None), self.lc, self.tele, var_file=self.var,
+        self.machine, self.server = start(load_machine(None), self.lc, self.tele, key=TEST_KEY,
+                                          var_file=self.var,
                                           late_fault_s=late_fault_s)
 
     def _on_status(self, _ch: str, data: bytes) -> None:
@@ -73,8 +76,8 @@ class Daemon:
             self.events.append(event.decode(data))
 
     def cmd(self, verb: str, strings: tuple[str, ...] | list[str] = (), values: tuple[float, ...] = (),
-            token: str = "") -> Any:
-        return send_command(self.lc, verb, strings, values, token, timeout=10.0, handle=False)
+            key: bytes = TEST_KEY) -> Any:
+        return send_command(self.lc, verb, strings, values, key, timeout=10.0, handle=False)
 
     def ok(self, verb: str, *args: Any, **kw: Any) -> None:
         reply = self.cmd(verb, *args, **kw)
@@ -355,17 +358,20 @@ def test_malformed_message_is_counted_and_ignored(daemon: Daemon) -> None:
     daemon.wait_status(lambda s: s.seq > seq + 5, what="status still flowing")
 
 
-def test_token_required_when_the_url_leaves_the_host(tmp_path: Path) -> None:
-    tele = TelemetryConfig(url="udpm://239.255.76.67:7667?ttl=1", token="s3cret")
-    d = Daemon(tmp_path, tele)  # messages still travel on memq: only the rule reads the URL
+def test_unsigned_and_wrongly_signed_commands_are_refused_with_a_security_event(tmp_path: Path) -> None:
+    d = Daemon(tmp_path)
     try:
-        d.wait_status(lambda s: True, what="any status")  # status readable without a token
-        no = d.cmd("estop_reset")
-        assert not no.ok and "token" in no.error
-        wrong = d.cmd("estop_reset", token="guess")
-        assert not wrong.ok and "wrong token" in wrong.error
+        d.wait_status(lambda s: True, what="any status")  # status stays readable without the key
+        wrong = d.cmd("estop_reset", key=bytes(32))
+        assert not wrong.ok and wrong.error.startswith("refused: bad MAC")
+        d.lc.publish("CANON_COMMAND", make_command("estop_reset", request_id=9, sender="lan").encode())
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline and not [e for e in list(d.events) if e.kind == "security"
+                                                    and "'lan'" in e.text and "unsigned" in e.text]:
+            time.sleep(0.01)
+        assert [e.severity for e in list(d.events) if e.kind == "security"] == [event.WARNING] * 2
         assert d.latest().state == "estop"
-        d.ok("estop_reset", token="s3cret")
+        d.ok("estop_reset")
         d.wait_status(lambda s: s.state == "idle", what="idle")
     finally:
         d.close()

@@ -16,6 +16,7 @@ from typing import Any
 
 import lcm
 import pytest
+from keys import TEST_KEY
 
 from fieldbus.canopen.cia402 import State as DriveState
 from motiond.cli import main
@@ -95,14 +96,14 @@ class Rig:
         self.sub = lc.subscribe("CANON_EVENT", self._on_event)
         config = load_machine(machine_file(tmp, homing_timeout_s))
         if threaded:  # as the daemon runs: the server handles lc on its own thread
-            self.machine, self.server = start(config, lc, TelemetryConfig(url="memq://"),
+            self.machine, self.server = start(config, lc, TelemetryConfig(url="memq://"), key=TEST_KEY,
                                               var_file=tmp / "params.var")
         else:  # the server only subscribed: a client's own lc.handle() delivers (canon ctl)
             from motiond.runtime import Machine
 
             self.machine = Machine(config, lc=lc, telemetry=TelemetryConfig(url="memq://"),
                                    var_file=tmp / "params.var").start()
-            self.server = CommandServer(lc, self.machine.handle_command, url="memq://")
+            self.server = CommandServer(lc, self.machine.handle_command, key=TEST_KEY, url="memq://")
             self.server.subscribe()
 
     def _on_event(self, _ch: str, data: bytes) -> None:
@@ -368,7 +369,7 @@ def test_a_waiting_client_takes_its_own_result_and_gives_up_bounded() -> None:
                 lc.publish(CANON_EVENT, ev.encode())
         return None
 
-    server = CommandServer(lc, handler, url="memq://")
+    server = CommandServer(lc, handler, key=TEST_KEY, url="memq://")
     server.subscribe()
     try:
         rep = send_command(lc, "home", ["x"], timeout=2.0, request_id=5, sender="me", wait_result=2.0)

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from keys import write_key_file
 
 pytestmark = pytest.mark.multicast
 
@@ -190,7 +191,9 @@ class Rig:
         self.config.write_text(config_text(self.group, self.port, cycle_ms=8.0, vmax=400.0))
         self.drives = self.start_drives()
         self.io = self.start_io()
+        write_key_file(tmp / "command.key")  # the key the HMI signs with ($CANON_KEY)
         self.daemon = Proc("daemon", ["daemon", "--config", str(self.config), "--var", str(tmp / "p.var"),
+                                      "--state-dir", str(tmp),
                                       "--feedback-timeout-ms", "400", "--late-fault-ms", "1000"],
                              "canon daemon: machine")  # generous: the test PC is shared and loaded
         self.hmi = Hmi()

@@ -1,18 +1,29 @@
-"""Publishers, URL rules, the command token rule and the command server, on memq:// (no network)."""
+"""Publishers, URL rules, signed commands and the command server, on memq:// (no network)."""
 
 from __future__ import annotations
 
+import itertools
 import threading
 import time
 from typing import Any
 
 import lcm
 import pytest
+from keys import TEST_KEY
 
 from telemetry import publisher
+from telemetry.auth import (
+    CommandKeyError,
+    RateLimiter,
+    Verifier,
+    client_key,
+    load_or_create_key,
+    next_seq,
+    sign,
+)
 from telemetry.commands import VERBS, CommandServer, check_command, make_command
 from telemetry.config import TelemetryConfig
-from telemetry.lcmtypes.canon import event, reply, status
+from telemetry.lcmtypes.canon import command, event, reply, status
 from telemetry.publisher import (
     CANON_COMMAND,
     CANON_EVENT,
@@ -21,7 +32,6 @@ from telemetry.publisher import (
     EventPublisher,
     StatusPublisher,
     TelemetryUnavailable,
-    authorize,
     open_lcm,
 )
 from telemetry.url import DEFAULT_URL, parse_url, url_leaves_host
@@ -74,37 +84,128 @@ def test_empty_url_means_lcm_default_url_env_then_ours(monkeypatch: pytest.Monke
 
 def test_config_checks_its_keys() -> None:
     assert TelemetryConfig().url == DEFAULT_URL and TelemetryConfig().status_hz == 50
-    assert TelemetryConfig(url=REMOTE, token="t").leaves_host
+    assert TelemetryConfig(url=REMOTE).leaves_host
     with pytest.raises(ValueError, match=r"telemetry\.url: unknown LCM provider"):
         TelemetryConfig(url="udp://x")
     with pytest.raises(ValueError, match=r"telemetry\.status_hz: must be > 0"):
         TelemetryConfig(status_hz=0)
 
 
-# ---- authorize ----------------------------------------------------------------------------------
+# ---- signed commands (telemetry.auth) ------------------------------------------------------------
 
-def test_local_url_accepts_commands_without_token() -> None:
-    assert authorize(make_command("pause"), LOCAL, "") is None
-    assert authorize(make_command("pause"), "memq://", "configured") is None
+class Clock:
+    def __init__(self, t: float) -> None:
+        self.t = t
 
-
-def test_remote_url_needs_the_configured_token() -> None:
-    assert authorize(make_command("pause", token="s3cret"), REMOTE, "s3cret") is None
-    missing = authorize(make_command("pause"), REMOTE, "s3cret")
-    wrong = authorize(make_command("pause", token="guess"), REMOTE, "s3cret")
-    assert missing and "must carry the token" in missing
-    assert wrong and "wrong token" in wrong
-    assert "s3cret" not in missing + wrong
+    def __call__(self) -> float:
+        return self.t
 
 
-def test_remote_url_without_configured_token_refuses_everything() -> None:
-    reason = authorize(make_command("estop", token="anything"), "tcpq://127.0.0.1:7700", "")
-    assert reason and "no [telemetry] token is configured" in reason
-    assert authorize(make_command("estop", token=""), REMOTE, "") is not None
+def signed(verb: str = "pause", *, key: bytes = TEST_KEY, seq: int | None = None, sender: str = "hmi",
+           utime: int | None = None, **kw: Any) -> tuple[Any, bytes]:
+    cmd = make_command(verb, sender=sender, **kw)
+    if utime is not None:
+        cmd.utime = utime
+    sign(cmd, key, seq)
+    return cmd, cmd.encode()
 
 
-def test_unparsable_url_counts_as_leaving_the_host() -> None:
-    assert authorize(make_command("run", ["a.ngc"]), "nonsense", "tok") is not None
+def test_verifier_accepts_a_signed_command_once() -> None:
+    v = Verifier(TEST_KEY)
+    cmd, data = signed()
+    assert v.check(cmd, data) is None
+    again = v.check(command.decode(data), data)
+    assert again and again.startswith("replayed command")
+
+
+def test_verifier_refuses_unsigned_wrong_key_and_altered_commands() -> None:
+    v = Verifier(TEST_KEY)
+    unsigned = make_command("estop", sender="x")
+    assert "unsigned" in (v.check(unsigned, unsigned.encode()) or "")
+    cmd, data = signed("estop", key=bytes(32))
+    assert "bad MAC" in (v.check(cmd, data) or "")
+    cmd, data = signed("feed_override", values=[0.5])
+    altered = command.decode(data)
+    altered.values = [2.0]
+    assert "bad MAC" in (v.check(altered, altered.encode()) or "")
+    forged = command.decode(data)
+    forged.sender = "someone else"  # the sender (the client id) is covered too
+    assert "bad MAC" in (v.check(forged, forged.encode()) or "")
+
+
+def test_verifier_refuses_stale_and_future_commands() -> None:
+    clock = Clock(1_000_000.0)
+    v = Verifier(TEST_KEY, window_s=5.0, clock=clock)
+    old, data = signed(utime=int((clock.t - 6.0) * 1e6))
+    assert (v.check(old, data) or "").startswith("stale command: its time is -6.0 s")
+    future, data = signed(utime=int((clock.t + 6.0) * 1e6))
+    assert (v.check(future, data) or "").startswith("stale command")
+    ok, data = signed(utime=int((clock.t - 4.0) * 1e6))
+    assert v.check(ok, data) is None
+
+
+def test_verifier_sequence_is_per_sender_and_survives_forgetting() -> None:
+    clock = Clock(1_000_000.0)
+    v = Verifier(TEST_KEY, window_s=5.0, clock=clock)
+    now = int(clock.t * 1e6)
+    a5, da5 = signed(seq=5, sender="a", utime=now)
+    assert v.check(a5, da5) is None
+    b1, db1 = signed(seq=1, sender="b", utime=now)
+    assert v.check(b1, db1) is None  # another sender's numbers are its own
+    a4, da4 = signed(seq=4, sender="a", utime=now)
+    assert "not above 5" in (v.check(a4, da4) or "")
+    clock.t += 20.0  # "a" is forgotten; its old message is stale now, so still refused
+    assert (v.check(a5, da5) or "").startswith("stale")
+
+
+def test_next_seq_strictly_increases() -> None:
+    seqs = [next_seq() for _ in range(1000)]
+    assert all(b > a for a, b in itertools.pairwise(seqs))
+
+
+def test_key_file_is_created_0640_and_read_back(tmp_path: Any) -> None:
+    path = tmp_path / "command.key"
+    key = load_or_create_key(path)
+    assert len(key) == 32 and oct(path.stat().st_mode & 0o777) == "0o640"
+    assert load_or_create_key(path) == key  # the second start reads it
+    assert [p.name for p in tmp_path.iterdir()] == ["command.key"]  # no temporary file left
+
+
+def test_key_file_open_to_others_or_malformed_is_refused(tmp_path: Any) -> None:
+    path = tmp_path / "command.key"
+    path.write_text(TEST_KEY.hex())
+    path.chmod(0o644)
+    with pytest.raises(CommandKeyError, match=r"open to other users \(mode 0644\).*chmod 640"):
+        load_or_create_key(path)
+    path.chmod(0o600)
+    path.write_text("not a key\n")
+    with pytest.raises(CommandKeyError, match=r"command\.key: not a command key"):
+        load_or_create_key(path)
+
+
+def test_client_key_from_the_environment_or_a_file(tmp_path: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "k"
+    path.write_text(bytes(range(32)).hex())
+    monkeypatch.setenv("CANON_KEY", TEST_KEY.hex())
+    assert client_key(path) == TEST_KEY
+    monkeypatch.delenv("CANON_KEY")
+    assert client_key(path) == bytes(range(32))
+    monkeypatch.setenv("CANON_KEY_FILE", str(path))
+    assert client_key() == bytes(range(32))
+    monkeypatch.delenv("CANON_KEY_FILE")
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "nowhere"))
+    monkeypatch.setattr("telemetry.auth.SYSTEM_KEY_FILE", tmp_path / "none")
+    with pytest.raises(CommandKeyError, match=r"no command key.*CANON_KEY_FILE"):
+        client_key()
+
+
+def test_rate_limiter_bucket() -> None:
+    clock = Clock(0.0)
+    rl = RateLimiter(10.0, 5.0, clock=clock)
+    assert [rl.allow("a") for _ in range(7)] == [True] * 5 + [False] * 2
+    assert rl.allow("b")  # per key
+    clock.t += 0.1
+    assert rl.allow("a") and not rl.allow("a")
 
 
 # ---- command arguments --------------------------------------------------------------------------
@@ -361,7 +462,7 @@ def test_full_event_queue_drops_and_counts_without_blocking() -> None:
 
 # ---- command server -----------------------------------------------------------------------------
 
-def test_command_server_answers_on_memq(memq: lcm.LCM) -> None:
+def test_command_server_answers_signed_commands_on_memq(memq: lcm.LCM) -> None:
     seen: list[str] = []
 
     def handler(cmd: Any) -> str | None:
@@ -370,11 +471,11 @@ def test_command_server_answers_on_memq(memq: lcm.LCM) -> None:
 
     replies = Receiver(memq, CANON_REPLY, reply)
     replies.close()  # the server's thread handles this instance
-    server = CommandServer(memq, handler, url="memq://").start()
+    server = CommandServer(memq, handler, key=TEST_KEY, url="memq://").start()
     try:
         for i, (verb, strings, values) in enumerate([("pause", [], []), ("run", ["p.ngc"], []),
                                                      ("fly", [], []), ("feed_override", [], [0.5])]):
-            cmd = make_command(verb, strings, values, request_id=i + 1, sender="t")
+            cmd = make_command(verb, strings, values, request_id=i + 1, sender="t", key=TEST_KEY)
             memq.publish(CANON_COMMAND, cmd.encode())
         replies.wait_for(4)
     finally:
@@ -387,18 +488,28 @@ def test_command_server_answers_on_memq(memq: lcm.LCM) -> None:
     assert seen == ["pause", "run", "feed_override"]
 
 
-def test_command_server_refuses_without_token_on_a_url_that_leaves_the_host(memq: lcm.LCM) -> None:
+def test_command_server_refuses_unauthenticated_commands_with_a_security_event(memq: lcm.LCM) -> None:
     calls: list[Any] = []
-    server = CommandServer(memq, calls.append, url=REMOTE, token="s3cret")
-    refused = server.answer(make_command("estop", request_id=5))
-    accepted = server.answer(make_command("estop", request_id=6, token="s3cret"))
+    notes: list[str] = []
+    server = CommandServer(memq, calls.append, key=TEST_KEY, url="memq://", on_security=notes.append)
+    refused = server.answer(make_command("estop", request_id=5, sender="lan"))
+    accepted = server.answer(make_command("estop", request_id=6, sender="op", key=TEST_KEY))
     assert (refused.ok, accepted.ok) == (False, True)
-    assert "token" in refused.error and server.refused == 1
-    assert len(calls) == 1
+    assert refused.error.startswith("refused: unsigned command") and server.refused == 1
+    assert len(calls) == 1 and len(notes) == 1 and "'lan'" in notes[0]
+
+
+def test_command_server_rate_limits_refusal_replies(memq: lcm.LCM) -> None:
+    notes: list[str] = []
+    server = CommandServer(memq, lambda c: None, key=TEST_KEY, on_security=notes.append, refusal_rate=5)
+    answered = [server.answer(make_command("estop", request_id=i, key=bytes(32))) for i in range(100)]
+    sent = [r for r in answered if r is not None]
+    assert 10 <= len(sent) <= 12 and server.refused == 100  # a burst of 2 s worth, then the rate
+    assert server.unanswered == 100 - len(sent) and len(notes) == len(sent)
 
 
 def test_command_server_ignores_foreign_messages(memq: lcm.LCM) -> None:
-    server = CommandServer(memq, lambda c: None, url="memq://")
+    server = CommandServer(memq, lambda c: None, key=TEST_KEY, url="memq://")
     server.on_message(CANON_COMMAND, reply().encode())
     assert server.bad_messages == 1 and server.replies == 0
 
@@ -406,9 +517,11 @@ def test_command_server_ignores_foreign_messages(memq: lcm.LCM) -> None:
 def test_config_from_a_table_names_file_and_key() -> None:
     from motiond.configkit import ConfigError, Table
 
-    cfg = TelemetryConfig.from_table(Table({"url": "memq://", "status_hz": 20, "token": "t"}, "m.toml",
-                                           "telemetry"))
-    assert (cfg.url, cfg.status_hz, cfg.token, cfg.event_queue) == ("memq://", 20.0, "t", 1000)
+    cfg = TelemetryConfig.from_table(Table({"url": "memq://", "status_hz": 20, "key_file": "k.key"},
+                                           "/m/m.toml", "telemetry"))
+    assert (cfg.url, cfg.status_hz, cfg.key_file, cfg.event_queue) == ("memq://", 20.0, "/m/k.key", 1000)
+    with pytest.raises(ConfigError, match=r"^m\.toml: telemetry\.token: no longer used: commands are signed"):
+        TelemetryConfig.from_table(Table({"token": "s3cret"}, "m.toml", "telemetry"))
     assert TelemetryConfig.from_table(Table({}, "m.toml", "telemetry")) == TelemetryConfig()
     with pytest.raises(ConfigError, match=r"^m\.toml: telemetry\.status_hz: must be > 0"):
         TelemetryConfig.from_table(Table({"status_hz": -1}, "m.toml", "telemetry"))
@@ -440,7 +553,7 @@ def test_command_server_survives_an_lcm_error() -> None:
             return 0
 
     lc = FlakyLcm()
-    server = CommandServer(lc, lambda cmd: None, url="memq://").start()
+    server = CommandServer(lc, lambda cmd: None, key=TEST_KEY, url="memq://").start()
     try:
         deadline = time.monotonic() + 5
         while lc.calls < 3 and time.monotonic() < deadline:

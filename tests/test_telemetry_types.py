@@ -126,7 +126,8 @@ def test_event_round_trip_and_severity_constants() -> None:
 
 def test_command_round_trip() -> None:
     c = command()
-    c.utime, c.request_id, c.sender, c.token, c.verb = 1, 77, "hmi@pc:12", "s3cret", "jog"
+    c.utime, c.request_id, c.sender, c.seq, c.verb = 1, 77, "hmi@pc:12", 12345, "jog"
+    c.mac_len, c.mac = 32, bytes(range(32))
     c.strings, c.num_strings = ["x"], 1
     c.values, c.num_values = [-5.0, 2.5], 2
     assert slots(command.decode(c.encode())) == slots(c)

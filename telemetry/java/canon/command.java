@@ -12,12 +12,12 @@ import lcm.lcm.*;
  
 /**
  * A command to the daemon on channel CANON_COMMAND, answered by one canon.reply on CANON_REPLY with
- * the same request_id. docs/telemetry.md lists each verb's arguments.
+ * the same request_id. docs/telemetry.md lists each verb's arguments and how commands are signed.
  */
 public final class command implements lcm.lcm.LCMEncodable
 {
     /**
-     * when it was sent, microseconds since the Unix epoch
+     * when it was sent, microseconds since the Unix epoch; the daemon refuses one outside its window
      */
     public long utime;
 
@@ -27,14 +27,14 @@ public final class command implements lcm.lcm.LCMEncodable
     public long request_id;
 
     /**
-     * who sends it (e.g. "hmi@host:pid"), echoed in the reply
+     * the client's id (e.g. "hmi@host:pid"), echoed in the reply; seq counts per sender
      */
     public String sender;
 
     /**
-     * [telemetry] token: required when the LCM URL lets traffic leave the host
+     * strictly increasing per sender: a command whose seq is not above the last one accepted is a replay
      */
-    public String token;
+    public long seq;
 
     /**
      * run, mdi, pause, resume, feed_override, abort, estop, estop_reset, enable, disable, home, jog,
@@ -58,13 +58,23 @@ public final class command implements lcm.lcm.LCMEncodable
      */
     public double values[];
 
+    /**
+     * HMAC-SHA256 with the command key over this message encoded with mac_len = 0 (telemetry.auth)
+     */
+    public short mac_len;
+
+    /**
+     * LCM Type: byte[mac_len]
+     */
+    public byte mac[];
+
  
     public command()
     {
     }
  
     public static final long LCM_FINGERPRINT;
-    public static final long LCM_FINGERPRINT_BASE = 0x2ecc1e2f9ca4f30dL;
+    public static final long LCM_FINGERPRINT_BASE = 0x61f1c1bf75a9eb5eL;
  
     static {
         LCM_FINGERPRINT = _hashRecursive(new ArrayList<Class<?>>());
@@ -97,7 +107,7 @@ public final class command implements lcm.lcm.LCMEncodable
  
         __strbuf = new char[this.sender.length()]; this.sender.getChars(0, this.sender.length(), __strbuf, 0); outs.writeInt(__strbuf.length+1); for (int _i = 0; _i < __strbuf.length; _i++) outs.write(__strbuf[_i]); outs.writeByte(0); 
  
-        __strbuf = new char[this.token.length()]; this.token.getChars(0, this.token.length(), __strbuf, 0); outs.writeInt(__strbuf.length+1); for (int _i = 0; _i < __strbuf.length; _i++) outs.write(__strbuf[_i]); outs.writeByte(0); 
+        outs.writeLong(this.seq); 
  
         __strbuf = new char[this.verb.length()]; this.verb.getChars(0, this.verb.length(), __strbuf, 0); outs.writeInt(__strbuf.length+1); for (int _i = 0; _i < __strbuf.length; _i++) outs.write(__strbuf[_i]); outs.writeByte(0); 
  
@@ -112,6 +122,11 @@ public final class command implements lcm.lcm.LCMEncodable
         for (int a = 0; a < this.num_values; a++) {
             outs.writeDouble(this.values[a]); 
         }
+ 
+        outs.writeShort(this.mac_len); 
+ 
+        if (this.mac_len > 0)
+            outs.write(this.mac, 0, (int) mac_len);
  
     }
  
@@ -144,7 +159,7 @@ public final class command implements lcm.lcm.LCMEncodable
  
         __strbuf = new char[ins.readInt()-1]; for (int _i = 0; _i < __strbuf.length; _i++) __strbuf[_i] = (char) (ins.readByte()&0xff); ins.readByte(); this.sender = new String(__strbuf);
  
-        __strbuf = new char[ins.readInt()-1]; for (int _i = 0; _i < __strbuf.length; _i++) __strbuf[_i] = (char) (ins.readByte()&0xff); ins.readByte(); this.token = new String(__strbuf);
+        this.seq = ins.readLong();
  
         __strbuf = new char[ins.readInt()-1]; for (int _i = 0; _i < __strbuf.length; _i++) __strbuf[_i] = (char) (ins.readByte()&0xff); ins.readByte(); this.verb = new String(__strbuf);
  
@@ -162,6 +177,10 @@ public final class command implements lcm.lcm.LCMEncodable
             this.values[a] = ins.readDouble();
         }
  
+        this.mac_len = ins.readShort();
+ 
+        this.mac = new byte[(int) mac_len];
+        ins.readFully(this.mac, 0, (int) mac_len); 
     }
  
     public canon.command copy()
@@ -173,7 +192,7 @@ public final class command implements lcm.lcm.LCMEncodable
  
         outobj.sender = this.sender;
  
-        outobj.token = this.token;
+        outobj.seq = this.seq;
  
         outobj.verb = this.verb;
  
@@ -187,6 +206,11 @@ public final class command implements lcm.lcm.LCMEncodable
         outobj.values = new double[(int) num_values];
         if (this.num_values > 0)
             System.arraycopy(this.values, 0, outobj.values, 0, (int) this.num_values); 
+        outobj.mac_len = this.mac_len;
+ 
+        outobj.mac = new byte[(int) mac_len];
+        if (this.mac_len > 0)
+            System.arraycopy(this.mac, 0, outobj.mac, 0, (int) this.mac_len); 
         return outobj;
     }
  

@@ -10,19 +10,19 @@ import struct
 class command(object):
     """
     A command to the daemon on channel CANON_COMMAND, answered by one canon.reply on CANON_REPLY with
-    the same request_id. docs/telemetry.md lists each verb's arguments.
+    the same request_id. docs/telemetry.md lists each verb's arguments and how commands are signed.
     """
 
-    __slots__ = ["utime", "request_id", "sender", "token", "verb", "num_strings", "strings", "num_values", "values"]
+    __slots__ = ["utime", "request_id", "sender", "seq", "verb", "num_strings", "strings", "num_values", "values", "mac_len", "mac"]
 
-    __typenames__ = ["int64_t", "int64_t", "string", "string", "string", "int16_t", "string", "int16_t", "double"]
+    __typenames__ = ["int64_t", "int64_t", "string", "int64_t", "string", "int16_t", "string", "int16_t", "double", "int16_t", "byte"]
 
-    __dimensions__ = [None, None, None, None, None, None, ["num_strings"], None, ["num_values"]]
+    __dimensions__ = [None, None, None, None, None, None, ["num_strings"], None, ["num_values"], None, ["mac_len"]]
 
     def __init__(self):
         self.utime = 0
         """
-        when it was sent, microseconds since the Unix epoch
+        when it was sent, microseconds since the Unix epoch; the daemon refuses one outside its window
         LCM Type: int64_t
         """
 
@@ -34,14 +34,14 @@ class command(object):
 
         self.sender = ""
         """
-        who sends it (e.g. "hmi@host:pid"), echoed in the reply
+        the client's id (e.g. "hmi@host:pid"), echoed in the reply; seq counts per sender
         LCM Type: string
         """
 
-        self.token = ""
+        self.seq = 0
         """
-        [telemetry] token: required when the LCM URL lets traffic leave the host
-        LCM Type: string
+        strictly increasing per sender: a command whose seq is not above the last one accepted is a replay
+        LCM Type: int64_t
         """
 
         self.verb = ""
@@ -67,6 +67,14 @@ class command(object):
         LCM Type: double[num_values]
         """
 
+        self.mac_len = 0
+        """
+        HMAC-SHA256 with the command key over this message encoded with mac_len = 0 (telemetry.auth)
+        LCM Type: int16_t
+        """
+
+        self.mac = b""
+        """ LCM Type: byte[mac_len] """
 
     def encode(self):
         buf = BytesIO()
@@ -80,10 +88,7 @@ class command(object):
         buf.write(struct.pack('>I', len(__sender_encoded)+1))
         buf.write(__sender_encoded)
         buf.write(b"\0")
-        __token_encoded = self.token.encode('utf-8')
-        buf.write(struct.pack('>I', len(__token_encoded)+1))
-        buf.write(__token_encoded)
-        buf.write(b"\0")
+        buf.write(struct.pack(">q", self.seq))
         __verb_encoded = self.verb.encode('utf-8')
         buf.write(struct.pack('>I', len(__verb_encoded)+1))
         buf.write(__verb_encoded)
@@ -96,6 +101,8 @@ class command(object):
             buf.write(b"\0")
         buf.write(struct.pack(">h", self.num_values))
         buf.write(struct.pack('>%dd' % self.num_values, *self.values[:self.num_values]))
+        buf.write(struct.pack(">h", self.mac_len))
+        buf.write(bytearray(self.mac[:self.mac_len]))
 
     @staticmethod
     def decode(data: bytes):
@@ -113,8 +120,7 @@ class command(object):
         self.utime, self.request_id = struct.unpack(">qq", buf.read(16))
         __sender_len = struct.unpack('>I', buf.read(4))[0]
         self.sender = buf.read(__sender_len)[:-1].decode('utf-8', 'replace')
-        __token_len = struct.unpack('>I', buf.read(4))[0]
-        self.token = buf.read(__token_len)[:-1].decode('utf-8', 'replace')
+        self.seq = struct.unpack(">q", buf.read(8))[0]
         __verb_len = struct.unpack('>I', buf.read(4))[0]
         self.verb = buf.read(__verb_len)[:-1].decode('utf-8', 'replace')
         self.num_strings = struct.unpack(">h", buf.read(2))[0]
@@ -124,12 +130,14 @@ class command(object):
             self.strings.append(buf.read(__strings_len)[:-1].decode('utf-8', 'replace'))
         self.num_values = struct.unpack(">h", buf.read(2))[0]
         self.values = struct.unpack('>%dd' % self.num_values, buf.read(self.num_values * 8))
+        self.mac_len = struct.unpack(">h", buf.read(2))[0]
+        self.mac = buf.read(self.mac_len)
         return self
 
     @staticmethod
     def _get_hash_recursive(parents):
         if command in parents: return 0
-        tmphash = (0x2ecc1e2f9ca4f30d) & 0xffffffffffffffff
+        tmphash = (0x61f1c1bf75a9eb5e) & 0xffffffffffffffff
         tmphash  = (((tmphash<<1)&0xffffffffffffffff) + (tmphash>>63)) & 0xffffffffffffffff
         return tmphash
     _packed_fingerprint = None
