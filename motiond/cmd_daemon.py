@@ -125,14 +125,15 @@ def run(args: argparse.Namespace) -> int:
     from motiond.states import CommandRefused
     from telemetry.config import TelemetryConfig
     from telemetry.publisher import TelemetryUnavailable, open_lcm
+    from telemetry.url import with_receive_buffer
 
     config = load_machine(args.config)
     tele = TelemetryConfig.from_table(config.telemetry)
     if args.url:
         tele = TelemetryConfig.from_table(Table({**config.telemetry.data, "url": args.url}, "--url",
                                                 "telemetry"))
-    try:
-        lc = open_lcm(tele.url)
+    try:  # a larger receive buffer: a burst of commands waits in the kernel instead of being dropped
+        lc = open_lcm(with_receive_buffer(tele.url))
     except TelemetryUnavailable as exc:
         raise UserError(str(exc)) from None
     var = parameter_file(args.var, config, args.state_dir)

@@ -10,8 +10,8 @@ signed, on every URL:
   travels on the wire; it lives in a file readable by the daemon's user and the operators' group
   (:func:`load_or_create_key`, created at the daemon's first start with mode 0640).
 * ``sender`` is the client's id and ``seq`` a number strictly increasing per sender
-  (:func:`next_seq`): the daemon remembers the last ``seq`` it accepted from each sender and refuses
-  one not above it (a replay).
+  (:func:`next_seq`): the daemon remembers the sequence numbers it accepted from each sender and
+  refuses one seen before or older than those it remembers (a replay; :data:`REORDER`).
 * ``utime`` must lie within ``window_s`` (5 s) of the daemon's clock: a message captured and sent
   again later is stale, even after the daemon forgot its sender.
 
@@ -234,7 +234,7 @@ class Verifier:
         self.window_s = float(window_s)
         self.max_senders = max_senders
         self._clock = clock
-        self._seen: OrderedDict[str, tuple[int, float]] = OrderedDict()  # sender -> (seq, accepted at)
+        self._seen: OrderedDict[str, _SeqWindow] = OrderedDict()  # sender -> its recent sequence numbers
         self._lock = threading.Lock()
 
     def check(self, cmd: Any, data: bytes) -> str | None:
@@ -253,12 +253,15 @@ class Verifier:
         seq = int(cmd.seq)
         with self._lock:
             self._forget(now)
-            last = self._seen.get(sender)
-            if last is not None and seq <= last[0]:
-                return f"replayed command: seq {seq} from {sender!r} is not above {last[0]}"
-            if last is None and len(self._seen) >= self.max_senders:
-                return f"too many clients within {2 * self.window_s:g} s ({self.max_senders})"
-            self._seen[sender] = (seq, now)
+            window = self._seen.get(sender)
+            if window is None:
+                if len(self._seen) >= self.max_senders:
+                    return f"too many clients within {2 * self.window_s:g} s ({self.max_senders})"
+                window = self._seen[sender] = _SeqWindow()
+            if seq <= window.floor or seq in window.recent:
+                return f"replayed command: seq {seq} from {sender!r} was seen already (or is older than " \
+                       f"the last {REORDER} accepted)"
+            window.accept(seq, now)
             self._seen.move_to_end(sender)
         return None
 
@@ -266,10 +269,34 @@ class Verifier:
         """Drop senders quiet for 2 windows: any replay of theirs is stale by then (oldest first)."""
         horizon = now - 2 * self.window_s - 1.0
         while self._seen:
-            sender, (_, at) = next(iter(self._seen.items()))
-            if at >= horizon:
+            sender, window = next(iter(self._seen.items()))
+            if window.at >= horizon:
                 return
             del self._seen[sender]
+
+
+REORDER = 256
+"""How many of a sender's latest sequence numbers the daemon remembers one by one. A client numbers
+its commands strictly increasing, but the daemon may take them out of order (an E-stop is checked
+before the commands read ahead of it), so, as IPsec's anti-replay window, any number not seen yet and
+above the oldest one remembered is accepted once; a number seen already, or older, is a replay."""
+
+
+class _SeqWindow:
+    __slots__ = ("at", "floor", "recent")
+
+    def __init__(self) -> None:
+        self.floor = -(1 << 63)
+        self.recent: set[int] = set()
+        self.at = 0.0
+
+    def accept(self, seq: int, now: float) -> None:
+        self.recent.add(seq)
+        self.at = now
+        if len(self.recent) > REORDER:
+            oldest = min(self.recent)
+            self.recent.discard(oldest)
+            self.floor = max(self.floor, oldest)
 
 
 class RateLimiter:

@@ -9,8 +9,12 @@ queue the work and return at once.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
+import queue
+import struct
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -96,8 +100,36 @@ def make_command(verb: str, strings: tuple[str, ...] | list[str] = (),
     return cmd
 
 
+def _raw_verb(data: bytes) -> str:
+    """The verb of an encoded ``canon.command``, read without decoding the rest ("" if it is not one):
+    fingerprint, utime, request_id (8 bytes each), sender (int32 length with its NUL, bytes), seq (8),
+    then the verb."""
+    try:
+        (n,) = struct.unpack_from(">i", data, 24)
+        at = 28 + n + 8
+        (m,) = struct.unpack_from(">i", data, at)
+        if not 1 <= m <= 64:
+            return ""
+        return data[at + 4:at + 3 + m].decode("ascii")
+    except (struct.error, UnicodeDecodeError):
+        return ""
+
+
 Handler = Callable[[Any], "str | None"]
 SecurityHook = Callable[[str], None]
+
+IMMEDIATE_VERBS = frozenset({"estop"})
+"""Carried out on the receiving thread the moment the command is read: nothing queues before them."""
+URGENT_VERBS = frozenset({"abort", "pause", "resume", "feed_override"})
+"""Carried out on a thread of their own, in order, never behind the other verbs, never rate-limited."""
+COMMANDS_PER_S = 20.0
+"""The other verbs: each sender may send this many per second on average (bursts of twice that);
+beyond it a command is refused with the reason (``refused: rate limit ...``), never dropped."""
+LANE_DEPTH = 64
+"""Commands waiting per lane (urgent, other); one more is refused ``busy`` with the reason."""
+
+RECEIVE_QUEUE = 10_000
+"""Commands LCM may hold for dispatch (its default is 30 per subscription, beyond which it drops)."""
 
 REFUSAL_REPLIES_PER_S = 10.0
 """Replies to refused (unauthenticated) commands, all senders together: a flood of forged packets
@@ -111,7 +143,15 @@ class CommandServer(Worker):
     sequence), whatever the URL. A refused one gets a reply with the reason and ``on_security(text)``
     (the daemon publishes it as a ``security`` event); both at most :data:`REFUSAL_REPLIES_PER_S`
     per second, the rest counted in ``unanswered``. ``handler(command)`` returns None when the
-    command is accepted, or the reason it is not. Call :meth:`subscribe` if the daemon runs its own
+    command is accepted, or the reason it is not.
+
+    Commands read from LCM take one of three ways, so that an E-stop never waits behind anything:
+    :data:`IMMEDIATE_VERBS` (``estop``) are handled on the receiving thread at once;
+    :data:`URGENT_VERBS` (abort, hold, resume, feed override) on the ``urgent`` lane's thread; the
+    others, at most :data:`COMMANDS_PER_S` per sender, on the ``normal`` lane's thread. The handler
+    must therefore be callable from these three threads at once. A command refused by the rate limit
+    or a full lane gets a reply saying so. :meth:`answer` decides one command on the calling thread.
+    Call :meth:`subscribe` if the daemon runs its own
     ``lc.handle()`` loop, or :meth:`start` for a thread that does. ``replies`` / ``refused`` /
     ``bad_messages`` count what happened.
     """
@@ -134,15 +174,50 @@ class CommandServer(Worker):
         self.unanswered = 0
         self.bad_messages = 0
         self.errors = 0
+        self.rate_limited = 0
         self._refusals = RateLimiter(refusal_rate, 2 * refusal_rate)
+        self._per_sender = RateLimiter(COMMANDS_PER_S, 2 * COMMANDS_PER_S)
+        self._lanes: dict[str, queue.Queue[Any]] = {"urgent": queue.Queue(LANE_DEPTH),
+                                                    "normal": queue.Queue(LANE_DEPTH)}
+        self._lane_threads: list[threading.Thread] = []
+        self._intake: queue.Queue[bytes] = queue.Queue(RECEIVE_QUEUE)
+        self._intake_thread: threading.Thread | None = None
+        self._lanes_stop = threading.Event()
         self._subscription: Any = None
         Worker.__init__(self)
 
     def subscribe(self) -> None:
+        """Receive commands from ``lc`` (whoever handles it) and start the lanes' threads."""
+        if not self._lane_threads:
+            self._lanes_stop.clear()
+            for name, lane in self._lanes.items():
+                t = threading.Thread(target=self._lane_main, args=(lane,), name=f"canon-command-{name}",
+                                     daemon=True)
+                t.start()
+                self._lane_threads.append(t)
+            self._intake_thread = threading.Thread(target=self._intake_main, name="canon-command-intake",
+                                                   daemon=True)
+            self._intake_thread.start()
+            self._lane_threads.append(self._intake_thread)
         if self._subscription is None:
             self._subscription = self.lc.subscribe(self.channel, self.on_message)
+            # LCM keeps 30 messages per subscription waiting for dispatch and drops the rest: a burst of
+            # commands while this process is busy would lose some (an E-stop among them)
+            with contextlib.suppress(AttributeError):
+                self._subscription.set_queue_capacity(RECEIVE_QUEUE)
 
     def on_message(self, channel: str, data: bytes) -> None:
+        """LCM's dispatch: an E-stop is decided at once; anything else goes to the intake thread, so
+        that a backlog of other commands never stands in front of an E-stop."""
+        if self._intake_thread is not None and _raw_verb(data) not in IMMEDIATE_VERBS:
+            try:
+                self._intake.put_nowait(data)
+                return
+            except queue.Full:
+                pass  # decided here then: it is refused 'busy' by the full lane or the rate limit
+        self._take(data, channel)
+
+    def _take(self, data: bytes, channel: str = "") -> None:
         from telemetry.lcmtypes.canon import command
 
         try:
@@ -150,9 +225,72 @@ class CommandServer(Worker):
         except Exception as exc:  # a foreign type on our channel: nothing to answer
             self.bad_messages += 1
             if self._refusals.allow():
-                log.warning("ignoring a message on %s that is not a canon.command: %s", channel, exc)
+                log.warning("ignoring a message on %s that is not a canon.command: %s",
+                            channel or self.channel, exc)
             return
-        self.answer(cmd, data)
+        self.dispatch(cmd, data)
+
+    def _intake_main(self) -> None:
+        while not self._lanes_stop.is_set():
+            try:
+                data = self._intake.get(timeout=0.05)
+            except queue.Empty:
+                continue
+            try:
+                self._take(data)
+            except Exception:
+                self.errors += 1
+                log.exception("command server: a command could not be handled")
+
+    def dispatch(self, cmd: Any, data: bytes) -> None:
+        """Receiving thread: authenticate and check ``cmd``, then carry it out or queue it by its verb."""
+        denied = self.verifier.check(cmd, data)
+        if denied is not None:
+            self._refuse_unauthenticated(cmd, denied)
+            return
+        error = check_command(cmd)
+        if error is not None:
+            self.refused += 1
+            self._reply(cmd, error)
+            return
+        if cmd.verb in IMMEDIATE_VERBS:
+            self._execute(cmd)
+            return
+        lane = self._lanes["urgent"] if cmd.verb in URGENT_VERBS else self._lanes["normal"]
+        if cmd.verb not in URGENT_VERBS and not self._per_sender.allow(str(cmd.sender)):
+            self.refused += 1
+            self.rate_limited += 1
+            self._reply(cmd, f"refused: rate limit: more than {COMMANDS_PER_S:g} commands per second from "
+                             f"{str(cmd.sender)[:80]!r} (estop, abort, pause, resume and feed_override are "
+                             "never limited); send it again later")
+            return
+        try:
+            lane.put_nowait(cmd)
+        except queue.Full:
+            self.refused += 1
+            self._reply(cmd, f"busy: {LANE_DEPTH} commands are waiting to be carried out; send it again "
+                             "later")
+
+    def _lane_main(self, lane: queue.Queue[Any]) -> None:
+        while not self._lanes_stop.is_set():
+            try:
+                cmd = lane.get(timeout=0.05)
+            except queue.Empty:
+                continue
+            try:
+                self._execute(cmd)
+            except Exception:  # a failed reply must not end the lane
+                self.errors += 1
+                log.exception("command %s from %r: answering failed", cmd.verb, cmd.sender)
+
+    def _execute(self, cmd: Any) -> Any:
+        """Call the handler on a checked, authenticated command and publish the reply."""
+        try:
+            error = self.handler(cmd)
+        except Exception as exc:
+            log.exception("command %s from %r failed", cmd.verb, cmd.sender)
+            error = f"internal error: {type(exc).__name__}: {exc}"
+        return self._reply(cmd, error)
 
     def answer(self, cmd: Any, data: bytes | None = None) -> Any:
         """Decide on ``cmd`` (``data``: the bytes it came as; None: its own encoding) and publish the
@@ -162,14 +300,9 @@ class CommandServer(Worker):
             return self._refuse_unauthenticated(cmd, denied)
         error = check_command(cmd)
         if error is None:
-            try:
-                error = self.handler(cmd)
-            except Exception as exc:
-                log.exception("command %s from %r failed", cmd.verb, cmd.sender)
-                error = f"internal error: {type(exc).__name__}: {exc}"
-        else:
-            self.refused += 1
-            log.warning("command %s from %r refused: %s", cmd.verb, cmd.sender, error)
+            return self._execute(cmd)
+        self.refused += 1
+        log.warning("command %s from %r refused: %s", cmd.verb, cmd.sender, error)
         return self._reply(cmd, error)
 
     def _refuse_unauthenticated(self, cmd: Any, reason: str) -> Any:
@@ -213,6 +346,27 @@ class CommandServer(Worker):
         if self._subscription is not None:
             self.lc.unsubscribe(self._subscription)
             self._subscription = None
+        self._lanes_stop.set()
+        for t in self._lane_threads:
+            t.join(timeout)
+        self._lane_threads = []
+        self._intake_thread = None
+        while True:  # read but not yet decided: decided now (refused 'busy' as the lanes no longer run)
+            try:
+                data = self._intake.get_nowait()
+            except queue.Empty:
+                break
+            with contextlib.suppress(Exception):
+                self._take(data)
+        for lane in self._lanes.values():  # none dropped silently: what was waiting is told so
+            while True:
+                try:
+                    cmd = lane.get_nowait()
+                except queue.Empty:
+                    break
+                self.refused += 1
+                with contextlib.suppress(Exception):
+                    self._reply(cmd, "not carried out: the daemon's command server is stopping")
 
     def _run(self) -> None:
         while not self._stop.is_set():

@@ -19,6 +19,7 @@ from typing import Any
 
 import lcm
 import pytest
+from keys import TEST_KEY
 
 from telemetry.commands import CommandServer, make_command
 from telemetry.generate import lcm_tool
@@ -103,10 +104,10 @@ def test_status_and_events_on_the_default_url() -> None:
 @pytest.mark.multicast
 def test_command_and_reply_between_two_lcm_instances() -> None:
     server_lc = lcm.LCM(DEFAULT_URL)
-    server = CommandServer(server_lc, lambda cmd: None, url=DEFAULT_URL).start()
+    server = CommandServer(server_lc, lambda cmd: None, key=TEST_KEY, url=DEFAULT_URL).start()
     client = Listener(DEFAULT_URL, {CANON_REPLY: reply})
     try:
-        cmd = make_command("feed_override", values=[0.8], request_id=31, sender="test-client")
+        cmd = make_command("feed_override", values=[0.8], request_id=31, sender="test-client", key=TEST_KEY)
         deadline = time.monotonic() + 5
         # the server's subscription may still be settling: resend until answered (bounded)
         while not client.got[CANON_REPLY] and time.monotonic() < deadline:

@@ -13,6 +13,7 @@ from keys import TEST_KEY
 
 from telemetry import publisher
 from telemetry.auth import (
+    REORDER,
     CommandKeyError,
     RateLimiter,
     Verifier,
@@ -152,8 +153,15 @@ def test_verifier_sequence_is_per_sender_and_survives_forgetting() -> None:
     assert v.check(a5, da5) is None
     b1, db1 = signed(seq=1, sender="b", utime=now)
     assert v.check(b1, db1) is None  # another sender's numbers are its own
+    a5again, da5again = signed(seq=5, sender="a", utime=now)
+    assert "seq 5 from 'a' was seen already" in (v.check(a5again, da5again) or "")
     a4, da4 = signed(seq=4, sender="a", utime=now)
-    assert "not above 5" in (v.check(a4, da4) or "")
+    assert v.check(a4, da4) is None  # taken out of order (an E-stop overtook it): not seen yet
+    for seq in range(100, 100 + REORDER):
+        c, d = signed(seq=seq, sender="a", utime=now)
+        assert v.check(c, d) is None
+    a3, da3 = signed(seq=3, sender="a", utime=now)  # below the oldest remembered (5)
+    assert "older than the last" in (v.check(a3, da3) or "")
     clock.t += 20.0  # "a" is forgotten; its old message is stale now, so still refused
     assert (v.check(a5, da5) or "").startswith("stale")
 
@@ -485,7 +493,7 @@ def test_command_server_answers_signed_commands_on_memq(memq: lcm.LCM) -> None:
     assert got[2] == ("run", False, "not homed", "t")
     assert got[3][1] is False and "unknown verb" in got[3][2]
     assert got[4][:2] == ("feed_override", True)
-    assert seen == ["pause", "run", "feed_override"]
+    assert sorted(seen) == ["feed_override", "pause", "run"]  # urgent verbs take their own way
 
 
 def test_command_server_refuses_unauthenticated_commands_with_a_security_event(memq: lcm.LCM) -> None:
@@ -563,3 +571,72 @@ def test_command_server_survives_an_lcm_error() -> None:
         assert server._thread is not None and server._thread.is_alive()
     finally:
         server.stop()
+
+
+def test_with_receive_buffer_caps_at_the_kernel_limit(tmp_path: Any) -> None:
+    from telemetry.url import with_receive_buffer
+
+    rmem = tmp_path / "rmem_max"
+    rmem.write_text("212992\n")
+    assert with_receive_buffer(LOCAL, rmem_max_file=str(rmem)) == LOCAL + "&recv_buf_size=212992"
+    assert with_receive_buffer(LOCAL, 1000, rmem_max_file=str(rmem)) == LOCAL + "&recv_buf_size=1000"
+    given = LOCAL + "&recv_buf_size=5"
+    assert with_receive_buffer(given, rmem_max_file=str(rmem)) == given
+    assert with_receive_buffer("memq://") == "memq://"
+
+
+def test_estop_and_urgent_verbs_never_wait_behind_other_commands(memq: lcm.LCM) -> None:
+    """A handler stuck on an ordinary verb (a slow 'run') holds neither the E-stop nor a feed hold."""
+    release = threading.Event()
+    done: list[str] = []
+
+    def handler(cmd: Any) -> str | None:
+        if cmd.verb == "run":
+            release.wait(10)
+        done.append(cmd.verb)
+        return None
+
+    replies = Receiver(memq, CANON_REPLY, reply)
+    replies.close()
+    server = CommandServer(memq, handler, key=TEST_KEY).start()
+    try:
+        for i, (verb, strings) in enumerate([("run", ["a.ngc"]), ("mdi", ["G0 X1"]), ("pause", []),
+                                             ("estop", [])]):
+            memq.publish(CANON_COMMAND, make_command(verb, strings, request_id=i + 1, sender="c",
+                                                     key=TEST_KEY).encode())
+        replies.wait_for(2)
+        first = sorted(r.verb for r in replies.messages)
+        release.set()
+        replies.wait_for(4)
+    finally:
+        release.set()
+        server.stop()
+    # while run (and mdi behind it) were still waiting
+    assert first == ["estop", "pause"], [(r.verb, r.error) for r in replies.messages]
+    assert done[-2:] == ["run", "mdi"]
+
+
+def test_ordinary_verbs_are_rate_limited_per_sender_with_a_reply(memq: lcm.LCM) -> None:
+    from telemetry.commands import COMMANDS_PER_S
+
+    calls: list[str] = []
+    server = CommandServer(memq, lambda c: calls.append(c.sender), key=TEST_KEY)
+    replies = Receiver(memq, CANON_REPLY, reply)
+    try:
+        server.subscribe()
+        n = int(4 * COMMANDS_PER_S)
+        for i in range(n):
+            for sender in ("a", "b"):
+                memq.publish(CANON_COMMAND, make_command("single_block", values=[1], request_id=i,
+                                                         sender=sender, key=TEST_KEY).encode())
+        for i in range(40):  # urgent verbs are never rate-limited (40: fewer than a lane holds)
+            memq.publish(CANON_COMMAND, make_command("feed_override", values=[1], request_id=1000 + i,
+                                                     sender="a", key=TEST_KEY).encode())
+        replies.wait_for(2 * n + 40)
+    finally:
+        server.stop()
+        replies.close()
+    limited = [r for r in replies.messages if r.error.startswith("refused: rate limit")]
+    assert {r.sender for r in limited} == {"a", "b"} and all(r.verb == "single_block" for r in limited)
+    assert len(replies.messages) == 2 * n + 40  # every command answered
+    assert all(r.ok for r in replies.messages if r.verb == "feed_override")
