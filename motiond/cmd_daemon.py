@@ -30,6 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--var", metavar="FILE", help="parameter file (default: in the state directory)")
     parser.add_argument("--state-dir", metavar="DIR", help="where the parameter file lives by default")
     parser.add_argument("--url", help="LCM URL (default: [telemetry] url)")
+    parser.add_argument("--program-dir", action="append", metavar="DIR",
+                        help="a directory the run command takes programs from (repeatable; default: "
+                             "[interpreter] program_path, else 'programs' in the state directory)")
     parser.add_argument("--enable", action="store_true",
                         help="leave E-stop and enable the drives at start (benches, simulations)")
     parser.add_argument("--late-fault-ms", type=float, metavar="MS",
@@ -97,17 +100,42 @@ def load_key(path: Path) -> bytes:
         raise UserError(str(exc)) from None
 
 
+def program_dirs(args_dirs: list[str] | None, config: Any, state_directory: str | None) -> list[Path]:
+    """Where ``run`` finds programs: ``--program-dir``, else ``[interpreter] program_path``, else
+    ``programs`` in the state directory (created). A ``UserError`` names a missing directory."""
+    from motiond.cli import UserError
+
+    if args_dirs:
+        dirs = [Path(d) for d in args_dirs]
+        for d in dirs:
+            if not d.is_dir():
+                raise UserError(f"--program-dir {d}: no such directory")
+        return dirs
+    if config.interpreter.program_path:
+        return list(config.interpreter.program_path)
+    directory = state_dir(state_directory) / "programs"
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"program directory {directory}: {exc.strerror}") from None
+    return [directory]
+
+
 def start(config: Any, lc: Any, tele: Any, *, key: bytes, var_file: str | os.PathLike[str] | None = None,
+          programs: list[Path] | None = None,
           tool_table: str | None = None, late_fault_s: float | None = None,
           modbus_port: int | None = None, feedback_timeout_s: float | None = None) -> tuple[Any, Any]:
     """Start a :class:`motiond.runtime.Machine` and its :class:`telemetry.commands.CommandServer` on
-    ``lc``, commands signed with ``key``; returns both (stop the server, then shut the machine down)."""
+    ``lc``, commands signed with ``key``, ``run`` taking programs from ``programs`` (None: the machine
+    file's ``program_path``); returns both (stop the server, then shut the machine down)."""
     from motiond.runtime import Machine
     from telemetry.commands import CommandServer
 
     machine = Machine(config, lc=lc, telemetry=tele, var_file=var_file, tool_table=tool_table,
                       late_fault_s=late_fault_s, modbus_port=modbus_port,
                       feedback_timeout_s=feedback_timeout_s)
+    if programs is not None:
+        machine.program_dirs = list(programs)
     machine.start()
     server = CommandServer(lc, machine.handle_command, key=key, url=tele.url,
                            on_security=machine.security_event).start()
@@ -139,12 +167,14 @@ def run(args: argparse.Namespace) -> int:
     var = parameter_file(args.var, config, args.state_dir)
     key_path = key_file(tele, args.state_dir)
     key = load_key(key_path)
+    programs = program_dirs(args.program_dir, config, args.state_dir)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     machine = server = None
     try:
         try:
-            machine, server = start(config, lc, tele, key=key, var_file=var, tool_table=args.tool_table,
+            machine, server = start(config, lc, tele, key=key, var_file=var, programs=programs,
+                                    tool_table=args.tool_table,
                                     late_fault_s=_seconds(args.late_fault_ms),
                                     feedback_timeout_s=_seconds(args.feedback_timeout_ms))
             if args.enable:
@@ -154,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"canon daemon: machine {config.limits.name!r} up ({machine.n} axes, cycle "
               f"{machine.T * 1e3:g} ms); commands on CANON_COMMAND at {tele.url} "
               f"(signed with the key in {key_path}); "
-              f"parameters in {var}",
+              f"parameters in {var}; programs from {', '.join(str(p) for p in programs)}",
               file=sys.stderr, flush=True)
         while not stop.wait(0.2):
             pass

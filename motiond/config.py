@@ -38,6 +38,7 @@ class InterpreterConfig:
     block_delete: bool = False
     tool_table: Path | None = None
     var_file: Path | None = None
+    program_path: tuple[Path, ...] = ()  # the daemon runs programs from these directories only
 
 
 @dataclass(frozen=True)
@@ -102,16 +103,20 @@ def _interpreter(t: Table, base: Path) -> InterpreterConfig:
 
     dialect = t.get("dialect", str, default="linuxcnc", check=lambda v: None if v in DIALECTS else
                     f"must be one of {', '.join(DIALECTS)}")
-    raw = t.get("subroutine_path", list, default=[])
-    dirs = []
-    for i, item in enumerate(raw):
-        key = f"subroutine_path[{i}]"
-        if not isinstance(item, str) or not item:
-            raise t.error(key, f"must be a directory name (a non-empty string), got {item!r}")
-        p = resolve(item)
-        if not p.is_dir():
-            raise t.error(key, f"no such directory: {p}")
-        dirs.append(p)
+    def dir_list(name: str) -> tuple[Path, ...]:
+        dirs = []
+        for i, item in enumerate(t.get(name, list, default=[])):
+            key = f"{name}[{i}]"
+            if not isinstance(item, str) or not item:
+                raise t.error(key, f"must be a directory name (a non-empty string), got {item!r}")
+            p = resolve(item)
+            if not p.is_dir():
+                raise t.error(key, f"no such directory: {p}")
+            dirs.append(p)
+        return tuple(dirs)
+
+    dirs = dir_list("subroutine_path")
+    programs = dir_list("program_path")
     depth = t.get("max_call_depth", int, default=10, check=lambda v: None if v >= 1 else "must be >= 1")
     loops = t.get("max_loop_iterations", int, default=1_000_000,
                   check=lambda v: None if v >= 1 else "must be >= 1")
@@ -122,7 +127,8 @@ def _interpreter(t: Table, base: Path) -> InterpreterConfig:
     if var_file is not None and var_file.is_dir():
         raise t.error("var_file", f"is a directory: {var_file}")
     t.check_unknown()
-    return InterpreterConfig(dialect, tuple(dirs), depth, loops, log_dir, block_delete, tool_table, var_file)
+    return InterpreterConfig(dialect, dirs, depth, loops, log_dir, block_delete, tool_table, var_file,
+                             programs)
 
 
 def load_machine(path: str | None) -> MachineConfig:

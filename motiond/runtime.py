@@ -59,6 +59,7 @@ from typing import Any, ClassVar
 
 from gcode_canon import commands as C
 from gcode_canon.errors import GCodeError
+from motiond.programs import resolve_program
 from motiond.states import CommandRefused, MachineStates, Mode, State
 
 log = logging.getLogger(__name__)
@@ -378,6 +379,8 @@ class Machine:
 
             interp_settings = build_settings(config, var=None if var_file is None else str(var_file),
                                              tool_table=tool_table)
+        self.program_dirs: list[Path] = list(config.interpreter.program_path)
+        """Where the ``run`` command finds programs (``canon daemon`` sets it); none: ``run`` refused."""
         self.var_file = str(interp_settings.var_file) if interp_settings.var_file is not None else None
         self.tool_table = str(interp_settings.tool_table) if interp_settings.tool_table is not None else None
         self.lc = lc
@@ -1848,8 +1851,8 @@ class Machine:
             if busy:
                 return f"busy: {busy}"
         try:
-            if verb == "run":
-                self.run(s[0], int(v[0]) if v else 0)
+            if verb == "run":  # only from the program directories (motiond.programs)
+                self.run(resolve_program(s[0], self.program_dirs), int(v[0]) if v else 0)
             elif verb == "mdi":
                 self.mdi(s[0])
             elif verb == "pause":

@@ -63,7 +63,7 @@ class Daemon:
         self.subs = [self.lc.subscribe("CANON_STATUS", self._on_status),
                      self.lc.subscribe("CANON_EVENT", self._on_event)]
         self.machine, self.server = start(load_machine(None), self.lc, self.tele, key=TEST_KEY,
-                                          var_file=self.var,
+                                          var_file=self.var, programs=[tmp],
                                           late_fault_s=late_fault_s)
 
     def _on_status(self, _ch: str, data: bytes) -> None:
@@ -214,10 +214,10 @@ def test_feed_override_single_block_switches_and_refusals(daemon: Daemon) -> Non
     assert s.state == "estop"
     assert not daemon.cmd("jog", ["x"], (10.0,)).ok
     assert not daemon.cmd("home").ok
-    assert "no such file" in daemon.cmd("run", ["/nonexistent.ngc"]).error or \
-        not daemon.cmd("run", ["/nonexistent.ngc"]).ok
+    assert not daemon.cmd("run", ["/nonexistent.ngc"]).ok
     daemon.ready()
-    assert "no such file" in daemon.cmd("run", ["/nonexistent.ngc"]).error
+    assert "outside the program directories" in daemon.cmd("run", ["/nonexistent.ngc"]).error
+    assert "no program 'missing.ngc' in the program directories" in daemon.cmd("run", ["missing.ngc"]).error
     daemon.ok("feed_override", values=(0.5,))
     daemon.wait_status(lambda s: s.feed_override == 0.5, what="override 50 %")
 
@@ -421,3 +421,33 @@ def test_disable_then_nothing_moves_until_enabled(daemon: Daemon) -> None:
                        what="enabled again")
     daemon.ok("mdi", ["G0 X1"])
     daemon.wait_status(lambda s: s.state == "idle" and s.commanded[0] == 1.0, what="moved")
+
+
+def test_run_takes_programs_only_from_the_program_directories(daemon: Daemon, tmp_path: Path) -> None:
+    """Outside files are refused in one sentence, whatever is there: nothing read, nothing revealed."""
+    daemon.ready()
+    outside = tmp_path.parent / f"{tmp_path.name}-outside"
+    outside.mkdir()
+    secret = outside / "secret.ngc"
+    secret.write_text("root:*:20228:0:99999:7:::\n")
+    (tmp_path / "link.ngc").symlink_to(secret)
+    (tmp_path / "sub").mkdir()
+    answers = {}
+    for name in (str(secret), str(outside / "absent.ngc"), "/etc/shadow", "/etc/nothing-here",
+                 f"../{outside.name}/secret.ngc", f"../{outside.name}/absent.ngc", "link.ngc",
+                 "sub/../../x.ngc", "sub"):
+        rep = daemon.cmd("run", [name])
+        assert not rep.ok, name
+        answers[name] = rep.error
+    for name, error in answers.items():
+        if name == "sub":
+            assert error.startswith("no program 'sub' in the program directories"), error
+            continue
+        assert error == f"{name!r} is outside the program directories ({tmp_path.resolve()}): refused"
+    with daemon._lock:
+        texts = [e.text for e in daemon.events] + [s.last_error for s in daemon.statuses]
+    assert not [t for t in texts if "root:" in t or "20228" in t]  # the content never echoed
+    assert daemon.latest().state == "idle"
+    (tmp_path / "sub" / "ok.ngc").write_text(SHORT)
+    daemon.ok("run", ["sub/ok.ngc"])  # a relative name inside works
+    daemon.wait_status(lambda s: s.state == "idle" and tuple(s.commanded) == SHORT_FINAL, what="program ran")

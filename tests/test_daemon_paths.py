@@ -28,3 +28,30 @@ def test_default_is_in_the_state_directory(tmp_path: Path) -> None:
     got = Path(parameter_file(None, load_machine(None), str(tmp_path / "state")))
     assert got.parent == tmp_path / "state" and got.suffix == ".var"
     assert got.parent.is_dir()
+
+
+def test_program_directories_option_config_or_state_dir(tmp_path: Path) -> None:
+    from motiond.cli import UserError
+    from motiond.cmd_daemon import program_dirs
+    from motiond.configkit import ConfigError
+
+    (tmp_path / "jobs").mkdir()
+    cfg = tmp_path / "m.toml"
+    cfg.write_text(AXIS + '[interpreter]\nprogram_path = ["jobs"]\n')
+    config = load_machine(str(cfg))
+    assert program_dirs(None, config, str(tmp_path / "state")) == [tmp_path / "jobs"]
+    assert program_dirs([str(tmp_path)], config, None) == [tmp_path]
+    default = program_dirs(None, load_machine(None), str(tmp_path / "state"))
+    assert default == [tmp_path / "state" / "programs"]
+    assert (tmp_path / "state" / "programs").is_dir()
+    try:
+        program_dirs([str(tmp_path / "nope")], config, None)
+        raise AssertionError("a missing --program-dir was accepted")
+    except UserError as exc:
+        assert "--program-dir" in str(exc) and "no such directory" in str(exc)
+    cfg.write_text(AXIS + '[interpreter]\nprogram_path = ["missing"]\n')
+    try:
+        load_machine(str(cfg))
+        raise AssertionError("a missing program_path directory was accepted")
+    except ConfigError as exc:
+        assert "interpreter.program_path[0]: no such directory" in str(exc)

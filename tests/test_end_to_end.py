@@ -193,7 +193,7 @@ class Rig:
         self.io = self.start_io()
         write_key_file(tmp / "command.key")  # the key the HMI signs with ($CANON_KEY)
         self.daemon = Proc("daemon", ["daemon", "--config", str(self.config), "--var", str(tmp / "p.var"),
-                                      "--state-dir", str(tmp),
+                                      "--state-dir", str(tmp), "--program-dir", str(tmp),
                                       "--feedback-timeout-ms", "400", "--late-fault-ms", "1000"],
                              "canon daemon: machine")  # generous: the test PC is shared and loaded
         self.hmi = Hmi()
