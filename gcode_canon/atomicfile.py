@@ -10,7 +10,8 @@ it, keep the current file as ``FILE.bak`` (a hard link to it, put in place with 
 backup too is always whole), rename the new file over the old one (``os.replace``, atomic within a
 file system), then fsync the directory so the renames themselves survive a power cut. The old file
 is never opened for writing, so until the final rename it is untouched. A process killed mid-way may
-leave a stray ``.NAME.*.tmp`` file next to the target; it is never read and does no harm.
+leave a stray ``.NAME.*.tmp`` file next to the target; it is never read, and
+:func:`remove_stray_temps` (the daemon calls it at start) removes it.
 """
 
 from __future__ import annotations
@@ -110,6 +111,42 @@ def read_lines(
             if lineno == 1:
                 text = text.removeprefix("\ufeff")
             yield lineno, text.removesuffix("\n").removesuffix("\r")
+
+
+def remove_stray_temps(path: str | os.PathLike[str], min_age_s: float = 10.0) -> list[str]:
+    """Remove the temporary files that interrupted saves of ``path`` left next to it (``.NAME.*.tmp``,
+    ``.NAME.*.bak.tmp``); returns their names. Only files older than ``min_age_s`` are touched, so a
+    save in progress in another process keeps its file. Errors are logged, never raised."""
+    import time
+
+    target = os.path.realpath(os.fspath(path))
+    directory, name = os.path.split(target)
+    prefix = f".{name}."
+    removed: list[str] = []
+    try:
+        entries = os.listdir(directory)
+    except OSError as e:
+        log.warning("cannot look for stray temporary files in %s: %s", directory, e.strerror or e)
+        return removed
+    now = time.time()
+    for entry in entries:
+        if not (entry.startswith(prefix) and entry.endswith(".tmp")):
+            continue
+        middle = entry[len(prefix):-len(".tmp")].removesuffix(".bak")
+        if len(middle) != 12 or any(c not in "0123456789abcdef" for c in middle):
+            continue  # not one of ours (secrets.token_hex(6))
+        full = os.path.join(directory, entry)
+        try:
+            st = os.lstat(full)
+            if not stat.S_ISREG(st.st_mode) or now - st.st_mtime < min_age_s:
+                continue
+            os.unlink(full)
+            removed.append(full)
+        except OSError as e:
+            log.warning("cannot remove the stray temporary file %s: %s", full, e.strerror or e)
+    if removed:
+        log.info("removed %d temporary file(s) of interrupted saves of %s", len(removed), target)
+    return removed
 
 
 # --- helpers ----------------------------------------------------------------------------------------

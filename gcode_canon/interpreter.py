@@ -166,6 +166,8 @@ class Interpreter:
         self._persist_keys: set[int] = set()
         self._missing_axes = frozenset(AXIS_LETTERS) - frozenset((self.settings.axes or AXIS_LETTERS).lower())
         self._reset_modes()
+        self.save_error: GCodeError | None = None
+        """Why the last parameter-file save failed (None: saved, or not tried yet)."""
         self._load_var_file()
         self._load_tool_table()
         self._install_predefined()
@@ -1981,9 +1983,15 @@ class Interpreter:
         self._fast_ok = False
         self.logs.close()
         self.probe_log.close()
-        self._write_var_file()
+        try:
+            self._write_var_file()
+        except GCodeError as exc:
+            # the program itself ran: a full disk is no error at the M2 line. The values stay in memory,
+            # the next program end and shutdown() try again; the caller reports save_error.
+            log.error("%s (the values are kept in memory and saved at the next program end)", exc)
 
     def _write_var_file(self) -> None:
+        """Save the parameter file; on failure keep ``save_error`` (naming the file, line 0) and raise it."""
         path = self.settings.var_file
         if path is None or self.settings.dry_run:
             return
@@ -1991,7 +1999,12 @@ class Interpreter:
 
         keys = set(getattr(paramfile, "PERSISTENT", _PERSISTENT_FALLBACK)) | self._persist_keys
         keys.update(i for i in range(31, 5001) if self.params.numbered[i] != 0.0)
-        paramfile.write_parameter_file(path, self.params.snapshot(keys))
+        try:
+            paramfile.write_parameter_file(path, self.params.snapshot(keys))
+        except GCodeError as exc:
+            self.save_error = exc
+            raise
+        self.save_error = None
 
     def close(self) -> None:
         with contextlib.suppress(Exception):

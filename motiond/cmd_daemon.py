@@ -6,7 +6,8 @@ status goes out on ``CANON_STATUS`` at ``[telemetry] status_hz`` and events on `
 ``canon ctl`` sends commands, ``canon status`` shows the status.
 
 On SIGTERM or SIGINT: the program is cancelled, the drives are stopped and disabled, the outputs go
-to their safe values, the parameter file is written, and the daemon exits 0.
+to their safe values, the parameter file is written, and the daemon exits 0 (1 when the parameter
+file could not be written: the message names it and says why).
 
 The parameter file is ``--var``, else the configuration's ``[interpreter] var_file``, else
 ``<state dir>/<machine name>.var``; the state directory is
@@ -165,6 +166,9 @@ def run(args: argparse.Namespace) -> int:
     except TelemetryUnavailable as exc:
         raise UserError(str(exc)) from None
     var = parameter_file(args.var, config, args.state_dir)
+    from gcode_canon.atomicfile import remove_stray_temps
+
+    remove_stray_temps(var)  # of saves interrupted before (a kill, a power cut)
     key_path = key_file(tele, args.state_dir)
     key = load_key(key_path)
     programs = program_dirs(args.program_dir, config, args.state_dir)
@@ -196,4 +200,7 @@ def run(args: argparse.Namespace) -> int:
             machine.shutdown()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+    if machine is not None and machine.save_error:
+        print(f"canon daemon: {machine.save_error}", file=sys.stderr, flush=True)
+        return 1
     return 0

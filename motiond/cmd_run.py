@@ -217,6 +217,10 @@ def run(args: argparse.Namespace) -> int:
         if not result.ok:
             print(result.error or "program aborted", file=sys.stderr)
             return 1
+        if machine.interp.save_error is not None:
+            err = machine.interp.save_error
+            print(f"{err.file}: {err.message}", file=sys.stderr)
+            return 1
         _settle(machine)
         result.final_actual = tuple(machine._actual)
         if args.json:

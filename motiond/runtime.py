@@ -379,6 +379,8 @@ class Machine:
 
             interp_settings = build_settings(config, var=None if var_file is None else str(var_file),
                                              tool_table=tool_table)
+        self.save_error = ""
+        """Why the parameters could not be saved at shutdown ("" saved): ``canon daemon`` exits 1."""
         self.program_dirs: list[Path] = list(config.interpreter.program_path)
         """Where the ``run`` command finds programs (``canon daemon`` sets it); none: ``run`` refused."""
         self.var_file = str(interp_settings.var_file) if interp_settings.var_file is not None else None
@@ -577,7 +579,9 @@ class Machine:
         try:
             self.interp.shutdown()  # the parameter file
         except Exception as exc:
-            log.error("saving the parameter file: %s", exc)
+            where = f"{exc.file}: {exc.message}" if isinstance(exc, GCodeError) and not exc.line else exc
+            self.save_error = f"parameters NOT saved at shutdown: {where}"
+            self.event("ERROR", self.save_error, kind="save_failed")
         self._status_stop.set()
         if self._status_thread is not None:
             self._status_thread.join(2.0)
@@ -600,7 +604,7 @@ class Machine:
 
         level = {"DEBUG": logging.DEBUG, "INFO": logging.INFO, "WARNING": logging.WARNING,
                  "ERROR": logging.ERROR, "FATAL": logging.CRITICAL}[severity]
-        log.log(level, "%s%s", f"{file}:{line}: " if file else "", text)
+        log.log(level, "%s%s", (f"{file}:{line}: " if line else f"{file}: ") if file else "", text)
         self.events.emit(getattr(ev, severity), text, kind=kind, source=source, file=file, line=line)
 
     def _on_cycle(self, fn: Callable[[], Any], *, wait: bool = True, timeout: float = 2.0) -> Any:
@@ -1469,6 +1473,7 @@ class Machine:
                     raise GCodeError(self._never_reached(job, run_from), job.program, run_from.line)
                 if not self._start_from(job, run_from):
                     return
+            self._report_unsaved()
             self._put(_END, job)
         except _Aborted:
             return
@@ -1485,6 +1490,13 @@ class Machine:
         finally:
             if hook is not None and interp.before_line is hook:
                 interp.before_line = None
+
+    def _report_unsaved(self) -> None:
+        """Job thread, at the program's end: an ERROR event when its parameter save failed (M2)."""
+        exc = self.interp.save_error
+        if exc is not None:
+            self.event("ERROR", f"parameters not saved: {exc.message}; the values are kept in memory and "
+                       "saved at the next program end or at shutdown", kind="save_failed", file=exc.file)
 
     # ------------------------------------------------------------------ run from line
     def _before_line(self, job: _Job, run_from: _RunFrom) -> None:
