@@ -362,6 +362,9 @@ class Interpreter:
         self.file, self.line = "<mdi>", 1
         self.ended = False
         self._tail = None
+        if len(line) > self.settings.max_line_length:  # as for a program's lines (LineSource)
+            raise GCodeError(f"Line too long (more than {self.settings.max_line_length} characters)",
+                             "<mdi>", 1)
         mdi = LineSource.from_string(line, "<mdi>", self.settings.max_line_length)
         self.source = mdi
         self.flow.reset(mdi)

@@ -477,7 +477,12 @@ class FlowControl:
         dirs = self.search_dirs()
         for d in dirs:
             candidate = d / f"{name}.ngc"
-            if candidate.is_file():
+            try:
+                found = candidate.is_file()
+            except OSError as exc:  # ENAMETOOLONG and the like: the name cannot be a file's
+                raise GCodeError(f"{label} call: cannot look for {name[:40]}....ngc in {d}: "
+                                 f"{exc.strerror or exc}") from None
+            if found:
                 return candidate
         where = ", ".join(str(d) for d in dirs) or "(no subroutine path set)"
         raise GCodeError(f"{label} call: no subroutine {label} defined before the call and no file "

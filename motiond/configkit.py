@@ -34,7 +34,14 @@ def load_toml(path: str | Path) -> dict[str, Any]:
     p = Path(path)
     try:
         with p.open("rb") as fh:
-            return tomllib.load(fh)
+            data = fh.read()
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError as exc:  # TOML is UTF-8; tomllib would raise this bare
+            line = data.count(b"\n", 0, exc.start) + 1
+            raise ConfigError(str(p), "", f"line {line}: byte 0x{data[exc.start]:02x} is not UTF-8 text "
+                                          "(a TOML file is UTF-8)") from None
+        return tomllib.loads(text)
     except FileNotFoundError:
         raise ConfigError(str(p), "", "no such file") from None
     except tomllib.TOMLDecodeError as exc:

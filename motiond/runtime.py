@@ -1422,6 +1422,9 @@ class Machine:
         return self._start_job(Mode.AUTO, str(path), lambda: self.interp.run_file(p), total, start_line)
 
     def mdi(self, line: str) -> _Job:
+        limit = self.interp.settings.max_line_length
+        if len(line) > limit:  # refused at once, as the interpreter would refuse it
+            raise CommandRefused(f"<mdi>:1: Line too long (more than {limit} characters)")
         return self._start_job(Mode.MDI, line, lambda: iter(self.interp.execute_mdi(line)))
 
     def _modal_state(self, file: str, line: int) -> ModalState:

@@ -145,12 +145,32 @@ def test_the_documented_example_file_reads(tmp_path: Path) -> None:
     block = text.split("```toml", 1)[1].split("```", 1)[0]
     (tmp_path / "subs").mkdir()  # [interpreter]'s paths must exist, relative to the file
     (tmp_path / "logs").mkdir()
+    (tmp_path / "programs").mkdir()
     (tmp_path / "tools.tbl").write_text("T1 P1 Z10 D6\n")
     cfg = load_machine(write(tmp_path, block))
     assert cfg.interpreter.subroutine_path == (tmp_path / "subs",)
+    assert cfg.interpreter.program_path == (tmp_path / "programs",)
     assert cfg.interpreter.tool_table == tmp_path / "tools.tbl"
     assert cfg.limits.names == ("x",)
     assert cfg.limits.cycle_s == pytest.approx(0.002)
     assert cfg.limits.axis("x").quick_stop == 5000.0
     assert cfg.canopen.data["interface"] == "virtual"
     assert isinstance(cfg.modbus.data["devices"], list)
+
+
+def test_a_machine_file_that_is_not_utf8_is_a_clean_error(tmp_path: Path) -> None:
+    """A non-UTF-8 byte gave a traceback from canon check and canon daemon (found by fuzzing)."""
+    import subprocess
+    import sys
+
+    bad = tmp_path / "m.toml"
+    bad.write_bytes(b'[machine]\nname = "mill \xff"\n')
+    prog = tmp_path / "p.ngc"
+    prog.write_text("M2\n")
+    for argv in (["check", "--config", str(bad), str(prog)], ["daemon", "--config", str(bad)]):
+        res = subprocess.run([sys.executable, "-m", "motiond.cli", *argv], capture_output=True, text=True,
+                             timeout=60)
+        assert res.returncode == 1, res.stderr
+        want = f"{bad}: line 2: byte 0xff is not UTF-8 text (a TOML file is UTF-8)"
+        assert res.stderr.strip().endswith(want)
+        assert "Traceback" not in res.stderr

@@ -451,3 +451,11 @@ def test_run_takes_programs_only_from_the_program_directories(daemon: Daemon, tm
     (tmp_path / "sub" / "ok.ngc").write_text(SHORT)
     daemon.ok("run", ["sub/ok.ngc"])  # a relative name inside works
     daemon.wait_status(lambda s: s.state == "idle" and tuple(s.commanded) == SHORT_FINAL, what="program ran")
+
+
+def test_an_mdi_line_over_the_line_limit_is_refused_without_a_fault(daemon: Daemon) -> None:
+    daemon.ready()
+    rep = daemon.cmd("mdi", ["G0 X1" + " " * 100_011])
+    assert not rep.ok and rep.error == "<mdi>:1: Line too long (more than 256 characters)"
+    assert daemon.machine.states.state.name == "IDLE"
+    daemon.ok("mdi", ["G0 X1"])

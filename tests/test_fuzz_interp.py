@@ -4,6 +4,7 @@ another exception, and never hang. Bounded: a fixed number of examples, each wit
 from __future__ import annotations
 
 import random
+from pathlib import Path
 
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -238,3 +239,65 @@ def test_mutated_issue3_programs(seed: int, n_mutations: int) -> None:
         else:
             chars.insert(pos, rng.choice(TOKENS + O_TOKENS))
     check("".join(chars), max_loop_iterations=50, max_call_depth=5)
+
+
+# ---- MDI: the same inputs, one line at a time, on one interpreter (its state carried over) --------------
+
+def check_mdi(lines: list[str], max_line_length: int = 256) -> None:
+    interp = Interpreter(InterpreterSettings(dry_run=True, max_line_length=max_line_length,
+                                             max_loop_iterations=50, max_call_depth=5))
+    for line in lines:
+        try:
+            out = interp.execute_mdi(line)
+            assert len(out) < 10_000
+        except GCodeError as exc:
+            assert exc.file
+            assert exc.line >= 1
+            assert exc.message and "internal error" not in exc.message
+
+
+@FUZZ
+@given(st.lists(st.lists(st.sampled_from(TOKENS + O_TOKENS[:-4]), max_size=12).map("".join), max_size=6))
+def test_random_mdi_lines(lines: list[str]) -> None:
+    check_mdi(lines)
+
+
+@FUZZ
+@given(st.lists(st.text(max_size=300), max_size=4))
+def test_random_mdi_text(lines: list[str]) -> None:
+    check_mdi(lines)
+
+
+def test_mdi_obeys_the_line_length_limit() -> None:
+    interp = Interpreter(InterpreterSettings(dry_run=True))
+    for line in ("G0 X1" + " " * 100_011, "G0 X" + "1" * 300):
+        try:
+            interp.execute_mdi(line)
+        except GCodeError as exc:
+            assert (exc.file, exc.line) == ("<mdi>", 1)
+            assert exc.message == "Line too long (more than 256 characters)"
+        else:
+            raise AssertionError(f"a {len(line)}-character MDI line was accepted")
+    assert interp.execute_mdi("G0 X1" + " " * 200)  # within the limit: fine
+
+
+def test_subroutine_name_longer_than_a_file_name_is_a_clean_error(tmp_path: Path) -> None:
+    """The file system allows 255 bytes per name: a longer one was 'internal error: OSError 36'."""
+    main = tmp_path / "main.ngc"
+    name = "a" * 300
+    main.write_text(f"o<{name}> call\nM2\n")
+    interp = Interpreter(InterpreterSettings(dry_run=True, max_line_length=1000, subroutine_path=[tmp_path]))
+    try:
+        list(interp.run_file(main))
+    except GCodeError as exc:
+        assert (exc.file, exc.line) == (str(main), 1)
+        assert "File name too long" in exc.message and "internal error" not in exc.message
+    else:
+        raise AssertionError("no error")
+    try:  # and by MDI, where it first came up (MDI had no line limit then)
+        Interpreter(InterpreterSettings(dry_run=True, max_line_length=1000,
+                                        subroutine_path=[tmp_path])).execute_mdi(f"o<{name}> call")
+    except GCodeError as exc:
+        assert "File name too long" in exc.message
+    else:
+        raise AssertionError("no error")
