@@ -143,6 +143,15 @@ def start(config: Any, lc: Any, tele: Any, *, key: bytes, var_file: str | os.Pat
     return machine, server
 
 
+ROOT_WARNING = ("canon daemon: WARNING: running as root. It needs no more than real-time scheduling "
+                "(CAP_SYS_NICE): run it as a dedicated user, as examples/canon.service does")
+
+
+def root_warning() -> str | None:
+    """The warning for a daemon run as root (any file it opens, any program it runs: as root)."""
+    return ROOT_WARNING if hasattr(os, "geteuid") and os.geteuid() == 0 else None
+
+
 def run(args: argparse.Namespace) -> int:
     import signal
     import threading
@@ -156,6 +165,9 @@ def run(args: argparse.Namespace) -> int:
     from telemetry.publisher import TelemetryUnavailable, open_lcm
     from telemetry.url import with_receive_buffer
 
+    warning = root_warning()
+    if warning:
+        print(warning, file=sys.stderr, flush=True)
     config = load_machine(args.config)
     tele = TelemetryConfig.from_table(config.telemetry)
     if args.url:

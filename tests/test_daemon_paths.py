@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+import os
+import re
+import shutil
+import subprocess
 from pathlib import Path
+
+import pytest
 
 from motiond.cmd_daemon import parameter_file
 from motiond.config import load_machine
@@ -55,3 +61,40 @@ def test_program_directories_option_config_or_state_dir(tmp_path: Path) -> None:
         raise AssertionError("a missing program_path directory was accepted")
     except ConfigError as exc:
         assert "interpreter.program_path[0]: no such directory" in str(exc)
+
+
+def test_the_daemon_warns_when_it_runs_as_root(monkeypatch: pytest.MonkeyPatch) -> None:
+    from motiond import cmd_daemon
+
+    monkeypatch.setattr(os, "geteuid", lambda: 0)
+    assert "running as root" in (cmd_daemon.root_warning() or "")
+    monkeypatch.setattr(os, "geteuid", lambda: 998)
+    assert cmd_daemon.root_warning() is None
+
+
+def test_the_unit_runs_as_a_dedicated_user_with_only_cap_sys_nice() -> None:
+    unit = (Path(__file__).resolve().parent.parent / "examples" / "canon.service").read_text()
+    settings = {}
+    for line in unit.splitlines():
+        if "=" in line and not line.startswith("#"):
+            key, _, value = line.partition("=")
+            settings.setdefault(key, []).append(value)
+    assert settings["User"] == ["canon"] and settings["CapabilityBoundingSet"] == ["CAP_SYS_NICE"]
+    assert settings["AmbientCapabilities"] == ["CAP_SYS_NICE"]
+    for key, value in (("NoNewPrivileges", "yes"), ("ProtectSystem", "strict"), ("PrivateTmp", "yes"),
+                       ("ProtectHome", "yes"), ("StateDirectory", "canon")):
+        assert settings[key] == [value], key
+    assert "RestrictRealtime" not in settings  # it would forbid SCHED_FIFO
+
+
+def test_systemd_rates_the_unit_ok() -> None:
+    """The exposure docs/daemon.md quotes (``systemd-analyze security``, offline: no systemd running)."""
+    if shutil.which("systemd-analyze") is None:
+        pytest.skip("systemd-analyze is not installed (apt-get install systemd)")
+    unit = Path(__file__).resolve().parent.parent / "examples" / "canon.service"
+    res = subprocess.run(["systemd-analyze", "security", "--offline=yes", str(unit)], capture_output=True,
+                         text=True, timeout=60)
+    found = re.search(r"Overall exposure level for canon.service: ([0-9.]+) (\w+)", res.stdout + res.stderr)
+    if found is None:
+        pytest.skip(f"this systemd-analyze cannot rate a unit offline: {res.stderr.strip()[:200]}")
+    assert float(found.group(1)) <= 2.5 and found.group(2) == "OK", res.stdout[-500:]
