@@ -149,9 +149,12 @@ def multi_process(program: Path, seconds: float, tmp: Path) -> None:
              Proc("io", ["sim", "io", "--port", str(port)], "listening on")]
     try:
         daemon = Proc("daemon", ["daemon", "--config", str(cfg), "--var", str(tmp / "p.var"), "--enable",
+                                 "--state-dir", str(tmp), "--program-dir", str(program.parent),
                                  "--late-fault-ms", "1000", "--feedback-timeout-ms", "400"],
                       "canon daemon: machine")
         procs.append(daemon)
+        os.environ["CANON_KEY_FILE"] = str(tmp / "command.key")  # made by the daemon at its start
+        os.environ.pop("CANON_KEY", None)
         hmi = Hmi()
         hmi.wait(lambda s: s.state == "idle" and s.enabled, what="enabled")
         c0, w0 = _proc_cpu(daemon.p.pid), time.monotonic()

@@ -11,6 +11,10 @@ for an E-stop): it replies that it accepted them, and reports the result as an e
 waits for that result (``--wait``, 120 s by default) and prints it, so ``canon ctl home`` still says
 whether the machine homed.
 
+Every command is signed with the daemon's command key (docs/telemetry.md), read from ``--key-file``,
+``$CANON_KEY``, ``$CANON_KEY_FILE``, the ``--config`` file's ``[telemetry] key_file`` or the default
+places, never from the command line (``--token`` is refused and says so).
+
 Exit status: 0 the daemon accepted the command (and, for the verbs above, carried it out), 1 it
 refused it or the operation failed (or the command line is wrong), 3 no reply within ``--timeout``
 (the daemon is not running, or listens on another URL), or no result within ``--wait``.
