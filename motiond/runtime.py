@@ -381,6 +381,7 @@ class Machine:
                                              tool_table=tool_table)
         self.save_error = ""
         """Why the parameters could not be saved at shutdown ("" saved): ``canon daemon`` exits 1."""
+        self._save_reported: Exception | None = None
         self.program_dirs: list[Path] = list(config.interpreter.program_path)
         """Where the ``run`` command finds programs (``canon daemon`` sets it); none: ``run`` refused."""
         self.var_file = str(interp_settings.var_file) if interp_settings.var_file is not None else None
@@ -1497,7 +1498,8 @@ class Machine:
     def _report_unsaved(self) -> None:
         """Job thread, at the program's end: an ERROR event when its parameter save failed (M2)."""
         exc = self.interp.save_error
-        if exc is not None:
+        if exc is not None and exc is not self._save_reported:  # each failed save once
+            self._save_reported = exc
             self.event("ERROR", f"parameters not saved: {exc.message}; the values are kept in memory and "
                        "saved at the next program end or at shutdown", kind="save_failed", file=exc.file)
 

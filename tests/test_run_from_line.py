@@ -304,6 +304,7 @@ def test_run_verb_second_value_and_ctl_words(rec: Recorder, tmp_path: Path) -> N
     for bad in ("0", "2.5"):
         with pytest.raises(UserError, match="start line must be a line number"):
             split_arguments("run", [str(prog), bad])
+    m.program_dirs = [tmp_path]  # the run verb takes programs from the program directories only
     refusal = m.handle_command(make_command("run", [str(prog)], [40.0]))
     assert refusal is not None and refusal.startswith(f"{prog}:40: cannot start at line 40")
     assert m.handle_command(make_command("run", [str(prog)], [float(START)])) is None
