@@ -4,10 +4,11 @@ LCM's URL is ``PROVIDER://NETWORK?KEY=VALUE&...`` with providers ``udpm`` (UDP m
 ``mpudpm`` (multi-port UDP multicast), ``tcpq`` (through a TCP hub), ``memq`` (inside one process) and
 ``file`` (a log file). An empty URL means ``$LCM_DEFAULT_URL``, else LCM's default, which is ours.
 
-Whether traffic leaves the host decides whether commands need the configured token
-(:func:`telemetry.publisher.authorize`): for ``udpm``/``mpudpm`` a multicast TTL above 0 lets packets
-through routers, so they do (LCM's TTL defaults to 0); ``tcpq`` always counts as leaving (the hub
-may accept other hosts, which we cannot see from here); ``memq`` and ``file`` never do.
+Whether what the daemon *sends* leaves the host: for ``udpm``/``mpudpm`` a multicast TTL above 0 lets
+packets through routers (LCM's TTL defaults to 0); ``tcpq`` always counts as leaving (the hub may
+accept other hosts, which we cannot see from here); ``memq`` and ``file`` never do. It says nothing
+about what the daemon *accepts*: a TTL does not stop other hosts' packets from arriving, which is why
+every command is signed whatever the URL (:mod:`telemetry.auth`).
 """
 
 from __future__ import annotations
