@@ -101,10 +101,10 @@ kernel grants at most ``net.core.rmem_max`` (often 208 kB: raise it to 4 MB on a
 
 def with_receive_buffer(url: str, size: int = COMMAND_RECEIVE_BUFFER,
                         rmem_max_file: str = "/proc/sys/net/core/rmem_max") -> str:
-    """``url`` with ``recv_buf_size`` (``udpm``/``mpudpm`` without one): ``size``, capped at what the
-    kernel grants so that LCM does not warn about getting less; other URLs unchanged."""
+    """``url`` with ``recv_buf_size`` (``udpm`` without one): ``size``, capped at what the kernel grants
+    so that LCM does not warn about getting less; other URLs unchanged."""
     parsed = parse_url(url)
-    if parsed.provider not in _MULTICAST_PROVIDERS or "recv_buf_size" in parsed.options:
+    if parsed.provider != "udpm" or "recv_buf_size" in parsed.options:
         return parsed.url
     try:
         with open(rmem_max_file) as fh:
