@@ -6,9 +6,12 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 
 from gcode_canon import commands as C
 from planner.geometry import (
+    SIGMA1_MAX,
+    SIGMA2_MAX,
     Arc,
     Blend,
     Line,
@@ -54,18 +57,24 @@ class BlendingMixin:
         if dw <= 1e-12:
             return False  # collinear: no corner
         d = min(0.5 * prev.orig_length, prev.piece.length, 0.5 * new.piece.length)
-        unit = deviation_of_blend(w1, w2, 1.0, self._linear)
-        if unit <= 0.0:
-            unit = deviation_of_blend(w1, w2, 1.0, range(self._n))
+        # the deviation over every axis (rotary ones included, degrees counted as millimetres): the
+        # tolerance then holds in each axis and in XYZ alike, as the checker measures it
+        unit = deviation_of_blend(w1, w2, 1.0, range(self._n))
+        sized = False
         if tolerance > 0.0:
             d = min(d, tolerance / unit)
+        else:
+            # G64 without P (LinuxCNC's rule): only as large as the speed it must keep needs
+            need = self._blend_size(w1, w2, min(prev.feed, new.feed, prev.cap_geom, new.cap_geom))
+            if need < d:
+                d, sized = need, True
         is_head = len(self._q) - 1 == self._h
         if is_head and self._active is not None and self._v_end > 0.0:
             d = min(d, prev.piece.length - change_distance(self._v_end, 0.0, prev.a, prev.j) - 1e-9)
         if d <= 1e-9:
             return False
         keep = prev.piece.length - d
-        if 0.0 < keep < 0.25 * d and prev.piece.length <= 0.6 * new.piece.length and (
+        if not sized and 0.0 < keep < 0.25 * d and prev.piece.length <= 0.6 * new.piece.length and (
                 tolerance <= 0.0 or prev.piece.length <= tolerance / unit):
             d = prev.piece.length  # no sliver of line between two blends: one piece less to plan
         corner = prev.piece.end
@@ -94,6 +103,20 @@ class BlendingMixin:
             bseg.events = prev.events + bseg.events
         items += [bseg, new]
         return self._splice(index, prev, new, items, orig_piece, orig_events)
+
+    def _blend_size(self, w1: Sequence[float], w2: Sequence[float], v: float) -> float:
+        """The smallest half-length ``d`` of a corner blend from direction ``w1`` to ``w2`` whose own
+        speed cap (:meth:`_speed_cap`: centripetal acceleration and jerk within their budgets) is at
+        least ``v``; the blend's second and third derivatives along s fall as 1/d and 1/d^2. Its
+        deviation is then ``0.15625 d |w2 - w1|``: of the order of v^2/a, not half a segment."""
+        d = 0.0
+        v2 = v * v
+        for ca, jcent, x, y in zip(self._CA, self._JCENT, w1, w2, strict=True):
+            dw = abs(y - x)
+            if dw > 0.0:
+                d = max(d, v2 * dw * SIGMA1_MAX / (2.0 * ca),
+                        math.sqrt(v2 * v * dw * SIGMA2_MAX / (4.0 * jcent)))
+        return d * (1.0 + 1e-6)
 
     def _splice(self, index: int, prev: Seg, new: Seg, items: list[Seg], orig_piece: Piece,
                 orig_events: list[C.Canon], orig_limits: tuple[float, ...] | None = None) -> bool:

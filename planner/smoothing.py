@@ -193,7 +193,7 @@ class SmoothingMixin:
         """The speed cap of the corner blend :meth:`_try_blend` would make between the lines ``prev`` and
         ``new`` (without making it), to choose between smoothing and blending at this vertex."""
         w1, w2 = prev.piece.d1_end, new.piece.d1_start
-        unit = deviation_of_blend(w1, w2, 1.0, self._linear)
+        unit = deviation_of_blend(w1, w2, 1.0, range(self._n))
         d = min(0.5 * prev.orig_length, prev.piece.length, 0.5 * new.piece.length)
         if unit > 0.0:
             d = min(d, prev.blend_tol / unit)

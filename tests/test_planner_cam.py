@@ -1,0 +1,106 @@
+"""What CAM programs write (issue 17): corners in G64 without P, rotary axes under G64 P, zero-length
+moves under exact stop, collinear and rounded pieces, tiny segments, the feed's effect on a chain.
+
+Each test checks a property of the plan (a ratio, an ordering, a bound from the limits), never a
+figure copied from the planner's output; ``check_stream`` judges limits, deviation and stops.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from gcode_canon.commands import (
+    ExactStopBlock,
+    MotionControlMode,
+    Pose,
+    ProgramEnd,
+    SetFeedRate,
+    SetMotionControlMode,
+    StraightFeed,
+)
+from planner import DEMO_MACHINE, AxisLimits, MachineLimits, check_stream, plan_all
+
+T = DEMO_MACHINE.cycle_s
+A_X = DEMO_MACHINE.axes[0].max_acceleration
+G61_1 = SetMotionControlMode(MotionControlMode.EXACT_STOP_MODAL)
+
+
+def g64(p: float = 0.0, q: float = 0.0) -> SetMotionControlMode:
+    return SetMotionControlMode(MotionControlMode.CONTINUOUS, p, q)
+
+
+def numbered(cmds: list) -> list:
+    return [dataclasses.replace(c, line=i + 1, file="cam.ngc") for i, c in enumerate(cmds)]
+
+
+def run(prog: list, machine: MachineLimits = DEMO_MACHINE):
+    prog = numbered(prog)
+    sps = list(plan_all(prog, machine, max_cycles=2_000_000))
+    report = check_stream(sps, prog, machine)
+    assert report.ok, report.problems()
+    return sps, report
+
+
+def square(feed: float) -> list:
+    return [g64(), SetFeedRate(feed)] + [StraightFeed(Pose(x, y, 0)) for x, y in
+                                         ((100, 0), (100, 100), (0, 100), (0, 0), (100, 0))] + [ProgramEnd()]
+
+
+def corner_speed(sps: list, corner: tuple[float, float]) -> float:
+    """The path speed at the setpoint nearest the corner."""
+    pts = np.array([sp.positions for sp in sps])
+    k = int(np.argmin(np.linalg.norm(pts[:, :2] - np.array(corner), axis=1)))
+    return float(np.linalg.norm(pts[k + 1] - pts[k - 1])) / (2 * T)
+
+
+@pytest.mark.parametrize("feed", [600.0, 1500.0])
+def test_g64_without_p_blends_only_as_much_as_the_feed_needs(feed: float) -> None:
+    """LinuxCNC's rule: the blend is sized by the speed it must keep (here the feed), never half the
+    segment: the corner deviation is of the order of v^2/a, and the corner is passed at the feed."""
+    sps, report = run(square(feed))
+    v = feed / 60.0
+    assert report.max_deviation <= 1.1 * v * v / A_X
+    assert report.max_deviation < 0.01 * 50.0  # far below half a side (what it was)
+    # the blend keeps the path speed at the feed; the tool's speed at the blend's middle is that
+    # times |w1 + w2| / 2 (the quintic blend's parameter is not arc length): 0.707 here
+    assert corner_speed(sps, (100.0, 100.0)) >= 0.97 * v * math.sqrt(0.5)
+    assert len(sps) * T <= 500.0 / v + 0.5  # no time lost at the corners beyond starting and stopping
+
+
+def test_g64_without_p_deviation_grows_with_the_feed() -> None:
+    _, slow = run(square(600.0))
+    _, fast = run(square(1500.0))
+    assert fast.max_deviation > 2.0 * slow.max_deviation  # (v^2: 6.25 times)
+
+
+ROTARY = MachineLimits(axes=(*DEMO_MACHINE.axes, AxisLimits("a", 360.0, 3000.0, 50000.0)), cycle_s=T)
+
+
+@pytest.mark.parametrize("p", [0.02, 0.1])
+def test_g64_p_with_a_rotary_move_keeps_the_tolerance(p: float) -> None:
+    """The tolerance holds over all axes together (mm and degrees): so in XYZ and in A alone."""
+    prog = [g64(p), SetFeedRate(1000), StraightFeed(Pose(10, 0, 0, a=0)), StraightFeed(Pose(10, 10, 0, a=30)),
+            StraightFeed(Pose(0, 10, 0, a=30)), StraightFeed(Pose(0, 0, 0, a=0)), ProgramEnd()]
+    _sps, report = run(prog, ROTARY)
+    assert report.max_deviation <= p
+    assert report.max_deviation > 0.1 * p  # the corners were blended (not stopped)
+
+
+@pytest.mark.parametrize("where", ["first", "middle", "last"])
+def test_zero_length_move_under_g61_1_passes_its_own_check(where: str) -> None:
+    moves = [StraightFeed(Pose(10, 0, 0)), StraightFeed(Pose(10, 5, 0))]
+    zero = {"first": 0, "middle": 1, "last": 2}[where]
+    at = Pose(0, 0, 0) if zero == 0 else moves[zero - 1].end
+    moves.insert(zero, StraightFeed(at))
+    _, report = run([G61_1, SetFeedRate(1000), *moves, ProgramEnd()])
+    assert report.stops_total >= 2 and not report.stops_missed
+
+
+def test_zero_length_g9_move_before_any_motion() -> None:
+    _, report = run([g64(0.01), SetFeedRate(1000), ExactStopBlock(), StraightFeed(Pose(0, 0, 0)),
+                     StraightFeed(Pose(10, 5, 0)), ProgramEnd()])
+    assert not report.stops_missed
