@@ -14,7 +14,6 @@ from planner.geometry import (
     SIGMA2_MAX,
     Arc,
     Blend,
-    Line,
     Piece,
     Transition,
     deviation_of_blend,
@@ -29,6 +28,7 @@ from planner.segments import (
     TRANSITION_SAMPLES,
     PlannerError,
     Seg,
+    tol_left,
 )
 
 log = logging.getLogger(__name__)
@@ -49,7 +49,7 @@ class BlendingMixin:
             return self._try_transition(prev, new)
         if new.kind != "line":
             return False
-        tolerance = prev.blend_tol
+        tolerance = tol_left(prev, new)
         if tolerance < 0.0:
             return False
         w1, w2 = prev.piece.d1_end, new.piece.d1_start
@@ -78,14 +78,13 @@ class BlendingMixin:
                 tolerance <= 0.0 or prev.piece.length <= tolerance / unit):
             d = prev.piece.length  # no sliver of line between two blends: one piece less to plan
         corner = prev.piece.end
-        n = self._n
         blend = Blend(corner, w1, w2, d)
         bseg = Seg(blend, "blend", new.cmd, min(prev.feed, new.feed), prev.rapid and new.rapid,
                    prev.ovr | new.ovr)
         bseg.sides = prev.sides + new.sides
         self._limits(bseg)
         orig_piece, orig_events = new.piece, new.events
-        new.piece = Line(blend.end, orig_piece.end, orig_piece.length - d)  # same direction: same limits
+        new.piece = orig_piece.part(d, orig_piece.length)  # type: ignore[attr-defined]  # same limits
         bseg.events, new.events = list(orig_events), []
         # replace prev by its trimmed part (or drop it when the blend takes it all)
         index = len(self._q) - 1
@@ -93,9 +92,10 @@ class BlendingMixin:
         keep = prev.piece.length - d
         items: list[Seg] = []
         if keep > MIN_LENGTH:
-            trimmed = Seg(Line(prev.piece.start, tuple(corner[i] - d * w1[i] for i in range(n)), keep),
+            trimmed = Seg(prev.piece.part(0.0, keep),  # type: ignore[attr-defined]
                           "line", prev.cmd, prev.feed, prev.rapid, prev.ovr)
             trimmed.orig_length, trimmed.blend_tol = prev.orig_length, prev.blend_tol
+            trimmed.merge_dev = prev.merge_dev
             self._copy_limits(trimmed, prev)
             trimmed.events = prev.events
             items.append(trimmed)
@@ -148,7 +148,7 @@ class BlendingMixin:
         is the largest that keeps the sampled deviation within TRANSITION_DEVIATION * P (and at most
         half of each move), found by shrinking from that bound.
         """
-        tolerance = prev.blend_tol
+        tolerance = tol_left(prev, new)
         if tolerance < 0.0:
             return False
         a, b = prev.piece, new.piece
@@ -163,7 +163,7 @@ class BlendingMixin:
         for piece in (a, b):
             if isinstance(piece, Arc):
                 d = min(d, TRANSITION_ARC * piece.radius)  # never across a good part of a circle
-        if self._allowed(new.blend_tol) < self._allowed(tolerance):
+        if self._allowed(new.blend_tol) < self._allowed(prev.blend_tol):
             # the checker (and the user) grant P near the start of the next move only within 0.6 of
             # its chord: stay within half of it
             d = min(d, 0.5 * math.dist(b.start, b.end))
@@ -202,6 +202,7 @@ class BlendingMixin:
         if head is not None:
             trimmed = Seg(head, prev.kind, prev.cmd, prev.feed, prev.rapid, prev.ovr)
             trimmed.orig_length, trimmed.blend_tol = prev.orig_length, prev.blend_tol
+            trimmed.merge_dev = prev.merge_dev
             trimmed.sides = prev.sides
             self._limits(trimmed)
             trimmed.events = prev.events

@@ -46,6 +46,7 @@ from planner.geometry import (
 from planner.kinematics import max_reach
 from planner.limits import LimitsMixin
 from planner.machine import DEMO_MACHINE, MachineLimits
+from planner.merging import MergingMixin, _Run
 from planner.profiles import ProfilesMixin
 from planner.segments import (
     _TOL,
@@ -76,7 +77,7 @@ from planner.smoothing import SmoothingMixin
 log = logging.getLogger(__name__)
 
 
-class Planner(LimitsMixin, BlendingMixin, SmoothingMixin, ProfilesMixin):
+class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, ProfilesMixin):
     """Canonical commands in (:meth:`feed`), one :class:`Setpoint` per cycle out (:meth:`next_setpoint`).
 
     ``start`` is the position at rest when planning begins (machine zero by default), one value per
@@ -123,6 +124,8 @@ class Planner(LimitsMixin, BlendingMixin, SmoothingMixin, ProfilesMixin):
         self._feed_mode = C.FeedMode.UNITS_PER_MINUTE
         self._mode = C.MotionControlMode.CONTINUOUS
         self._tolerance = 0.0
+        self._naive = 0.0  # G64 Q
+        self._run: _Run | None = None  # lines being merged, not yet queued (planner.merging)
         self._exact_next = False
         self._spindle_rpm = 0.0
         self._pending: list[C.Canon] = []  # ride on the start of the next motion
@@ -160,6 +163,7 @@ class Planner(LimitsMixin, BlendingMixin, SmoothingMixin, ProfilesMixin):
     def is_idle(self) -> bool:
         """Nothing running, nothing queued, nothing waiting: the machine is at rest."""
         return (self._active is None and self._h >= len(self._q) and self.waiting_for is None
+                and self._run is None
                 and not self._immediate and self._free_t <= self._k * self.T + 1e-12)
 
     @property
@@ -221,7 +225,10 @@ class Planner(LimitsMixin, BlendingMixin, SmoothingMixin, ProfilesMixin):
         elif isinstance(cmd, C.SetMotionControlMode):
             if cmd.tolerance < 0:
                 raise PlannerError(f"G64 P must be >= 0, got {cmd.tolerance:g}", cmd.file, cmd.line)
+            if not (cmd.naive_cam_tolerance >= 0):
+                raise PlannerError(f"G64 Q must be >= 0, got {cmd.naive_cam_tolerance:g}", cmd.file, cmd.line)
             self._mode, self._tolerance = cmd.mode, cmd.tolerance
+            self._naive = cmd.naive_cam_tolerance
         elif isinstance(cmd, C.ExactStopBlock):
             self._exact_next = True
         elif isinstance(cmd, C.SetOverrides):
@@ -278,6 +285,7 @@ class Planner(LimitsMixin, BlendingMixin, SmoothingMixin, ProfilesMixin):
 
     def _close_tail(self) -> None:
         """The last queued segment must end at rest (already so for the backward pass: mark it)."""
+        self._emit_run()
         self._finish_chain()
         if self._h < len(self._q):
             last = self._q[-1]
@@ -333,40 +341,58 @@ class Planner(LimitsMixin, BlendingMixin, SmoothingMixin, ProfilesMixin):
         start = self._end
         end = self._target(cmd, cmd.end)  # type: ignore[attr-defined]
         n = self._n
+        exact = self._exact_next or isinstance(cmd, C.Probe) or self._mode in (
+            C.MotionControlMode.EXACT_STOP_MODAL, C.MotionControlMode.EXACT_STOP)
+        rapid = isinstance(cmd, C.StraightTraverse)
+        # the corner at a move's end is blended by the mode the move was programmed in (LinuxCNC)
+        blend_tol = self._tolerance if self._mode is C.MotionControlMode.CONTINUOUS else -1.0
         piece: Piece | None = None
-        kind = "line"
         if isinstance(cmd, C.ArcFeed):
             piece = self._arc(cmd, start, end)
-            kind = "arc" if isinstance(piece, Arc) else "line"
         if piece is None:
             delta = [end[i] - start[i] for i in range(n)]
             if max(abs(x) for x in delta) <= MIN_LENGTH:
                 log.debug("%s:%d: zero-length move skipped", cmd.file, cmd.line)
                 self._end = end
-                if self._exact_next or self._mode in (C.MotionControlMode.EXACT_STOP_MODAL,
-                                                      C.MotionControlMode.EXACT_STOP):
+                if exact:
                     self._close_tail()  # a stop asked for here is kept, even without a move
                 self._exact_next = False
                 return
             length = self._length([x * x for x in delta])
             if length <= MIN_LENGTH:
                 length = max(abs(x) for x in delta)
-            piece = Line(tuple(start), tuple(end), length)
-        feed = self._feed_speed(cmd, piece.length)
-        seg = Seg(piece, kind, cmd, feed, isinstance(cmd, C.StraightTraverse), self._ovr)
-        if kind == "line":
-            seg.chord_before, self._last_chord = self._last_chord, (piece.d1_start, piece.length)
+            feed = self._feed_speed(cmd, length)
+            self._exact_next = False
+            self._end = end
+            self.stats["segments"] += 1
+            if self._try_merge(cmd, start, end, length, feed, rapid, exact):
+                return
+            seg = self._new_line_seg(None, cmd, start, end, length, feed, rapid, self._ovr, blend_tol)
         else:
+            self._emit_run()
             self._last_chord = None
-        # the corner at a move's end is blended by the mode the move was programmed in (LinuxCNC)
-        seg.blend_tol = self._tolerance if self._mode is C.MotionControlMode.CONTINUOUS else -1.0
-        self._limits(seg)
+            seg = Seg(piece, "arc", cmd, self._feed_speed(cmd, piece.length), rapid, self._ovr)
+            seg.blend_tol = blend_tol
+            self._limits(seg)
+            self._exact_next = False
+            self._end = end
+            self.stats["segments"] += 1
         seg.events, self._pending = self._pending, []
-        exact = self._exact_next or isinstance(cmd, C.Probe) or self._mode in (
-            C.MotionControlMode.EXACT_STOP_MODAL, C.MotionControlMode.EXACT_STOP)
-        self._exact_next = False
-        self._end = end
-        self.stats["segments"] += 1
+        self._queue_seg(seg, exact)
+
+    def _new_line_seg(self, piece: Piece | None, cmd: C.Canon, start: Sequence[float], end: Sequence[float],
+                      length: float, feed: float, rapid: bool, ovr: int, blend_tol: float) -> Seg:
+        """A queue item for a (merged) line, its limits set."""
+        if piece is None:
+            piece = Line(tuple(start), tuple(end), length)
+        seg = Seg(piece, "line", cmd, feed, rapid, ovr)
+        seg.chord_before, self._last_chord = self._last_chord, (piece.d1_start, piece.length)
+        seg.blend_tol = blend_tol
+        self._limits(seg)
+        return seg
+
+    def _queue_seg(self, seg: Seg, exact: bool) -> None:
+        """Into the queue: smoothed into a chain, blended at its start, or linked as it is."""
         if not self._try_smooth(seg):
             self._finish_chain()
             if not self._try_blend(seg):
@@ -579,6 +605,7 @@ class Planner(LimitsMixin, BlendingMixin, SmoothingMixin, ProfilesMixin):
             self._end = list(self._rest)
             self._v_end = 0.0
             self._last_chord = None  # the next line does not continue the dropped ones
+            self._run = None
             for i, p in enumerate(self._pose_index):
                 self._pose[p] = self._rest[i]
 
@@ -622,6 +649,8 @@ class Planner(LimitsMixin, BlendingMixin, SmoothingMixin, ProfilesMixin):
         """The setpoint for the next cycle, or None when idle at rest with nothing to say."""
         self._k += 1
         t = self._k * self.T
+        if self._run is not None and len(self._q) - self._h <= 1:
+            self._emit_run()  # the queue runs short: the lines merged so far go in now
         events: list[C.Canon] = []
         if self._immediate:
             events += self._immediate
@@ -637,7 +666,9 @@ class Planner(LimitsMixin, BlendingMixin, SmoothingMixin, ProfilesMixin):
                     if p > act.s_end:
                         p = act.s_end
                     pos = act.seg.piece.pos(p)
-                    src = act.seg.cmd if act.seg.kind != "smooth" else act.seg.piece.cmd_at(p)  # type: ignore[attr-defined]
+                    src = act.seg.piece.cmd_at(p)
+                    if src is None:
+                        src = act.seg.cmd
                     moving = True
                     if act.first:
                         act.first = False

@@ -32,11 +32,15 @@ TRANSITION_ARC = 0.5  # a transition reaches at most this many radii along an ar
 TRANSITION_SAMPLES = 32  # samples of a transition's deviation on each side of the join
 SMOOTH_TURN = 0.2  # chains of short lines are smoothed only where they turn by less (|w2 - w1|, ~11 deg)
 SMOOTH_DEVIATION = 0.8  # a smoothed span stays within this share of G64 P of its line (rigorous bound)
-SMOOTH_GAIN = 2.0  # a chain starts only where a span inside it would be this much faster than the blends
+SMOOTH_GAIN = 1.1  # a chain starts only where a span inside it would be this much faster than the blends
 SMOOTH_START = 0.25  # and its first and last spans (from and to zero curvature) at least this fast
 SMOOTH_PAUSE = 16  # after a chain ended on a bad span (not a corner), blend this many vertices
 SMOOTH_MERGE = 0.85  # a span joins the chain's profile if the chain keeps this share of its limits
 SMOOTH_MERGE_ACC = 0.3  # path acceleration may fall further: it only matters where the speed changes
+MERGE_SHARE = 0.25  # lines within this share of G64 P (without Q) of one line are merged into it
+MERGE_EXACT = 1e-4  # ... within this (mm) in G64 without P and in G61: coordinate rounding only
+MERGE_MAX_PIECES = 20_000  # programmed lines in one merged line at most
+MERGE_MAX_TIME = 2.0  # seconds of motion at its feed in one merged line at most
 MAX_OVERRIDE = 2.0
 # Which online inputs a move obeys (LinuxCNC's FS/AF/FH "enables", queued with each move by M48-M53).
 OVR_FEED = 1  # the feed override (M48/M49, M50 P1/P0)
@@ -98,6 +102,7 @@ class Seg:
         "jcap",
         "jgeom",
         "kind",
+        "merge_dev",
         "orig_length",
         "ovr",
         "piece",
@@ -128,6 +133,7 @@ class Seg:
         self.events: list[C.Canon] = []
         self.stop = False  # must be at rest at the end (G61.1, G9, before a sync point)
         self.blend_tol = -1.0  # G64 P of the move (0: no limit), -1: no blend at its end
+        self.merge_dev = 0.0  # how far the programmed points lie from this (merged) line at most
         self.jgeom = 0.0  # speed cap at the end junction from geometry (0 = stop)
         self.jcap = 0.0
         self.vb = 0.0
@@ -142,6 +148,16 @@ class Seg:
     @property
     def length(self) -> float:
         return self.piece.length - self.s0
+
+
+def tol_left(*segs: Seg) -> float:
+    """The G64 P of the first of ``segs`` left for a blend, span or transition over them: what their
+    merging has not used (the points they were merged from lie up to ``merge_dev`` off them). 0 (no
+    limit) and -1 (no blending) as they are."""
+    tol = segs[0].blend_tol
+    if tol <= 0.0:
+        return tol
+    return max(tol - max(s.merge_dev for s in segs), 1e-12)
 
 
 class SyncItem:

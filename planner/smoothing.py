@@ -13,7 +13,7 @@ from planner.geometry import (
     SIGMA1_MAX,
     SIGMA2_MAX,
     Chain,
-    Line,
+    Piece,
     Span,
     deviation_of_blend,
     vertex_tangent_curvature,
@@ -29,6 +29,7 @@ from planner.segments import (
     SMOOTH_TURN,
     PlannerError,
     Seg,
+    tol_left,
 )
 
 log = logging.getLogger(__name__)
@@ -89,7 +90,7 @@ class SmoothingMixin:
             t_in, k_in = w1, (0.0,) * n
             t, k = vertex_tangent_curvature(w1, prev.orig_length, w2, b.length)
         span = Span(a.start, t_in, k_in, a.end, t, k, a.length)
-        if span.chord_deviation() > SMOOTH_DEVIATION * prev.blend_tol:
+        if span.chord_deviation() > SMOOTH_DEVIATION * tol_left(prev):
             self._smooth_pause = SMOOTH_PAUSE
             return False
         span_cap = min(self._speed_cap(span.d1_max, span.d2_max, span.d3_max), prev.feed)
@@ -121,7 +122,7 @@ class SmoothingMixin:
             # the chain grows in place: its start and its link to the item before stay, only its
             # limits (hence that item's jcap) and its end change
             old_limits, old_best = self._limits_of(chain), chain.best
-            chain.piece.add(span, prev.cmd)  # type: ignore[attr-defined]
+            chain.piece.add(span, prev.cmd, prev.piece)  # type: ignore[attr-defined]
             chain.orig_length = chain.piece.length
             chain.cap_geom, chain.a, chain.j, chain.qs_a, chain.qs_j = merged
             self._set_cap(chain)
@@ -167,12 +168,12 @@ class SmoothingMixin:
         corner blend has already taken most of ``prev``).
         """
         blend = min(self._blend_cap(prev, new), prev.feed)
-        if SMOOTH_GAIN * blend > prev.feed:
-            return False  # the blends run at (nearly) the feed: nothing to gain
+        if blend >= prev.feed:
+            return False  # the blends run at the feed: nothing to gain
         b = new.piece
         half = 0.5 * b.length
         end = Span(b.start, t, k, tuple(b.pos(half)), b.d1_start, (0.0,) * self._n, half)
-        if end.chord_deviation() > SMOOTH_DEVIATION * new.blend_tol:
+        if end.chord_deviation() > SMOOTH_DEVIATION * tol_left(new):
             return False  # the chain could not end on new
         if min(span_cap, self._speed_cap(end.d1_max, end.d2_max, end.d3_max)) < SMOOTH_START * blend:
             return False
@@ -184,7 +185,7 @@ class SmoothingMixin:
         end_pt = prev.piece.end
         start_pt = tuple(end_pt[i] - l1 * w1[i] for i in range(self._n))
         inner = Span(start_pt, tb, kb, end_pt, t, k, l1)
-        if inner.chord_deviation() > SMOOTH_DEVIATION * prev.blend_tol:
+        if inner.chord_deviation() > SMOOTH_DEVIATION * tol_left(prev):
             return False  # the chain would end at the next vertex
         inner_cap = self._speed_cap(inner.d1_max, inner.d2_max, inner.d3_max)
         return min(inner_cap, prev.feed) >= SMOOTH_GAIN * blend
@@ -196,7 +197,7 @@ class SmoothingMixin:
         unit = deviation_of_blend(w1, w2, 1.0, range(self._n))
         d = min(0.5 * prev.orig_length, prev.piece.length, 0.5 * new.piece.length)
         if unit > 0.0:
-            d = min(d, prev.blend_tol / unit)
+            d = min(d, tol_left(prev, new) / unit)
         if d <= 1e-9:
             return 0.0
         span = 2.0 * d
@@ -206,13 +207,15 @@ class SmoothingMixin:
                                [x * SIGMA2_MAX / (span * span) for x in dw])
 
     def _span_seg(self, span: Span, line: Seg, limits: tuple[float, ...],
-                  best: tuple[float, float, float]) -> Seg:
+                  best: tuple[float, float, float], sub: Piece | None = None) -> Seg:
         """A queue item for ``span`` (its path limits ``limits``), which replaces (part of) the
         programmed ``line``."""
-        sseg = Seg(Chain(span, line.cmd), "smooth", line.cmd, line.feed, False, line.ovr)
+        piece = Chain(span, line.cmd, line.piece if sub is None else sub)
+        sseg = Seg(piece, "smooth", line.cmd, line.feed, False, line.ovr)
         sseg.sides = line.sides
         sseg.orig_length = span.length
         sseg.blend_tol = line.blend_tol
+        sseg.merge_dev = line.merge_dev
         sseg.events = line.events
         sseg.cap_geom, sseg.a, sseg.j, sseg.qs_a, sseg.qs_j = limits
         self._set_cap(sseg)
@@ -269,15 +272,17 @@ class SmoothingMixin:
         half = 0.5 * b.length
         mid = tuple(b.pos(half))
         span = Span(b.start, t, k, mid, b.d1_end, (0.0,) * self._n, half)
-        if span.chord_deviation() > SMOOTH_DEVIATION * tail.blend_tol:
+        if span.chord_deviation() > SMOOTH_DEVIATION * tol_left(tail):
             return
         try:
             limits = self._path_limits(span.d1_max, span.d2_max, span.d3_max, tail.feed, tail.cmd)
         except PlannerError:
             return
-        sseg = self._span_seg(span, tail, limits, (min(limits[0], tail.feed), limits[1], limits[2]))
-        rest = Seg(Line(mid, b.end, b.length - half), "line", tail.cmd, tail.feed, tail.rapid, tail.ovr)
+        sseg = self._span_seg(span, tail, limits, (min(limits[0], tail.feed), limits[1], limits[2]),
+                              b.part(0.0, half))  # type: ignore[attr-defined]
+        rest = Seg(b.part(half, b.length), "line", tail.cmd, tail.feed, tail.rapid, tail.ovr)
         rest.sides, rest.orig_length, rest.blend_tol = tail.sides, tail.orig_length, tail.blend_tol
+        rest.merge_dev = tail.merge_dev
         self._copy_limits(rest, tail)
         snapshot = self._snapshot(len(q) - 2)
         q.pop()
