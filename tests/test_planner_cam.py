@@ -8,6 +8,7 @@ figure copied from the planner's output; ``check_stream`` judges limits, deviati
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 
 import numpy as np
@@ -104,3 +105,77 @@ def test_zero_length_g9_move_before_any_motion() -> None:
     _, report = run([g64(0.01), SetFeedRate(1000), ExactStopBlock(), StraightFeed(Pose(0, 0, 0)),
                      StraightFeed(Pose(10, 5, 0)), ProgramEnd()])
     assert not report.stops_missed
+
+
+def line_pieces(length: float, pieces: int, feed: float, mode: SetMotionControlMode) -> list:
+    """A line along (1, 0.6) as ``pieces`` collinear moves, written with 4 decimals."""
+    return [mode, SetFeedRate(feed)] + [StraightFeed(Pose(round(length * k / pieces, 4),
+                                                          round(0.6 * length * k / pieces, 4), 0))
+                                        for k in range(1, pieces + 1)] + [ProgramEnd()]
+
+
+@pytest.mark.parametrize("mode", [g64(0.01), g64(), SetMotionControlMode(MotionControlMode.EXACT_PATH)],
+                         ids=["G64P", "G64", "G61"])
+@pytest.mark.parametrize(("length", "pieces"), [(50.0, 250), (5.0, 5000)])
+def test_a_line_as_collinear_pieces_takes_the_time_of_one_line(mode, length: float, pieces: int) -> None:
+    one, _ = run(line_pieces(length, 1, 6000, mode))
+    many, report = run(line_pieces(length, pieces, 6000, mode))
+    assert len(many) <= 1.03 * len(one)
+    assert report.max_deviation <= 1e-3
+
+
+def test_merged_pieces_still_name_their_lines_in_order() -> None:
+    sps, _ = run(line_pieces(50.0, 250, 600, g64(0.01)))
+    lines = [sp.line for sp in sps if sp.line]
+    assert lines == sorted(lines)
+    assert set(range(3, 253)) <= set(lines)  # at F600 a cycle covers 0.02 mm, a piece 0.2 mm: all seen
+
+
+def test_a_reversal_along_the_line_is_not_merged_away() -> None:
+    prog = [g64(0.01), SetFeedRate(3000)] + [StraightFeed(Pose(x, 0, 0)) for x in (10, 5, 10, 5, 10)] + [
+        ProgramEnd()]
+    sps, _ = run(prog)
+    x = np.array([sp.positions[0] for sp in sps])
+    turns = np.sum(np.diff(np.sign(np.diff(x[np.abs(np.diff(x, append=x[-1])) > 1e-9]))) != 0)
+    assert turns >= 4  # out, back, out, back, out: every reversal is travelled
+    assert x.min() <= 5.0 + 1e-6 and np.sum(x >= 10.0 - 1e-6) > 0
+
+
+def spiral(segments: int, step: float, feed: float, decimals: int, p: float = 0.01) -> list:
+    r0, r1 = 3.0, 12.0
+    length = segments * step
+    theta_end = length / (0.5 * (r0 + r1))
+    b = (r1 - r0) / theta_end
+    prog: list = [g64(p), SetFeedRate(feed), StraightFeed(Pose(r0, 0, 0))]
+    theta = 0.0
+    for k in range(segments):
+        theta += step / math.hypot(r0 + b * theta, b)
+        r = r0 + b * theta
+        prog.append(StraightFeed(Pose(round(r * math.cos(theta), decimals),
+                                      round(r * math.sin(theta), decimals), round(k / segments, decimals))))
+    return [*prog, ProgramEnd()]
+
+
+@pytest.mark.parametrize("p", [0.01, 0.05])
+def test_rounding_to_4_decimals_does_not_change_the_plan(p: float) -> None:
+    fine, _ = run(spiral(600, 0.05, 1000, 8, p))
+    rounded, report = run(spiral(600, 0.05, 1000, 4, p))
+    assert abs(len(rounded) - len(fine)) <= 0.03 * len(fine)
+    assert report.max_deviation <= p
+
+
+def test_a_higher_feed_never_takes_longer_through_a_chain() -> None:
+    times = [len(run(spiral(400, 0.2, f, 4))[0]) for f in (1000, 1500, 2000, 2500, 3000, 4000)]
+    assert all(b <= a for a, b in itertools.pairwise(times)), times
+
+
+def test_tiny_segments_run_near_the_acceleration_bound() -> None:
+    """20,000 moves of 0.001 mm at F6000 (each shorter than a cycle's travel): within 1.5 times the
+    time of the whole path at the feed from rest to rest under the acceleration limit alone."""
+    step = 0.001 / math.sqrt(2.0)
+    prog = [g64(0.01), SetFeedRate(6000)] + [StraightFeed(Pose(round(step * k, 4), round(step * k, 4), 0))
+                                             for k in range(1, 20001)] + [ProgramEnd()]
+    sps, _ = run(prog)
+    v, a, length = 100.0, A_X * math.sqrt(2.0), 20.0  # along the diagonal both axes share the work
+    bound = length / v + v / a  # accelerating and braking cost v/(2a) each
+    assert len(sps) * T <= 1.5 * bound
