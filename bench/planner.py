@@ -51,9 +51,14 @@ from planner import DEMO_MACHINE, check_stream, plan_all
 
 def surfacing(segments: int, step: float, feed: float, mode: SetMotionControlMode) -> list:
     """Raster rows along X over z = 2 sin(x/7) cos(y/5) + 0.5 sin(x/2.3), stepping 0.5 mm in Y."""
+    return list(surfacing_lazy(segments, step, feed, mode))
+
+
+def surfacing_lazy(segments: int, step: float, feed: float, mode: SetMotionControlMode) -> Iterator:
+    """:func:`surfacing`, one command at a time."""
     per_row = 500
     rows = max(1, segments // per_row)
-    prog: list = [mode, SetFeedRate(feed), StraightTraverse(Pose(0, 0, 5))]
+    yield from (mode, SetFeedRate(feed), StraightTraverse(Pose(0, 0, 5)))
     line = 1
     for row in range(rows):
         y = row * 0.5
@@ -64,10 +69,9 @@ def surfacing(segments: int, step: float, feed: float, mode: SetMotionControlMod
             if row > 0 and k == 0:
                 continue  # the step over in Y to the next row is the row's first segment
             z = 2.0 * math.sin(x / 7.0) * math.cos(y / 5.0) + 0.5 * math.sin(x / 2.3)
-            prog.append(StraightFeed(Pose(x, y, z), file="surface.ngc", line=line))
+            yield StraightFeed(Pose(x, y, z), file="surface.ngc", line=line)
             line += 1
-    prog.append(ProgramEnd(file="surface.ngc", line=line))
-    return prog
+    yield ProgramEnd(file="surface.ngc", line=line)
 
 
 def straight_lines(prog: list, machine=DEMO_MACHINE):
@@ -286,7 +290,12 @@ def _measure(make: Callable[[], Iterable], check: bool = False) -> dict:
                 yield cmd
 
         out: dict = {}
+        # the program's own generation is not planning: its CPU, measured alone, is subtracted
         cpu = time.process_time()
+        for _cmd in make():
+            pass
+        generate = time.process_time() - cpu
+        cpu = time.process_time() + generate
         if check:
             from array import array
 
@@ -367,7 +376,7 @@ def table(check: bool) -> None:
 
 
 def throughput() -> None:
-    print("(throughput) planning CPU (one core) against motion time")
+    print("(throughput) planning CPU (one core; generating the program excluded) against motion time")
     per_move = []
     for n in (10_000, 50_000, 150_000):
         m = _measure(lambda n=n: spiral(n, 0.05, 1000, 4))
@@ -377,8 +386,8 @@ def throughput() -> None:
               f"{t / m['cpu']:6.1f}x real time, {m['cpu'] / m['moves'] * 1e6:6.1f} us per move, "
               f"peak +{m['mem_mb']:.1f} MB   target: >= 50x")
     print(f"  cost per move, largest over smallest: {max(per_move) / min(per_move):.3f}   target: <= 1.10")
-    m = _measure(lambda: surfacing(100_000, 0.2, 2000,
-                                   SetMotionControlMode(MotionControlMode.CONTINUOUS, 0.01)))
+    m = _measure(lambda: surfacing_lazy(100_000, 0.2, 2000,
+                                        SetMotionControlMode(MotionControlMode.CONTINUOUS, 0.01)))
     t = m["cycles"] * DEMO_MACHINE.cycle_s
     print(f"  surfacing, {m['moves']:,} moves of 0.2 mm, F2000, G64 P0.01: {t:8.1f} s of motion in "
           f"{m['cpu']:6.2f} s CPU: {t / m['cpu']:6.1f}x real time, {m['cpu'] / m['moves'] * 1e6:6.1f} us "

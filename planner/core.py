@@ -156,6 +156,7 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
         self._last_pos = list(start_pos)
         self._rest_emitted = True
         self.stats = {"segments": 0, "solves": 0, "retries": 0, "blends": 0}
+        self._started = 0  # stats["segments"] when the last started segment was queued
 
     # --- state ------------------------------------------------------------------------------------
 
@@ -169,6 +170,12 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
     @property
     def queue_length(self) -> int:
         return len(self._q) - self._h
+
+    @property
+    def queued_moves(self) -> int:
+        """Programmed moves fed and not yet started (queued, or being merged): how far ahead the
+        input is, whatever the queue's items hold (a smoothed chain or a merged line holds many)."""
+        return self.stats["segments"] - self._started
 
     @property
     def position(self) -> tuple[float, ...]:
@@ -455,6 +462,7 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
                 prev.jcap = min(prev.jgeom, prev.cap, seg.cap)
         seg.vb = 0.0
         seg.jcap = seg.jgeom = 0.0
+        seg.last = self.stats["segments"]
         self._q.append(seg)
 
     def _append(self, seg: Seg) -> None:
@@ -606,6 +614,7 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
             self._v_end = 0.0
             self._last_chord = None  # the next line does not continue the dropped ones
             self._run = None
+            self._started = self.stats["segments"]
             for i, p in enumerate(self._pose_index):
                 self._pose[p] = self._rest[i]
 
@@ -725,18 +734,21 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
 
 def plan_all(commands: Iterable[C.Canon], machine: MachineLimits = DEMO_MACHINE,
              start: Sequence[float] | None = None, window: int = 400,
-             max_cycles: int | None = None) -> Iterator[Setpoint]:
+             max_cycles: int | None = None, window_moves: int = 5000) -> Iterator[Setpoint]:
     """Plan a whole program faster than real time (previews, tests, ``canon plan``).
 
-    Commands are read lazily, keeping ``window`` items queued ahead; waits are released at once. The
-    stream starts at rest at ``start`` and ends at rest on the last point. ``max_cycles`` bounds it.
+    Commands are read lazily, keeping ``window`` items and at most ``window_moves`` programmed moves
+    queued ahead (a merged line or a smoothed chain is one item holding many moves: memory stays flat
+    in the program's length); waits are released at once. The stream starts at rest at ``start`` and
+    ends at rest on the last point. ``max_cycles`` bounds it.
     """
     planner = Planner(machine, start, auto_release=True)
     it = iter(commands)
     exhausted = False
     cap = max_cycles if max_cycles is not None else 10**12
     for _ in range(cap):
-        while not exhausted and planner.queue_length < window:
+        while not exhausted and (planner.queue_length < 2 or (
+                planner.queue_length < window and planner.queued_moves < window_moves)):
             try:
                 cmd = next(it)
             except StopIteration:

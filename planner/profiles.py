@@ -115,6 +115,8 @@ class ProfilesMixin:
     def _start(self, seg: Seg, t0: float) -> None:
         """Commit ``seg``: solve its profile from the current end speed."""
         self._start_profile(seg, t0)
+        if seg.last > self._started:
+            self._started = seg.last
         assert self._active is not None
         self._v_end = self._active.v1
 

@@ -36,6 +36,7 @@ SMOOTH_GAIN = 1.1  # a chain starts only where a span inside it would be this mu
 SMOOTH_START = 0.25  # and its first and last spans (from and to zero curvature) at least this fast
 SMOOTH_PAUSE = 16  # after a chain ended on a bad span (not a corner), blend this many vertices
 SMOOTH_MERGE = 0.85  # a span joins the chain's profile if the chain keeps this share of its limits
+SMOOTH_CHAIN_SPANS = 32  # spans under one profile at most: the queue's length stays a lookahead window
 SMOOTH_MERGE_ACC = 0.3  # path acceleration may fall further: it only matters where the speed changes
 MERGE_SHARE = 0.25  # lines within this share of G64 P (without Q) of one line are merged into it
 MERGE_EXACT = 1e-4  # ... within this (mm) in G64 without P and in G61: coordinate rounding only
@@ -102,6 +103,7 @@ class Seg:
         "jcap",
         "jgeom",
         "kind",
+        "last",
         "merge_dev",
         "orig_length",
         "ovr",
@@ -133,6 +135,7 @@ class Seg:
         self.events: list[C.Canon] = []
         self.stop = False  # must be at rest at the end (G61.1, G9, before a sync point)
         self.blend_tol = -1.0  # G64 P of the move (0: no limit), -1: no blend at its end
+        self.last = 0  # programmed moves fed when it was queued (Planner.queued_moves)
         self.merge_dev = 0.0  # how far the programmed points lie from this (merged) line at most
         self.jgeom = 0.0  # speed cap at the end junction from geometry (0 = stop)
         self.jcap = 0.0

@@ -20,6 +20,7 @@ from planner.geometry import (
     vertex_tangent_curvature4,
 )
 from planner.segments import (
+    SMOOTH_CHAIN_SPANS,
     SMOOTH_DEVIATION,
     SMOOTH_GAIN,
     SMOOTH_MERGE,
@@ -107,6 +108,7 @@ class SmoothingMixin:
         if (isinstance(chain, Seg) and chain.kind == "smooth" and chain.s0 == 0.0 and not chain.stop
                 and not prev.events and chain.feed == prev.feed and chain.ovr == prev.ovr
                 and chain.blend_tol == prev.blend_tol and chain.sides == prev.sides
+                and len(chain.piece.spans) < SMOOTH_CHAIN_SPANS  # type: ignore[attr-defined]
                 and not (running and len(q) - 2 == h)):
             merged = self._merged_limits(chain, span, span_cap)
         limits: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
@@ -124,6 +126,7 @@ class SmoothingMixin:
             old_limits, old_best = self._limits_of(chain), chain.best
             chain.piece.add(span, prev.cmd, prev.piece)  # type: ignore[attr-defined]
             chain.orig_length = chain.piece.length
+            chain.last = self.stats["segments"]
             chain.cap_geom, chain.a, chain.j, chain.qs_a, chain.qs_j = merged
             self._set_cap(chain)
             chain.best = (max(old_best[0], span_cap), max(old_best[1], merged[1]),
