@@ -93,6 +93,7 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
         self._n = n
         self._pose_index = machine.pose_index
         self._machine_index = {p: i for i, p in enumerate(self._pose_index)}
+        self._absent = [p for p in range(9) if p not in self._machine_index]  # pose axes not here
         self._V = [a.max_velocity for a in machine.axes]
         self._A = [a.max_acceleration for a in machine.axes]
         self._J = [a.max_jerk for a in machine.axes]
@@ -105,6 +106,7 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
         self._JCENT = [JERK_CENTRIPETAL * j for j in self._JC]
         self._JCROSS = [JERK_CROSS * j / 3.0 for j in self._JC]
         self._soft = [(a.min_position, a.max_position) for a in machine.axes]
+        self._has_soft = any(lim != (None, None) for lim in self._soft)
         groups = []
         for names in ("xyz", "uvw", "abc"):
             g = [i for i, a in enumerate(machine.axes) if a.name in names]
@@ -303,8 +305,9 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
     # --- building segments --------------------------------------------------------------------------
 
     def _target(self, cmd: C.Canon, pose: C.Pose) -> list[float]:
-        for p, value in enumerate(pose):
-            if p not in self._machine_index and abs(value - self._pose[p]) > _TOL:
+        for p in self._absent:
+            value = pose[p]
+            if abs(value - self._pose[p]) > _TOL:
                 raise PlannerError(f"{cmd.NAME} moves axis {C.AXES[p].upper()}, which this machine does "
                                    f"not have (axes: {' '.join(self.machine.names).upper()})",
                                    cmd.file, cmd.line)
@@ -314,6 +317,8 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
         return out
 
     def _check_soft(self, cmd: C.Canon, point: Sequence[float]) -> None:
+        if not self._has_soft:
+            return
         for i, (lo, hi) in enumerate(self._soft):
             if (lo is not None and point[i] < lo - _TOL) or (hi is not None and point[i] > hi + _TOL):
                 name = self.machine.axes[i].name.upper()
@@ -322,7 +327,7 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
 
     def _length(self, travel2: Sequence[float]) -> float:
         for g in self._groups:
-            length = math.sqrt(sum(travel2[i] for i in g))
+            length = math.sqrt(sum([travel2[i] for i in g]))
             if length > MIN_LENGTH:
                 return length
         return 0.0
@@ -347,7 +352,6 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
     def _motion(self, cmd: C.Canon) -> None:
         start = self._end
         end = self._target(cmd, cmd.end)  # type: ignore[attr-defined]
-        n = self._n
         exact = self._exact_next or isinstance(cmd, C.Probe) or self._mode in (
             C.MotionControlMode.EXACT_STOP_MODAL, C.MotionControlMode.EXACT_STOP)
         rapid = isinstance(cmd, C.StraightTraverse)
@@ -357,8 +361,8 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
         if isinstance(cmd, C.ArcFeed):
             piece = self._arc(cmd, start, end)
         if piece is None:
-            delta = [end[i] - start[i] for i in range(n)]
-            if max(abs(x) for x in delta) <= MIN_LENGTH:
+            delta = [e - s for e, s in zip(end, start, strict=True)]
+            if max(map(abs, delta)) <= MIN_LENGTH:
                 log.debug("%s:%d: zero-length move skipped", cmd.file, cmd.line)
                 self._end = end
                 if exact:
@@ -367,7 +371,7 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
                 return
             length = self._length([x * x for x in delta])
             if length <= MIN_LENGTH:
-                length = max(abs(x) for x in delta)
+                length = max(map(abs, delta))
             feed = self._feed_speed(cmd, length)
             self._exact_next = False
             self._end = end

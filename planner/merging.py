@@ -52,8 +52,9 @@ class _Run:
 def _line_distance(p: Sequence[float], a: Sequence[float], u: Sequence[float]) -> float:
     """Distance of ``p`` from the line through ``a`` with unit direction ``u``."""
     d = [x - y for x, y in zip(p, a, strict=True)]
-    along = sum(x * y for x, y in zip(d, u, strict=True))
-    return math.sqrt(max(sum(x * x for x in d) - along * along, 0.0))
+    along = sum([x * y for x, y in zip(d, u, strict=True)])
+    norm = math.hypot(*d)
+    return math.sqrt(max(norm * norm - along * along, 0.0))
 
 
 class MergingMixin:
@@ -97,21 +98,22 @@ class MergingMixin:
             return False
         s, e = run.start, run.end
         chord = [x - y for x, y in zip(end, s, strict=True)]
-        length = math.sqrt(sum(x * x for x in chord))
-        if length <= 0.0 or length / run.feed > MERGE_MAX_TIME:
+        length = math.hypot(*chord)
+        if length <= 0.0 or length > MERGE_MAX_TIME * run.feed:
             return False
         u = [x / length for x in chord]
         # each piece advances along the run: the new piece and the run so far point the same way
         piece = [x - y for x, y in zip(end, e, strict=True)]
-        piece_len = math.sqrt(sum(x * x for x in piece))
-        if sum(x * y for x, y in zip(piece, u, strict=True)) < 0.5 * piece_len:
+        if sum([x * y for x, y in zip(piece, u, strict=True)]) < 0.5 * math.hypot(*piece):
             return False
         old = [x - y for x, y in zip(e, s, strict=True)]
-        if sum(x * y for x, y in zip(old, u, strict=True)) <= 0.0:
+        along = sum([x * y for x, y in zip(old, u, strict=True)])
+        if along <= 0.0:
             return False
         # The interior points lie within dev of the old chord; the new chord starts at the same point
         # and is at most dist(e, new line) from it along the old chord: dev grows by at most that.
-        step = _line_distance(e, s, u)
+        old_len = math.hypot(*old)
+        step = math.sqrt(max(old_len * old_len - along * along, 0.0))
         if step > run.tol:
             return False
         dev = run.dev + step
