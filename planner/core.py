@@ -689,6 +689,11 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
                             events += act.seg.events
                             act.seg.events = []
                     break
+                if act.first and act.seg.events:
+                    # a piece passed between two samples (shorter than a cycle's travel): its events
+                    # ride on the first setpoint after it, never dropped
+                    events += act.seg.events
+                    act.seg.events = []
                 self._finish_active()
                 continue
             if self.waiting_for is not None or self._free_t > t + 1e-9:

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from gcode_canon.commands import (
+    DigitalOutput,
     ExactStopBlock,
     MotionControlMode,
     Pose,
@@ -179,3 +180,14 @@ def test_tiny_segments_run_near_the_acceleration_bound() -> None:
     v, a, length = 100.0, A_X * math.sqrt(2.0), 20.0  # along the diagonal both axes share the work
     bound = length / v + v / a  # accelerating and braking cost v/(2a) each
     assert len(sps) * T <= 1.5 * bound
+
+
+def test_an_output_on_a_move_shorter_than_a_cycle_is_not_lost() -> None:
+    """A synced output rides on the first setpoint of its move; a 1 um move at F600 lies between two
+    samples, so it rides on the first setpoint after it (it was dropped)."""
+    prog = [g64(), SetFeedRate(600), StraightFeed(Pose(10, 0, 0)),
+            DigitalOutput(1, True, synced=True), StraightFeed(Pose(10.001, 0, 0)),
+            DigitalOutput(2, True, synced=True), StraightFeed(Pose(12, 0, 0)), ProgramEnd()]
+    sps, _ = run(prog)
+    outs = [e.index for sp in sps for e in sp.events if isinstance(e, DigitalOutput)]
+    assert sorted(outs) == [1, 2]
