@@ -35,12 +35,14 @@ class _Run:
     """Lines being merged: from ``start`` through the ``points`` (the interior programmed points) to
     ``end``; ``dev`` bounds the distance of every interior point from the chord ``start``-``end``."""
 
-    __slots__ = ("cmds", "dev", "end", "events", "exact_from", "feed", "key", "points", "rapid", "start",
-                 "tol", "tol_mode")
+    __slots__ = ("chord", "cmds", "dev", "end", "events", "exact_from", "feed", "key", "length", "points",
+                 "rapid", "start", "tol", "tol_mode")
 
     def __init__(self, start: tuple[float, ...], end: tuple[float, ...], cmd: C.Canon, feed: float,
                  rapid: bool, key: tuple, tol: float, tol_mode: float, events: list[C.Canon]) -> None:
         self.start, self.end = start, end
+        self.chord = [x - y for x, y in zip(end, start, strict=True)]
+        self.length = math.hypot(*self.chord)
         self.points: list[tuple[float, ...]] = []
         self.cmds: list[C.Canon] = [cmd]
         self.dev = 0.0
@@ -96,32 +98,31 @@ class MergingMixin:
         n = len(run.cmds)
         if n >= MERGE_MAX_PIECES:
             return False
-        s, e = run.start, run.end
-        chord = [x - y for x, y in zip(end, s, strict=True)]
+        s, e, old, old_len = run.start, run.end, run.chord, run.length
+        piece = [x - y for x, y in zip(end, e, strict=True)]
+        chord = [x + y for x, y in zip(old, piece, strict=True)]
         length = math.hypot(*chord)
         if length <= 0.0 or length > MERGE_MAX_TIME * run.feed:
             return False
-        u = [x / length for x in chord]
         # each piece advances along the run: the new piece and the run so far point the same way
-        piece = [x - y for x, y in zip(end, e, strict=True)]
-        if sum([x * y for x, y in zip(piece, u, strict=True)]) < 0.5 * math.hypot(*piece):
+        if sum([x * y for x, y in zip(piece, chord, strict=True)]) < 0.5 * math.hypot(*piece) * length:
             return False
-        old = [x - y for x, y in zip(e, s, strict=True)]
-        along = sum([x * y for x, y in zip(old, u, strict=True)])
+        along = sum([x * y for x, y in zip(old, chord, strict=True)]) / length
         if along <= 0.0:
             return False
         # The interior points lie within dev of the old chord; the new chord starts at the same point
         # and is at most dist(e, new line) from it along the old chord: dev grows by at most that.
-        old_len = math.hypot(*old)
         step = math.sqrt(max(old_len * old_len - along * along, 0.0))
         if step > run.tol:
             return False
         dev = run.dev + step
         if dev > run.tol:
-            # the bound is loose: measure exactly, at most once every n / 8 pieces (amortised O(1))
-            if n - run.exact_from < max(8, n // 8):
+            # the bound is loose: measure exactly (short runs always; long ones at most once every n / 8
+            # pieces: amortised O(1) per line)
+            if n > 64 and n - run.exact_from < n // 8:
                 return False
             dev = step
+            u = [x / length for x in chord]
             for p in run.points:
                 d = _line_distance(p, s, u)
                 if d > dev:
@@ -131,7 +132,7 @@ class MergingMixin:
             run.exact_from = n
         run.points.append(e)
         run.cmds.append(cmd)
-        run.end = end
+        run.end, run.chord, run.length = end, chord, length
         run.dev = dev
         return True
 
