@@ -157,10 +157,11 @@ def spiral(segments: int, step: float, feed: float, decimals: int, p: float = 0.
     return [*prog, ProgramEnd()]
 
 
+@pytest.mark.parametrize("decimals", [3, 4])
 @pytest.mark.parametrize("p", [0.01, 0.05])
-def test_rounding_to_4_decimals_does_not_change_the_plan(p: float) -> None:
+def test_rounding_to_3_or_4_decimals_does_not_change_the_plan(p: float, decimals: int) -> None:
     fine, _ = run(spiral(600, 0.05, 1000, 8, p))
-    rounded, report = run(spiral(600, 0.05, 1000, 4, p))
+    rounded, report = run(spiral(600, 0.05, 1000, decimals, p))
     assert abs(len(rounded) - len(fine)) <= 0.03 * len(fine)
     assert report.max_deviation <= p
 
