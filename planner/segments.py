@@ -34,6 +34,7 @@ SMOOTH_TURN = 0.2  # chains of short lines are smoothed only where they turn by 
 SMOOTH_DEVIATION = 0.8  # a smoothed span stays within this share of G64 P of its line (rigorous bound)
 SMOOTH_GAIN = 1.1  # a chain starts only where a span inside it would be this much faster than the blends
 SMOOTH_START = 0.25  # and its first and last spans (from and to zero curvature) at least this fast
+SMOOTH_KEEP = 0.5  # a chain ends where its next span would be slower than this share of the blend
 SMOOTH_PAUSE = 16  # after a chain ended on a bad span (not a corner), blend this many vertices
 SMOOTH_MERGE = 0.85  # a span joins the chain's profile if the chain keeps this share of its limits
 SMOOTH_CHAIN_SPANS = 32  # spans under one profile at most: the queue's length stays a lookahead window

@@ -23,6 +23,7 @@ from planner.segments import (
     SMOOTH_CHAIN_SPANS,
     SMOOTH_DEVIATION,
     SMOOTH_GAIN,
+    SMOOTH_KEEP,
     SMOOTH_MERGE,
     SMOOTH_MERGE_ACC,
     SMOOTH_PAUSE,
@@ -94,11 +95,13 @@ class SmoothingMixin:
         if span.chord_deviation() > SMOOTH_DEVIATION * tol_left(prev):
             self._smooth_pause = SMOOTH_PAUSE
             return False
-        span_cap = min(self._speed_cap(span.d1_max, span.d2_max, span.d3_max), prev.feed)
+        # decisions compare geometry (caps without the feed): the same pieces at every feed, so a
+        # higher feed only lifts the caps
+        span_cap = self._speed_cap(span.d1_max, span.d2_max, span.d3_max)
         if prev.smooth_in is not None:
             # noisy points (or a large P): corner blends, free to cut within P, do better; and do not
             # try again at once (each chain's ends cost)
-            if span_cap < SMOOTH_MERGE * prev.feed and span_cap < SMOOTH_MERGE * self._blend_cap(prev, new):
+            if span_cap < SMOOTH_MERGE * prev.feed and span_cap < SMOOTH_KEEP * self._blend_cap(prev, new):
                 self._smooth_pause = SMOOTH_PAUSE
                 return False
         elif not self._worth_starting(prev, new, span_cap, t, k):
@@ -138,7 +141,7 @@ class SmoothingMixin:
             index = len(q) - 1
         else:
             index = len(q)
-            self._link(self._span_seg(span, prev, limits, (min(limits[0], prev.feed), limits[1], limits[2])))
+            self._link(self._span_seg(span, prev, limits, (span_cap, limits[1], limits[2])))
         new.smooth_in = (t, k, w1, prev.orig_length)
         self._link(new)
         changes = self._backward(index)
@@ -170,7 +173,7 @@ class SmoothingMixin:
         than the blends they replace (they are slower than the spans between, the more so where a
         corner blend has already taken most of ``prev``).
         """
-        blend = min(self._blend_cap(prev, new), prev.feed)
+        blend = self._blend_cap(prev, new)
         if blend >= prev.feed:
             return False  # the blends run at the feed: nothing to gain
         b = new.piece
@@ -178,7 +181,9 @@ class SmoothingMixin:
         end = Span(b.start, t, k, tuple(b.pos(half)), b.d1_start, (0.0,) * self._n, half)
         if end.chord_deviation() > SMOOTH_DEVIATION * tol_left(new):
             return False  # the chain could not end on new
-        if min(span_cap, self._speed_cap(end.d1_max, end.d2_max, end.d3_max)) < SMOOTH_START * blend:
+        feed = prev.feed  # the chain's ends must not be much slower than the blends at this feed
+        end_cap = self._speed_cap(end.d1_max, end.d2_max, end.d3_max)
+        if min(span_cap, end_cap, feed) < SMOOTH_START * min(blend, feed):
             return False
         before = prev.chord_before
         if before is None:
@@ -191,7 +196,7 @@ class SmoothingMixin:
         if inner.chord_deviation() > SMOOTH_DEVIATION * tol_left(prev):
             return False  # the chain would end at the next vertex
         inner_cap = self._speed_cap(inner.d1_max, inner.d2_max, inner.d3_max)
-        return min(inner_cap, prev.feed) >= SMOOTH_GAIN * blend
+        return inner_cap >= SMOOTH_GAIN * blend
 
     def _blend_cap(self, prev: Seg, new: Seg) -> float:
         """The speed cap of the corner blend :meth:`_try_blend` would make between the lines ``prev`` and
@@ -247,7 +252,7 @@ class SmoothingMixin:
             except PlannerError:
                 return None
         top = chain.best
-        if (min(merged[0], chain.feed) < SMOOTH_MERGE * max(top[0], span_cap)
+        if (merged[0] < SMOOTH_MERGE * max(top[0], span_cap)
                 or merged[1] < SMOOTH_MERGE_ACC * top[1] or merged[2] < SMOOTH_MERGE * top[2]):
             return None
         return merged
@@ -281,7 +286,7 @@ class SmoothingMixin:
             limits = self._path_limits(span.d1_max, span.d2_max, span.d3_max, tail.feed, tail.cmd)
         except PlannerError:
             return
-        sseg = self._span_seg(span, tail, limits, (min(limits[0], tail.feed), limits[1], limits[2]),
+        sseg = self._span_seg(span, tail, limits, (limits[0], limits[1], limits[2]),
                               b.part(0.0, half))  # type: ignore[attr-defined]
         rest = Seg(b.part(half, b.length), "line", tail.cmd, tail.feed, tail.rapid, tail.ovr)
         rest.sides, rest.orig_length, rest.blend_tol = tail.sides, tail.orig_length, tail.blend_tol

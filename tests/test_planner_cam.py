@@ -192,3 +192,15 @@ def test_an_output_on_a_move_shorter_than_a_cycle_is_not_lost() -> None:
     sps, _ = run(prog)
     outs = [e.index for sp in sps for e in sp.events if isinstance(e, DigitalOutput)]
     assert sorted(outs) == [1, 2]
+
+
+def test_a_higher_feed_never_takes_longer_on_a_wavy_chain() -> None:
+    """A CAM-like wave (0.2 mm chords, 3 decimals, G64 P0.005): the smoothing and chaining decisions
+    compare the pieces' own limits, not the feed, so the pieces do not change with F."""
+    xs = [0.2 * k for k in range(1, 401)]
+    pts = [(round(x, 3), round(7.77 * math.sin(0.0725 * x) + 1.70 * math.sin(0.324 * x), 3), 0) for x in xs]
+    times = []
+    for feed in (2000, 2500, 3000, 4000):
+        sps, _ = run([g64(0.005), SetFeedRate(feed)] + [StraightFeed(Pose(*p)) for p in pts] + [ProgramEnd()])
+        times.append(len(sps))
+    assert all(b <= a for a, b in itertools.pairwise(times)), times
