@@ -1,22 +1,36 @@
-"""Planner benchmark: planning speed against real time, and cycle time against bounds.
+"""Planner benchmark: what CAM programs cost, planning speed against real time, cycle time against bounds.
 
-    python bench/planner.py [--segments 100000] [--feed 2000] [--step 0.2] [--check]
+    python bench/planner.py [--table] [--throughput] [--surfacing] [--segments 100000] [--check]
 
-(1) A 3-D surfacing toolpath (a raster over a wavy surface, ``--segments`` short G1 segments in G64
-    P0.01) is planned at 2 ms on one core; the figure is the program's run time divided by the wall
-    time the planning took (target: at least 50x faster than real time).
-(2) The program's cycle time against a lower bound, each segment at its feed (capped by the axis
-    velocities along it) with the acceleration limit alone from and to rest, no jerk, corners or
-    curvature; against a jerk-aware lower bound (:func:`jerk_bound`); and against the same program in
-    exact-stop mode (G61.1), planned the same way.
+With no section named, all three run.
+
+``--table`` (issue 17's programs, generated here, on the demo mill at 2 ms): for each program its
+    cycle time, the ratio to its reference (one line; the spiral written with 8 decimals; the
+    feed/acceleration lower bound; for the square the deviation against v^2/a), planning CPU time
+    over motion time, and the peak memory the planning took. Targets are printed beside them.
+``--throughput``: a 0.05 mm-segment spiral of 10k, 50k and 150k moves (the same radii, more turns:
+    the same geometry per move) and the surfacing raster: planning speed as a multiple of real time
+    (CPU of one core), CPU per move and peak memory of each run (target: at least 50x, cost per move
+    within 10 % over the three lengths, memory flat).
+``--surfacing``: the 3-D surfacing raster (``--segments`` short G1 moves in G64 P0.01): its cycle
+    time against a lower bound, each segment at its feed (capped by the axis velocities along it)
+    with the acceleration limit alone from and to rest, no jerk, corners or curvature; against a
+    jerk-aware lower bound (:func:`jerk_bound`); and against the same program in exact-stop mode
+    (G61.1), planned the same way.
+
+Peak memory is measured in a child process per program (``ru_maxrss`` growth over the child's size
+when it starts), so the figures of one program do not hide in another's.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import multiprocessing
+import resource
 import sys
 import time
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -37,9 +51,14 @@ from planner import DEMO_MACHINE, check_stream, plan_all
 
 def surfacing(segments: int, step: float, feed: float, mode: SetMotionControlMode) -> list:
     """Raster rows along X over z = 2 sin(x/7) cos(y/5) + 0.5 sin(x/2.3), stepping 0.5 mm in Y."""
+    return list(surfacing_lazy(segments, step, feed, mode))
+
+
+def surfacing_lazy(segments: int, step: float, feed: float, mode: SetMotionControlMode) -> Iterator:
+    """:func:`surfacing`, one command at a time."""
     per_row = 500
     rows = max(1, segments // per_row)
-    prog: list = [mode, SetFeedRate(feed), StraightTraverse(Pose(0, 0, 5))]
+    yield from (mode, SetFeedRate(feed), StraightTraverse(Pose(0, 0, 5)))
     line = 1
     for row in range(rows):
         y = row * 0.5
@@ -50,10 +69,9 @@ def surfacing(segments: int, step: float, feed: float, mode: SetMotionControlMod
             if row > 0 and k == 0:
                 continue  # the step over in Y to the next row is the row's first segment
             z = 2.0 * math.sin(x / 7.0) * math.cos(y / 5.0) + 0.5 * math.sin(x / 2.3)
-            prog.append(StraightFeed(Pose(x, y, z), file="surface.ngc", line=line))
+            yield StraightFeed(Pose(x, y, z), file="surface.ngc", line=line)
             line += 1
-    prog.append(ProgramEnd(file="surface.ngc", line=line))
-    return prog
+    yield ProgramEnd(file="surface.ngc", line=line)
 
 
 def straight_lines(prog: list, machine=DEMO_MACHINE):
@@ -192,13 +210,227 @@ def plan(prog: list) -> tuple[int, float, float]:
     return count, time.process_time() - cpu, time.perf_counter() - wall
 
 
+# --- issue 17's programs ---------------------------------------------------------------------------
+
+G64P = SetMotionControlMode(MotionControlMode.CONTINUOUS, 0.01)
+G64 = SetMotionControlMode(MotionControlMode.CONTINUOUS, 0.0)
+
+
+def _r(x: float, decimals: int) -> float:
+    return round(x, decimals)
+
+
+def line_pieces(length: float, pieces: int, feed: float, decimals: int = 4) -> Iterator:
+    """A line along X as ``pieces`` collinear G1 moves (G64 P0.01)."""
+    yield G64P
+    yield SetFeedRate(feed)
+    for k in range(1, pieces + 1):
+        yield StraightFeed(Pose(_r(length * k / pieces, decimals), 0, 0), file="line.ngc", line=k)
+    yield ProgramEnd(file="line.ngc", line=pieces + 1)
+
+
+def spiral(segments: int, step: float, feed: float, decimals: int, r0: float = 3.0, r1: float = 12.0,
+           ) -> Iterator:
+    """An Archimedean spiral from radius r0 to r1 in XY (Z rising 1 mm over it), ``segments`` chords
+    of about ``step`` mm, coordinates rounded to ``decimals`` (G64 P0.01). More segments: more turns
+    between the same radii, so the geometry per move is the same at any length."""
+    length = segments * step
+    mean_r = 0.5 * (r0 + r1)
+    turns = length / (2 * math.pi * mean_r)
+    theta_end = 2 * math.pi * turns
+    b = (r1 - r0) / theta_end
+    yield G64P
+    yield SetFeedRate(feed)
+    yield StraightFeed(Pose(_r(r0, decimals), 0, 0), file="spiral.ngc", line=1)
+    theta = 0.0
+    for k in range(segments):
+        r = r0 + b * theta
+        theta += step / math.sqrt(r * r + b * b)
+        r = r0 + b * theta
+        z = k / segments
+        yield StraightFeed(Pose(_r(r * math.cos(theta), decimals), _r(r * math.sin(theta), decimals),
+                                _r(z, decimals)), file="spiral.ngc", line=k + 2)
+    yield ProgramEnd(file="spiral.ngc", line=segments + 2)
+
+
+def tiny(segments: int, step: float, feed: float) -> Iterator:
+    """``segments`` moves of ``step`` mm along the XY diagonal, written with 4 decimals (G64 P0.01)."""
+    yield G64P
+    yield SetFeedRate(feed)
+    c = step / math.sqrt(2.0)
+    for k in range(1, segments + 1):
+        yield StraightFeed(Pose(_r(c * k, 4), _r(c * k, 4), 0), file="tiny.ngc", line=k)
+    yield ProgramEnd(file="tiny.ngc", line=segments + 1)
+
+
+def square(size: float, feed: float) -> list:
+    """A square in G64 without P."""
+    prog = [G64, SetFeedRate(feed)]
+    for k, (x, y) in enumerate(((size, 0), (size, size), (0, size), (0, 0), (size, 0)), start=1):
+        prog.append(StraightFeed(Pose(x, y, 0), file="square.ngc", line=k))
+    prog.append(ProgramEnd(file="square.ngc", line=6))
+    return prog
+
+
+def _measure(make: Callable[[], Iterable], check: bool = False, repeat: int = 1) -> dict:
+    """Plan the program ``make()`` yields in a child process: cycles, CPU, moves, peak memory growth
+    (and the checker's verdict, with --check). The child reads the program lazily. With ``repeat``,
+    the planning runs that many times: ``cpu`` is the least (the machine is shared: other work only
+    adds), ``cpu_median`` the median."""
+    ctx = multiprocessing.get_context("fork")
+    parent, child = ctx.Pipe(duplex=False)
+
+    def work() -> None:
+        base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        moves = 0
+
+        def counted() -> Iterator:
+            nonlocal moves
+            for cmd in make():
+                if isinstance(cmd, StraightFeed | StraightTraverse):
+                    moves += 1
+                yield cmd
+
+        out: dict = {}
+        # the program's own generation is not planning: its CPU, measured alone, is subtracted
+        cpu = time.process_time()
+        for _cmd in make():
+            pass
+        generate = time.process_time() - cpu
+        cpu = time.process_time() + generate
+        if check:
+            from array import array
+
+            import numpy as np
+
+            flat = array("d")
+            for sp in plan_all(counted(), DEMO_MACHINE):
+                flat.extend(sp.positions)
+            out["cpu"] = time.process_time() - cpu
+            out["cycles"] = len(flat) // 3
+            report = check_stream(np.frombuffer(flat).reshape(-1, 3), list(make()))
+            out["deviation"] = report.max_deviation
+            out["ok"] = report.ok
+            out["problems"] = report.problems()[:3]
+        else:
+            times = []
+            for _ in range(repeat):
+                moves = 0
+                count = 0
+                for _sp in plan_all(counted(), DEMO_MACHINE):
+                    count += 1
+                times.append(time.process_time() - cpu)
+                cpu = time.process_time() + generate
+            out["cpu"] = min(times)
+            out["cpu_median"] = sorted(times)[len(times) // 2]
+            out["cycles"] = count
+        out["moves"] = moves
+        out["mem_mb"] = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base) / 1024.0
+        child.send(out)
+        child.close()
+
+    proc = ctx.Process(target=work)
+    proc.start()
+    child.close()
+    result = parent.recv()
+    proc.join()
+    return result
+
+
+def _row(name: str, m: dict, ref_s: float | None, ref_name: str, target: str) -> None:
+    t = m["cycles"] * DEMO_MACHINE.cycle_s
+    ratio = f"{t / ref_s:6.3f} x {ref_name}" if ref_s else "-"
+    extra = "" if m.get("ok", True) else f"  CHECK FAILED: {m['problems']}"
+    print(f"  {name:<44} {t:9.3f} s  {ratio:<32} cpu/motion {m['cpu'] / t:6.4f}  "
+          f"peak +{m['mem_mb']:6.1f} MB   target: {target}{extra}")
+
+
+def table(check: bool) -> None:
+    T = DEMO_MACHINE.cycle_s
+    print(f"(table) issue 17's programs on the demo mill, cycle {T * 1e3:g} ms")
+    one = _measure(lambda: line_pieces(50.0, 1, 6000), check)
+    t_one = one["cycles"] * T
+    _row("50 mm line, one G1, F6000", one, None, "", "reference")
+    _row("the same as 250 collinear G1", _measure(lambda: line_pieces(50.0, 250, 6000), check), t_one,
+         "one line", "<= 1.03")
+    five = _measure(lambda: line_pieces(5.0, 1, 6000), check)
+    _row("5 mm line, one G1, F6000", five, None, "", "reference")
+    _row("the same as 5,000 collinear G1", _measure(lambda: line_pieces(5.0, 5000, 6000), check),
+         five["cycles"] * T, "one line", "<= 1.03")
+    s8 = _measure(lambda: spiral(1000, 0.05, 1000, 8), check)
+    _row("0.05 mm spiral, 1,000 G1, 8 decimals, F1000", s8, None, "", "reference")
+    _row("the same, 4 decimals", _measure(lambda: spiral(1000, 0.05, 1000, 4), check), s8["cycles"] * T,
+         "8 decimals", "<= 1.03")
+    f2000 = _measure(lambda: spiral(1000, 0.2, 2000, 4), check)
+    f2500 = _measure(lambda: spiral(1000, 0.2, 2500, 4), check)
+    _row("0.2 mm spiral, 1,000 G1, F2000", f2000, f2500["cycles"] * T, "F2500", ">= 1 (F2500 never slower)")
+    _row("the same at F2500", f2500, None, "", "")
+    bound = lower_bound(list(tiny(20000, 0.001, 6000)))
+    _row("20,000 x 0.001 mm, F6000", _measure(lambda: tiny(20000, 0.001, 6000), check), bound,
+         "acceleration bound", "<= 1.5")
+    # the square: the largest distance from the programmed corners' lines, against v^2/a
+    from planner.checker import _deviation, _program_geometry
+
+    prog = square(100.0, 600)
+    sps = [sp.positions for sp in plan_all(prog, DEMO_MACHINE)]
+    import numpy as np
+
+    paths, _stops, _end = _program_geometry(prog, DEMO_MACHINE, np.zeros(3))
+    worst, _excess = _deviation(paths, np.array(sps))
+    v = 600 / 60.0
+    ref = v * v / DEMO_MACHINE.axes[0].max_acceleration
+    print(f"  {'100 mm square, F600, G64 without P':<44} {len(sps) * T:9.3f} s  corner deviation "
+          f"{worst:.4f} mm = {worst / ref:.2f} x v^2/a ({ref:.3f} mm)   target: <= 1.1 x v^2/a")
+
+
+def throughput() -> None:
+    print("(throughput) planning CPU (one core; generating the program excluded) against motion time;"
+          " best of 3 runs (median in brackets), the lengths interleaved so that the machine's load falls"
+          " on each alike")
+    per_move = []
+    sizes = (10_000, 50_000, 150_000)
+    runs: dict[int, list[dict]] = {n: [] for n in sizes}
+    for _round in range(3):
+        for n in sizes:
+            runs[n].append(_measure(lambda n=n: spiral(n, 0.05, 1000, 4)))
+    for n in sizes:
+        cpus = sorted(r["cpu"] for r in runs[n])
+        m = dict(runs[n][0], cpu=cpus[0], cpu_median=cpus[1], mem_mb=max(r["mem_mb"] for r in runs[n]))
+        t = m["cycles"] * DEMO_MACHINE.cycle_s
+        per_move.append(m["cpu"] / m["moves"])
+        print(f"  0.05 mm spiral, {n:>7,} moves, F1000: {t:8.1f} s of motion in {m['cpu']:6.2f} s CPU: "
+              f"{t / m['cpu']:6.1f}x ({t / m['cpu_median']:.1f}x) real time, "
+              f"{m['cpu'] / m['moves'] * 1e6:6.1f} us per move, peak +{m['mem_mb']:.1f} MB   target: >= 50x")
+    print(f"  cost per move, largest over smallest: {max(per_move) / min(per_move):.3f}   target: <= 1.10")
+    m = _measure(lambda: surfacing_lazy(100_000, 0.2, 2000,
+                                        SetMotionControlMode(MotionControlMode.CONTINUOUS, 0.01)), repeat=3)
+    t = m["cycles"] * DEMO_MACHINE.cycle_s
+    print(f"  surfacing, {m['moves']:,} moves of 0.2 mm, F2000, G64 P0.01: {t:8.1f} s of motion in "
+          f"{m['cpu']:6.2f} s CPU: {t / m['cpu']:6.1f}x ({t / m['cpu_median']:.1f}x) real time, "
+          f"{m['cpu'] / m['moves'] * 1e6:6.1f} us per move, peak +{m['mem_mb']:.1f} MB   target: >= 50x")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--table", action="store_true", help="issue 17's programs")
+    parser.add_argument("--throughput", action="store_true", help="planning speed and memory")
+    parser.add_argument("--surfacing", action="store_true", help="the surfacing raster against bounds")
     parser.add_argument("--segments", type=int, default=100_000)
     parser.add_argument("--step", type=float, default=0.2, help="segment length along X, mm")
     parser.add_argument("--feed", type=float, default=2000.0, help="mm/min")
-    parser.add_argument("--check", action="store_true", help="also run the checker on the blended stream")
+    parser.add_argument("--check", action="store_true", help="also run the checker on the streams")
     args = parser.parse_args()
+    every = not (args.table or args.throughput or args.surfacing)
+    if args.table or every:
+        table(args.check)
+    if args.throughput or every:
+        throughput()
+    if args.surfacing or every:
+        surfacing_bench(args)
+    return 0
+
+
+def surfacing_bench(args: argparse.Namespace) -> None:
     T = DEMO_MACHINE.cycle_s
 
     blended = surfacing(args.segments, args.step, args.feed,
@@ -235,7 +467,6 @@ def main() -> int:
                  for ax, r in ((ax, report.ratio(ax)) for ax in report.axes)}
         print(f"check: worst ratio to limits per axis {worst}, max deviation {report.max_deviation:.4f} mm, "
               f"ok={report.ok}")
-    return 0
 
 
 if __name__ == "__main__":

@@ -41,7 +41,7 @@ from typing import Any
 # Exported lazily: ``planner.setpoints`` (imported by the fieldbus) must not pull in ruckig and numpy.
 _EXPORTS = {
     "CheckReport": "planner.checker", "Peaks": "planner.checker", "check_stream": "planner.checker",
-    "Planner": "planner.core", "PlannerError": "planner.core", "plan_all": "planner.core",
+    "Planner": "planner.core", "PlannerError": "planner.segments", "plan_all": "planner.core",
     "DEMO_MACHINE": "planner.machine", "AxisLimits": "planner.machine", "MachineError": "planner.machine",
     "MachineLimits": "planner.machine", "Setpoint": "planner.setpoints",
 }

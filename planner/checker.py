@@ -285,12 +285,15 @@ def check_stream(setpoints: Iterable[Setpoint] | np.ndarray, program: Sequence[C
     paths, stops, end = _program_geometry(program, machine, start_arr)
     worst, excess = _deviation(paths, pts)
     missed = []
+    # the machine is at rest at ``start`` before the first setpoint: a stop asked for there (a
+    # zero-length move under G61.1 or G9 before any motion) is met by that rest, row 0 here
+    at_rest = np.vstack([start_arr[None, :], pts])
     ptr = 0
     for file, line, point in stops:
         found = -1
         size = 1024
-        while ptr < len(pts) and found < 0:
-            block = pts[ptr: ptr + size]
+        while ptr < len(at_rest) and found < 0:
+            block = at_rest[ptr: ptr + size]
             hit = np.nonzero(np.max(np.abs(block - point), axis=1) <= stop_tolerance)[0]
             if len(hit):
                 found = ptr + int(hit[0])

@@ -58,6 +58,10 @@ class Piece:
     def pos(self, s: float) -> list[float]:  # pragma: no cover - overridden
         raise NotImplementedError
 
+    def cmd_at(self, s: float) -> Any:
+        """The programmed move at ``s`` when the piece carries several (else None: the segment's)."""
+        return None
+
 
 class Line(Piece):
     """A straight move from ``start`` to ``end``; ``s`` runs over ``length``."""
@@ -83,6 +87,33 @@ class Line(Piece):
     def part(self, s0: float, s1: float) -> Line:
         """The piece between ``s0`` and ``s1`` (a transition takes the rest)."""
         return Line(tuple(self.pos(s0)), tuple(self.pos(s1)), s1 - s0)
+
+
+class MergedLine(Line):
+    """Consecutive programmed lines within a tolerance of one line, planned as this line
+    (``planner.merging``). ``cmds[i]`` is the programmed move from ``starts[i]`` on (its start
+    projected on the line), for the setpoints' file and line."""
+
+    __slots__ = ("_i", "cmds", "starts")
+
+    def __init__(self, start: Vec, end: Vec, length: float, starts: list[float], cmds: list[Any]) -> None:
+        super().__init__(start, end, length)
+        self.starts, self.cmds = starts, cmds
+        self._i = 0
+
+    def cmd_at(self, s: float) -> Any:
+        i = self._i  # the cycle loop samples forward: the last index found is almost always right
+        st = self.starts
+        if not (st[i] <= s and (i + 1 == len(st) or s < st[i + 1])):
+            i = max(bisect_right(st, s) - 1, 0)
+            self._i = i
+        return self.cmds[i]
+
+    def part(self, s0: float, s1: float) -> Line:
+        lo = max(bisect_right(self.starts, s0) - 1, 0)
+        hi = max(bisect_right(self.starts, s1) - 1, lo)
+        starts = [0.0] + [x - s0 for x in self.starts[lo + 1: hi + 1]]
+        return MergedLine(tuple(self.pos(s0)), tuple(self.pos(s1)), s1 - s0, starts, self.cmds[lo: hi + 1])
 
 
 class Arc(Piece):
@@ -400,21 +431,24 @@ class Chain(Piece):
     programmed lines meet. The derivative bounds are the largest of the spans'. ``cmds`` says which
     programmed move each span comes from (for the setpoints' file and line)."""
 
-    __slots__ = ("_i", "cmds", "spans", "starts")
+    __slots__ = ("_i", "cmds", "spans", "starts", "subs")
 
-    def __init__(self, first: Span, cmd: Any) -> None:
+    def __init__(self, first: Span, cmd: Any, sub: Piece | None = None) -> None:
         super().__init__(first.length, first.start, first.end, first.d1_start, first.d1_end, first.d2_start,
                          first.d2_end, first.d1_max, first.d2_max, first.d3_max)
         self.spans: list[Span] = [first]
         self.starts: list[float] = [0.0]
         self.cmds: list[Any] = [cmd]
+        # the line each span replaces, when it carries several programmed moves (a merged line)
+        self.subs: list[Piece | None] = [sub if isinstance(sub, MergedLine) else None]
         self._i = 0
 
-    def add(self, span: Span, cmd: Any) -> None:
+    def add(self, span: Span, cmd: Any, sub: Piece | None = None) -> None:
         """Append ``span`` (it starts where the chain ends, with the chain's end tangent and curvature)."""
         self.spans.append(span)
         self.starts.append(self.length)
         self.cmds.append(cmd)
+        self.subs.append(sub if isinstance(sub, MergedLine) else None)
         self._set_end()
         self.d1_max = tuple(map(max, self.d1_max, span.d1_max))
         self.d2_max = tuple(map(max, self.d2_max, span.d2_max))
@@ -425,6 +459,7 @@ class Chain(Piece):
         self.spans.pop()
         self.starts.pop()
         self.cmds.pop()
+        self.subs.pop()
         self._i = 0
         self._set_end()
         self.d1_max, self.d2_max, self.d3_max = (
@@ -453,7 +488,12 @@ class Chain(Piece):
         return self.spans[i].pos(s - self.starts[i])
 
     def cmd_at(self, s: float) -> Any:
-        return self.cmds[self._index(min(max(s, 0.0), self.length))]
+        s = min(max(s, 0.0), self.length)
+        i = self._index(s)
+        sub = self.subs[i]
+        if sub is not None:  # a span of a merged line: the span's s maps to the line's in proportion
+            return sub.cmd_at((s - self.starts[i]) * sub.length / self.spans[i].length)
+        return self.cmds[i]
 
 
 def vertex_tangent_curvature4(w0: Vec, l0: float, w1: Vec, l1: float, w2: Vec, l2: float,

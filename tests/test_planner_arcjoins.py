@@ -23,7 +23,7 @@ from gcode_canon.commands import (
     StraightFeed,
 )
 from planner import DEMO_MACHINE, check_stream, plan_all
-from planner.core import (
+from planner.segments import (
     CENTRIPETAL_ACC,
     JERK_CENTRIPETAL,
     JERK_CONTINUOUS,
