@@ -11,7 +11,8 @@ line the program never reaches, or one inside a subroutine or loop body, exits 1
 and the reason, nothing moved.
 
 Exit status 0 when the program ran to its end; 1 with ``FILE:LINE: message`` (a G-code error) or the
-fault's reason (a drive, the I/O, a late cycle) on stderr; 130 on Ctrl-C or SIGTERM (motion stopped).
+fault's reason (a drive, the I/O, a late cycle) on stderr; 130 on Ctrl-C or SIGTERM: a jerk-limited
+stop on the path, then "stopped at FILE:LINE (resume with --start-line LINE)" and the parameters saved.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import sys
 from typing import Any
 
 SETTLE_S = 0.5  # after the last setpoint, wait this long at most for the drives to settle
+STOP_TIMEOUT_S = 10.0  # Ctrl-C: the jerk-limited stop must be at rest by then (a few 100 ms at most)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -137,10 +139,67 @@ def _settle(machine: Any, timeout: float = SETTLE_S) -> None:
         time.sleep(0.01)
 
 
+def stop_report(program: str, place: tuple[str, int]) -> str:
+    """Where an interrupted run stopped, in the words ``--start-line`` needs."""
+    file, line = place
+    if line <= 0:
+        return f"stopped before the first motion of {program} (nothing to resume: run it from the start)"
+    if not file or _same_file(file, program):
+        return f"stopped at {program}:{line} (resume with --start-line {line})"
+    return (f"stopped at {file}:{line}, inside a subroutine that {program} calls (--start-line takes a "
+            f"line of {program}: the line of the call)")
+
+
+def _same_file(a: str, b: str) -> bool:
+    import os
+
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return a == b
+
+
+def _file_state(path: Any) -> tuple[int, int] | None:
+    import os
+
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_ino, st.st_mtime_ns
+
+
+def _interrupted(machine: Any, program: str) -> int:
+    """Ctrl-C or SIGTERM while the program runs: a jerk-limited stop on the path (the planner's
+    abort, the drives kept streaming until the motion is at rest), then the machine shut down (drives
+    disabled, outputs safe, parameters written) and the place to resume from printed."""
+    import contextlib
+
+    from motiond.states import CommandRefused
+
+    with contextlib.suppress(CommandRefused):  # refused: a fault is already stopping it
+        machine.abort()
+    at_rest = machine.wait_at_rest(STOP_TIMEOUT_S)
+    place = machine.motion_place
+    var = machine.interp.settings.var_file
+    before = _file_state(var) if var is not None else None
+    machine.shutdown()
+    print(f"canon run: interrupted: {stop_report(program, place)}", file=sys.stderr)
+    if not at_rest:
+        print(f"canon run: the motion was not at rest after {STOP_TIMEOUT_S:g} s: the drives were "
+              "disabled while moving", file=sys.stderr)
+    if var is not None:
+        after = _file_state(var)
+        if after is not None and after != before:
+            print(f"canon run: parameters saved to {var}", file=sys.stderr)
+        else:
+            print(f"canon run: the parameters could not be saved to {var}", file=sys.stderr)
+    return 130
+
+
 def run(args: argparse.Namespace) -> int:
     import logging
     import signal
-    import time
     from pathlib import Path
 
     from rich.console import Console
@@ -207,12 +266,7 @@ def run(args: argparse.Namespace) -> int:
             else:
                 result = machine.wait_job(job)
         except KeyboardInterrupt:
-            machine.abort()
-            deadline = time.monotonic() + 5.0
-            while machine.job is not None and time.monotonic() < deadline:
-                time.sleep(0.02)
-            print("canon run: interrupted: motion stopped", file=sys.stderr)
-            return 130
+            return _interrupted(machine, str(path))
         assert result is not None
         if not result.ok:
             print(result.error or "program aborted", file=sys.stderr)

@@ -1890,3 +1890,21 @@ class Machine:
     @property
     def job(self) -> _Job | None:
         return self._job
+
+    def wait_at_rest(self, timeout: float) -> bool:
+        """After :meth:`abort`: True once the program has ended and its jerk-limited stop on the path
+        has brought the motion to rest (or a fault ended it); False after ``timeout`` seconds."""
+        deadline = time.monotonic() + timeout
+        while True:
+            if (self._job is None and not self._aborting
+                    and self.states.state not in (State.RUNNING, State.PAUSED)):
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.01)
+
+    @property
+    def motion_place(self) -> tuple[str, int]:
+        """The file and line of the last setpoint sent to the drives (line 0 before any motion)."""
+        line, file = self._line
+        return file, line
