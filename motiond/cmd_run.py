@@ -37,6 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="run from line N: the lines before it are interpreted without moving, then "
                              "tool, spindle, coolant and override switches are restored and the machine "
                              "approaches the start point (Z up, X Y, Z down) (default 1: the whole file)")
+    parser.add_argument("--state-dir", metavar="DIR",
+                        help="where the machine's lock lives (one run or daemon per machine file; default "
+                             "as canon daemon's)")
     parser.add_argument("--late-fault-ms", type=float, metavar="MS",
                         help="a cycle starting later than this is a fault (default: 10 cycles, at least "
                              "50 ms; 1 s with simulated drives)")
@@ -199,18 +202,12 @@ def _interrupted(machine: Any, program: str) -> int:
 
 def run(args: argparse.Namespace) -> int:
     import logging
-    import signal
     from pathlib import Path
-
-    from rich.console import Console
 
     from motiond.cli import UserError
     from motiond.config import load_machine
+    from motiond.instance_lock import lock_machine
     from motiond.interp_settings import settings_from_args
-    from motiond.runtime import Machine, MachineError
-    from motiond.states import CommandRefused
-    from telemetry.config import TelemetryConfig
-    from telemetry.publisher import open_lcm
 
     if not getattr(args, "verbose", 0):  # the error is printed once, below, not also as a log line
         for name in ("motiond.runtime", "fieldbus"):
@@ -220,6 +217,24 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{args.file}: no such file")
     config = load_machine(args.config)
     settings = settings_from_args(config, args, dry_run=False)
+    lock = lock_machine(args.config, config.limits.name, args.state_dir)
+    try:
+        return _run_locked(args, path, config, settings)
+    finally:
+        lock.release()
+
+
+def _run_locked(args: argparse.Namespace, path: Any, config: Any, settings: Any) -> int:
+    import signal
+
+    from rich.console import Console
+
+    from motiond.cli import UserError
+    from motiond.runtime import Machine, MachineError
+    from motiond.states import CommandRefused
+    from telemetry.config import TelemetryConfig
+    from telemetry.publisher import open_lcm
+
     tele = TelemetryConfig.from_table(config.telemetry)
     if args.url:
         from motiond.configkit import Table
