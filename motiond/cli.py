@@ -23,6 +23,7 @@ from motiond.configkit import ConfigError
 COMMANDS: dict[str, tuple[str, str]] = {
     "check": ("motiond.cmd_check", "interpret a program without a machine and print its canonical commands"),
     "plan": ("motiond.cmd_plan", "plan a program without a machine: setpoints checked against the limits"),
+    "config": ("motiond.cmd_config", "check a machine file offline (every table) and print the machine"),
     "run": ("motiond.cmd_run", "run a program on the machine (the built-in simulated demo by default)"),
     "daemon": ("motiond.cmd_daemon", "run the machine as a daemon, commanded and watched over LCM"),
     "sim": ("motiond.cmd_sim", "run simulated drives or I/O as a separate process, or inject a drive fault"),

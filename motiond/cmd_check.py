@@ -29,13 +29,13 @@ def run(args: argparse.Namespace) -> int:
 
     from gcode_canon.interpreter import Interpreter
     from gcode_canon.machine import DryRunMachine
-    from motiond.config import load_machine
+    from motiond.config_check import load_checked
     from motiond.interp_settings import settings_from_args
 
     if not Path(args.file).is_file():
         raise UserError(f"{args.file}: no such file")
     # the demo machine without --config: then any of the nine axes may be named
-    settings = settings_from_args(load_machine(args.config), args, dry_run=True)
+    settings = settings_from_args(load_checked(args.config), args, dry_run=True)
     interp = Interpreter(settings, DryRunMachine())
     out = sys.stdout
     write = out.write

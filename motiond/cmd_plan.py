@@ -38,13 +38,13 @@ def run(args: argparse.Namespace) -> int:
 
     from gcode_canon.interpreter import Interpreter
     from gcode_canon.machine import DryRunMachine
-    from motiond.config import load_machine
+    from motiond.config_check import load_checked
     from motiond.interp_settings import settings_from_args
     from planner import check_stream, plan_all
 
     if not Path(args.file).is_file():
         raise UserError(f"{args.file}: no such file")
-    config = load_machine(args.config)
+    config = load_checked(args.config)
     machine = config.limits
     settings = settings_from_args(config, args, dry_run=True)
     interp = Interpreter(settings, DryRunMachine())

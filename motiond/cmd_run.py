@@ -205,7 +205,7 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from motiond.cli import UserError
-    from motiond.config import load_machine
+    from motiond.config_check import load_checked
     from motiond.instance_lock import lock_machine
     from motiond.interp_settings import settings_from_args
 
@@ -215,7 +215,7 @@ def run(args: argparse.Namespace) -> int:
     path = Path(args.file)
     if not path.is_file():
         raise UserError(f"{args.file}: no such file")
-    config = load_machine(args.config)
+    config = load_checked(args.config)
     settings = settings_from_args(config, args, dry_run=False)
     lock = lock_machine(args.config, config.limits.name, args.state_dir)
     try:
