@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import logging
 import sys
 from collections.abc import Sequence
 
 from gcode_canon.errors import GCodeError
 from motiond.configkit import ConfigError
+from motiond.logsetup import setup_logging
 
 # name -> (module, one-line help). Add a line here for a new sub-command.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -51,7 +51,9 @@ def add_common(parser: argparse.ArgumentParser, *, program: bool = True) -> None
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="canon", description="canon: G-code to CiA 402 servo drives")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="more log output: -v canon's debug messages, -vv the libraries' too "
+                             "(default: canon's at INFO, pymodbus/canopen/python-can at WARNING)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name, (module, help_text) in COMMANDS.items():
@@ -70,10 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.WARNING - 10 * min(args.verbose, 2),
-        format="%(levelname)s %(name)s: %(message)s",
-    )
+    setup_logging(args.verbose)
     module = importlib.import_module(args._module)
     try:
         return int(module.run(args) or 0)
