@@ -60,6 +60,66 @@ def _fmt(v: float) -> str:
     return f"{v:.3g}" if abs(v) < 1000 else f"{v / 1000:.3g}k"
 
 
+def timing_verdict(late_s: list[float], period_s: float, limit_s: float,
+                   heartbeat_consumer_ms: int) -> tuple[str, str]:
+    """Late cycles judged against what a real drive tolerates: ``("ok" | "rough" | "fault", words)``.
+
+    A cycle late by less than a period still delivers its setpoint before the next SYNC. One late by
+    more leaves a real drive a SYNC (or more) without a new target: it holds the last one, a velocity
+    step. Beyond ``limit_s`` (canon's late-cycle fault on real drives, ten cycles but at least 50 ms,
+    standing in for the drives' setpoint timeout) or the drives' heartbeat consumer time (a stall that
+    long silences the master's heartbeat too), real drives fault: the run would have stopped.
+    """
+    period_ms = period_s * 1000
+    n = len(late_s)
+    if n == 0:
+        return "ok", "every cycle on time: a real drive would have been happy"
+    worst = max(late_s)
+    missed = sum(1 for by in late_s if by > period_s)
+    over = [f"canon's late-cycle limit for real drives ({limit_s * 1000:g} ms)"] if worst > limit_s else []
+    if heartbeat_consumer_ms and worst * 1000 > heartbeat_consumer_ms:
+        over.append(f"the drives' heartbeat consumer time ({heartbeat_consumer_ms} ms)")
+    if over:
+        k = sum(1 for by in late_s
+                if by > limit_s or (heartbeat_consumer_ms and by * 1000 > heartbeat_consumer_ms))
+        return "fault", (f"NOT fit for a real machine: the worst cycle started {worst * 1000:.1f} ms late, "
+                         f"beyond {' and '.join(over)}; on real drives the run would have stopped with a "
+                         f"fault ({k} such cycle{'s' if k != 1 else ''})")
+    if missed == 0:
+        return "ok", (f"{n} cycles late but each by less than one period ({period_ms:g} ms, worst "
+                      f"{worst * 1000:.1f} ms): every setpoint arrived before the next SYNC; a real drive "
+                      "would not have noticed")
+    return "rough", (f"{missed} cycles late by more than one period ({period_ms:g} ms, worst "
+                     f"{worst * 1000:.1f} ms): a real drive would have held its last setpoint for a SYNC or "
+                     "more each time (a velocity step, a jolt), within its tolerance "
+                     f"({limit_s * 1000:g} ms): no fault, but rough motion")
+
+
+def time_breakdown(result: Any, period_s: float) -> dict[str, float]:
+    """Where a run's wall time went: moving, before the first setpoint, standing (dwells, waits, the
+    planner waiting for the interpreter), and deadlines that never ran (the process not scheduled)."""
+    executed = result.cycles * period_s
+    moving = result.moving_cycles * period_s
+    before = min(result.first_setpoint_s, max(executed - moving, 0.0))
+    return {
+        "total_s": result.duration_s,
+        "moving_s": moving,
+        "before_first_setpoint_s": before,
+        "standing_s": max(executed - moving - before, 0.0),
+        "skipped_s": max(result.duration_s - executed, 0.0),
+    }
+
+
+def _tolerances(machine: Any) -> tuple[float, int]:
+    """What a real machine of this configuration tolerates: canon's late-cycle limit for real drives
+    and the drives' heartbeat consumer time as configured (not the simulation's relaxed values)."""
+    from motiond.config_canopen import canopen_for_machine
+
+    configured = canopen_for_machine(machine.config)
+    hb = configured.heartbeat_consumer_ms if configured.heartbeat_producer_ms else 0
+    return max(10 * machine.T, 0.050), hb
+
+
 def summary_dict(machine: Any, result: Any) -> dict[str, Any]:
     """The run's figures as plain data (``--json`` prints it)."""
     axes = {}
@@ -75,7 +135,13 @@ def summary_dict(machine: Any, result: Any) -> dict[str, Any]:
             "final_actual": result.final_actual[i] if result.final_actual else None,
             "program_final": result.expected_final[i] if result.expected_final else None,
         }
+    limit_s, hb = _tolerances(machine)
+    verdict, words = timing_verdict(result.late_s, machine.T, limit_s, hb)
     return {
+        "timing": {"verdict": verdict, "text": words, "real_late_limit_ms": limit_s * 1000,
+                   "heartbeat_consumer_ms": hb,
+                   "late_by_more_than_a_period": sum(1 for by in result.late_s if by > machine.T)},
+        "time": time_breakdown(result, machine.T),
         "program": result.program,
         "ok": result.ok,
         "error": result.error,
@@ -108,6 +174,20 @@ def print_summary(machine: Any, result: Any, console: Any) -> None:
     console.print(f"[bold]{result.program}[/] on {d['machine']}: ran in {d['duration_s']:.2f} s, motion "
                   f"{d['cycle_s']:.3f} s ({d['cycles']} cycles of {d['period_ms']:g} ms), "
                   f"{d['late_cycles']} late cycles (worst {d['worst_late_ms']:.1f} ms)", highlight=False)
+    console.print(f"timing: {d['timing']['text']}", highlight=False)
+    tb = d["time"]
+    if tb["total_s"] > 1.05 * tb["moving_s"] + 0.5:
+        parts = [f"{tb['moving_s']:.2f} s moving"]
+        if tb["before_first_setpoint_s"] >= 0.05:
+            parts.append(f"{tb['before_first_setpoint_s']:.2f} s before the first setpoint (reading and "
+                         "planning ahead, starting the drives' stream)")
+        if tb["standing_s"] >= 0.05:
+            parts.append(f"{tb['standing_s']:.2f} s standing (dwells, waits for inputs or tool changes, the "
+                         "planner waiting for the interpreter)")
+        if tb["skipped_s"] >= 0.05:
+            parts.append(f"{tb['skipped_s']:.2f} s of cycles that never ran (deadlines skipped: the process "
+                         "was not scheduled in time: a loaded or non-real-time PC)")
+        console.print(f"where the {tb['total_s']:.2f} s went: " + "; ".join(parts), highlight=False)
     t = Table(box=box.SIMPLE_HEAD)
     for col in ("axis", "velocity", "acceleration", "jerk", "FE max", "final"):
         t.add_column(col, justify="left" if col == "axis" else "right", no_wrap=True)

@@ -75,6 +75,8 @@ SIM_FEEDBACK_TIMEOUT_S = 0.5
 SIM_HEARTBEAT_CONSUMER_MS = 1500
 """And a heartbeat this late (both ways): on a loaded PC the process can stall for a few 100 ms."""
 """With drives simulated in this process, a TPDO may be this late before it is a fault (real: 0.1 s)."""
+LATE_LOG = 100_000
+"""The lateness of this many late cycles is kept (for the run summary's verdict)."""
 SERVICE_JOIN_S = 5.0
 """Shutdown waits this long for the service thread to end an interrupted operation."""
 _END = object()  # end of a job's commands in the queue
@@ -126,6 +128,11 @@ class JobResult:
     final_actual: tuple[float, ...] = ()
     expected_final: tuple[float, ...] = ()
     first_cycle: int = 0
+    # where the time went (the run summary explains a run longer than its motion with these)
+    moving_cycles: int = 0  # cycles in which some axis moved
+    first_setpoint_s: float = 0.0  # from the start of the job to its first setpoint
+    last_setpoint_s: float = 0.0  # ... to its last
+    late_s: list[float] = field(default_factory=list)  # how late each late cycle of the job started
 
 
 @dataclass(frozen=True, slots=True)
@@ -215,6 +222,9 @@ class _Job:
         self.line = 0
         self.lines_total = 0
         self.run_from: _RunFrom | None = None
+        self.moving_cycles = 0
+        self.t_first = 0.0
+        self.t_last = 0.0
 
     @property
     def skipping(self) -> bool:
@@ -429,6 +439,7 @@ class Machine:
         self.cycle = 0
         self.late_cycles = 0
         self.worst_late_s = 0.0
+        self.late_log: collections.deque[tuple[int, float]] = collections.deque(maxlen=LATE_LOG)
         self.last_error = ""
         self.last_error_utime = 0
         self._commanded = tuple(0.0 for _ in range(self.n))
@@ -820,6 +831,7 @@ class Machine:
 
     def _on_late(self, k: int, by: float) -> None:
         self.late_cycles += 1
+        self.late_log.append((self.cycle, by))
         self.worst_late_s = max(self.worst_late_s, by)
         if by > self.late_fault_s and self.master is not None and self.master.streaming:
             self._post_fault(f"cycle {k} started {by * 1e3:.1f} ms late (limit "
@@ -975,6 +987,11 @@ class Machine:
                     pk.following_error = fe
             if sp.line:
                 job.line = sp.line
+            if any(vel):
+                job.moving_cycles += 1
+            if not job.t_first:
+                job.t_first = self._actual_t
+            job.t_last = self._actual_t
         self._commanded = pos
         self._velocity = vel
         self._acc = acc
@@ -1085,7 +1102,10 @@ class Machine:
             peaks={name: job.peaks[i] for i, name in enumerate(self.names)}, outputs=job.outputs,
             final_commanded=tuple(self._commanded), final_actual=tuple(self._actual),
             expected_final=tuple(self.interp.position[i] for i in self.limits.pose_index),
-            first_cycle=job.cycle0)
+            first_cycle=job.cycle0, moving_cycles=job.moving_cycles,
+            first_setpoint_s=job.t_first - job.t0 if job.t_first else 0.0,
+            last_setpoint_s=job.t_last - job.t0 if job.t_last else 0.0,
+            late_s=[by for c, by in self.late_log if c >= job.cycle0])
         job.result = res
         job.done.set()
         if ok:
