@@ -1439,9 +1439,12 @@ class Machine:
 
     def _modal_state(self, file: str, line: int) -> ModalState:
         """The interpreter's modal state now, for the status (job thread, or before it starts)."""
+        from motiond.status_view import status_gcodes  # the codes as the dialect shows them
+
         interp = self.interp
-        return ModalState(tuple(interp.active_gcodes()), tuple(interp.active_mcodes()), float(interp.feed),
-                          int(interp.current_tool), float(interp.parameter(5403)), file=file, line=line)
+        return ModalState(status_gcodes(interp.active_gcodes(), interp.dialect),
+                          tuple(interp.active_mcodes()), float(interp.feed), int(interp.current_tool),
+                          float(interp.parameter(5403)), file=file, line=line)
 
     def _job_main(self, job: _Job, source: Callable[[], Any]) -> None:
         interp = self.interp
