@@ -14,6 +14,7 @@ import argparse
 import importlib
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from gcode_canon.errors import GCodeError
 from motiond.configkit import ConfigError
@@ -39,6 +40,32 @@ class UserError(Exception):
     """A mistake the user can fix (wrong option, missing file): printed as one line, exit 1."""
 
 
+def program_file(name: str) -> Path:
+    """The G-code program named on the command line, or a :class:`UserError` that says what is wrong
+    with it: missing, a directory, not a regular file (a device such as /dev/null, a pipe), unreadable."""
+    import stat
+
+    path = Path(name)
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        raise UserError(f"{name}: no such file") from None
+    except OSError as exc:
+        raise UserError(f"{name}: {exc.strerror}") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise UserError(f"{name}: is a directory, not a G-code program")
+    if not stat.S_ISREG(st.st_mode):
+        kind = "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else \
+            "a pipe" if stat.S_ISFIFO(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode) else "special"
+        raise UserError(f"{name}: is {kind} file, not a G-code program (a regular file is needed)")
+    try:
+        with path.open("rb"):
+            pass
+    except OSError as exc:
+        raise UserError(f"{name}: cannot read: {exc.strerror or exc}") from None
+    return path
+
+
 def add_common(parser: argparse.ArgumentParser, *, program: bool = True) -> None:
     """Options that mean the same for check, plan and run."""
     parser.add_argument("--config", metavar="machine.toml", help="machine configuration file")
@@ -49,8 +76,18 @@ def add_common(parser: argparse.ArgumentParser, *, program: bool = True) -> None
         parser.add_argument("file", metavar="FILE.ngc", help="G-code program")
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("canon")
+    except PackageNotFoundError:
+        return "(not installed: version unknown)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="canon", description="canon: G-code to CiA 402 servo drives")
+    parser.add_argument("--version", action="version", version=f"canon {_version()}")
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="more log output: -v canon's debug messages, -vv the libraries' too "
                              "(default: canon's at INFO, pymodbus/canopen/python-can at WARNING)")

@@ -17,7 +17,7 @@ import argparse
 import sys
 from typing import Any
 
-from motiond.cli import UserError, add_common
+from motiond.cli import UserError, add_common, program_file
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -32,7 +32,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import time
     from array import array
-    from pathlib import Path
 
     import numpy as np
 
@@ -42,8 +41,7 @@ def run(args: argparse.Namespace) -> int:
     from motiond.interp_settings import settings_from_args
     from planner import check_stream, plan_all
 
-    if not Path(args.file).is_file():
-        raise UserError(f"{args.file}: no such file")
+    program_file(args.file)
     config = load_checked(args.config)
     machine = config.limits
     settings = settings_from_args(config, args, dry_run=True)

@@ -282,9 +282,8 @@ def _interrupted(machine: Any, program: str) -> int:
 
 def run(args: argparse.Namespace) -> int:
     import logging
-    from pathlib import Path
 
-    from motiond.cli import UserError
+    from motiond.cli import program_file
     from motiond.config_check import load_checked
     from motiond.instance_lock import lock_machine
     from motiond.interp_settings import settings_from_args
@@ -292,9 +291,7 @@ def run(args: argparse.Namespace) -> int:
     if not getattr(args, "verbose", 0):  # the error is printed once, below, not also as a log line
         for name in ("motiond.runtime", "fieldbus"):
             logging.getLogger(name).setLevel(logging.CRITICAL)
-    path = Path(args.file)
-    if not path.is_file():
-        raise UserError(f"{args.file}: no such file")
+    path = program_file(args.file)
     config = load_checked(args.config)
     settings = settings_from_args(config, args, dry_run=False)
     lock = lock_machine(args.config, config.limits.name, args.state_dir)

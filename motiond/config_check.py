@@ -94,12 +94,19 @@ def load_checked(path: str | None) -> MachineConfig:
 
 def _bus_budget(canopen: Any, file: str) -> Any:
     """The master's own budget check (it refuses to start over ``max_bus_load_percent``)."""
+    import logging
+
     from fieldbus.canopen.master import BusBudgetError, CanopenMaster
 
+    quiet = logging.getLogger("fieldbus.canopen.master")
+    level = quiet.level
+    quiet.setLevel(logging.WARNING)  # its "bus load" INFO line belongs to a real start
     try:
         return CanopenMaster(canopen).load  # the constructor checks; nothing is opened
     except BusBudgetError as exc:
         raise ConfigError(file, "canopen", str(exc)) from None
+    finally:
+        quiet.setLevel(level)
 
 
 def _eds_files(canopen: Any, root: Table) -> None:
