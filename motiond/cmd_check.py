@@ -14,6 +14,9 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 from motiond.cli import add_common, program_file
 
@@ -26,11 +29,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-
     from gcode_canon.interpreter import Interpreter
     from gcode_canon.machine import DryRunMachine
     from motiond.config_check import load_checked
     from motiond.interp_settings import settings_from_args
+    from motiond.progress import line_progress
 
     program_file(args.file)
     # the demo machine without --config: then any of the nine axes may be named
@@ -38,21 +41,35 @@ def run(args: argparse.Namespace) -> int:
     interp = Interpreter(settings, DryRunMachine())
     out = sys.stdout
     write = out.write
+    # progress on a terminal while the commands go to a file or a pipe (on the same terminal the
+    # commands themselves show the progress)
+    show = sys.stderr.isatty() and not out.isatty() and not args.json
+    with line_progress(f"checking {Path(args.file).name}", args.file, enabled=show) as advance:
+        _write(interp, args, write, advance if show else None)
+    out.flush()
+    return 0
+
+
+def _write(interp: Any, args: argparse.Namespace, write: Callable[[str], Any],
+           advance: Callable[[int], None] | None) -> None:
+    from motiond.progress import tracked
+
+    commands = interp.run_file(args.file)
+    if advance is not None:
+        commands = tracked(commands, args.file, advance)
     if args.json:
         import json
 
         dumps = json.dumps
-        for cmd in interp.run_file(args.file):
+        for cmd in commands:
             write(dumps(to_json(cmd)) + "\n")
     else:
         main = args.file
-        for cmd in interp.run_file(args.file):
+        for cmd in commands:
             if cmd.file and cmd.file != main:  # a subroutine's file: FILE:LINE where the number stands
                 write(f"{cmd.file}:{cmd.line} {format_text(cmd)}\n")
             else:
                 write(f"{cmd.line:>6} {format_text(cmd)}\n")
-    out.flush()
-    return 0
 
 
 def _num(v: float) -> str:

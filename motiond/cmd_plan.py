@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 from motiond.cli import UserError, add_common, program_file
@@ -39,6 +41,7 @@ def run(args: argparse.Namespace) -> int:
     from gcode_canon.machine import DryRunMachine
     from motiond.config_check import load_checked
     from motiond.interp_settings import settings_from_args
+    from motiond.progress import line_progress, tracked
     from planner import check_stream, plan_all
 
     program_file(args.file)
@@ -47,11 +50,21 @@ def run(args: argparse.Namespace) -> int:
     settings = settings_from_args(config, args, dry_run=True)
     interp = Interpreter(settings, DryRunMachine())
     started = time.perf_counter()
-    commands = list(interp.run_file(args.file))
     n = len(machine.axes)
     flat = array("d")
-    for sp in plan_all(commands, machine):
-        flat.extend(sp.positions)
+    commands: list[Any] = []
+    show = sys.stderr.isatty() and not args.json
+    with line_progress(f"planning {Path(args.file).name}", args.file, enabled=show) as advance:
+        # interpreted lazily as the planner asks (its lookahead window), kept for the check
+        source = tracked(interp.run_file(args.file), args.file, advance)
+
+        def recorded() -> Iterator[Any]:
+            for cmd in source:
+                commands.append(cmd)
+                yield cmd
+
+        for sp in plan_all(recorded(), machine):
+            flat.extend(sp.positions)
     planning_s = time.perf_counter() - started
     pts = np.frombuffer(flat, dtype=float).reshape(-1, n) if len(flat) else np.zeros((0, n))
     report = check_stream(pts, commands, machine)
