@@ -7,7 +7,8 @@ against its limits, the deviation from the programmed path and the exact stops.
 
 ``--plot out.png`` draws the programmed path under the planned one (3D and XY top view), the worst
 deviation with its source line, and the velocity, acceleration and jerk over time with the limits
-(:mod:`motiond.plan_plot`); ``--setpoints out.csv`` writes the stream (``t,file,line,x,y,z,...,vx,vy,
+(:mod:`motiond.plan_plot`); ``--html out.html`` the same interactively (hover gives the time, the source
+line and the speed); ``--setpoints out.csv`` writes the stream (``t,file,line,x,y,z,...,vx,vy,
 vz,...``, one row per cycle); ``--json`` prints the
 summary as one JSON object. Exit status 0 when the stream passes every check, 2 when it does not
 (a planner fault to report), 1 for a user mistake.
@@ -29,6 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     add_common(parser)
     parser.add_argument("--plot", metavar="out.png", help="draw tool path, velocity, acceleration, jerk")
+    parser.add_argument("--html", metavar="out.html",
+                        help="interactive figure (hover: time, source line, speed), one self-contained file")
     parser.add_argument("--setpoints", metavar="out.csv", help="write the setpoint stream as CSV")
     add_interp_arguments(parser)
 
@@ -79,6 +82,10 @@ def run(args: argparse.Namespace) -> int:
         from motiond.plan_plot import build_figure, save_figure
 
         save_figure(build_figure(args.file, machine, pts, src, commands, report), args.plot)
+    if args.html:
+        from motiond.plan_plot import build_html_figure, save_html
+
+        save_html(build_html_figure(args.file, machine, pts, src, commands, report), args.html)
     if args.json:
         import json
 

@@ -276,6 +276,7 @@ def save_figure(fig: Any, path: str) -> None:
     os.close(fd)
     try:
         fig.savefig(tmp, dpi=110)
+        _usual_mode(tmp)
         os.replace(tmp, path)
     except OSError as exc:
         raise UserError(f"{path}: cannot write: {exc.strerror}") from None
@@ -283,3 +284,95 @@ def save_figure(fig: Any, path: str) -> None:
         plt.close(fig)
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+HTML_POINTS = 60_000  # setpoints kept in the interactive figure (every k-th; the worst one always)
+
+
+def build_html_figure(title: str, machine: Any, pts: np.ndarray, src: list[tuple[str, int]],
+                      commands: list[Any], report: Any) -> Any:
+    """An interactive plotly figure: the planned path over the programmed one in 3D (hover: time,
+    source line, path speed, position), and each axis's velocity over time (hover: time, line)."""
+    import plotly.graph_objects as go
+    from plotly.subplots import make_subplots
+
+    T = machine.cycle_s
+    names = [a.upper() for a in machine.names]
+    linear = [i for i, a in enumerate(machine.axes) if not a.rotary][:3]
+    pieces = programmed_pieces(commands, machine)
+    n = pts.shape[1]
+    before = np.vstack([np.zeros((1, n)), pts[:-1]]) if len(pts) else pts
+    vel = (pts - before) / T
+    speed = np.linalg.norm(vel[:, linear], axis=1) if len(pts) else np.zeros(0)
+    dev = setpoint_deviation(pts, src, pieces) if len(pts) else np.zeros(0)
+    keep = np.arange(0, len(pts), max(1, math.ceil(len(pts) / HTML_POINTS)))
+    if len(dev) and not np.all(np.isnan(dev)):
+        keep = np.union1d(keep, [int(np.nanargmax(dev))])
+    t = (keep + 1) * T
+    lines = [f"{src[k][1]}" if src[k][0] in (title, "") else f"{os.path.basename(src[k][0])}:{src[k][1]}"
+             for k in keep]
+    unit = _units(machine, linear)
+    fig = make_subplots(rows=1, cols=2, column_widths=(0.55, 0.45),
+                        specs=[[{"type": "scene"}, {"type": "xy"}]],
+                        subplot_titles=(f"{os.path.basename(title)}: {report.duration_s:.2f} s",
+                                        "velocity per axis"))
+    xs, ys, zs = ([] for _ in range(3))
+    for p in pieces:  # one trace, pieces separated by gaps
+        for coords, i in ((xs, 0), (ys, 1), (zs, 2)):
+            col = linear[i] if i < len(linear) else None
+            coords.extend([*(p.points[:, col] if col is not None else np.zeros(len(p.points))), None])
+    fig.add_trace(go.Scatter3d(x=xs, y=ys, z=zs, mode="lines", name="programmed",
+                               line={"color": "grey", "width": 3}, hoverinfo="skip"), row=1, col=1)
+    custom = np.column_stack([t, speed[keep], dev[keep]]) if len(keep) else np.zeros((0, 3))
+    coords3 = [pts[keep, linear[i]] if i < len(linear) else np.zeros(len(keep)) for i in range(3)]
+    fig.add_trace(go.Scatter3d(
+        x=coords3[0], y=coords3[1], z=coords3[2], mode="markers", name="planned",
+        marker={"size": 2, "color": speed[keep], "colorscale": "Viridis",
+                "colorbar": {"title": {"text": f"speed ({unit}/s)"}, "x": 0.5}},
+        text=lines, customdata=custom,
+        hovertemplate=("t %{customdata[0]:.3f} s<br>line %{text}<br>speed %{customdata[1]:.4g} " + unit
+                       + "/s<br>deviation %{customdata[2]:.4g} " + unit
+                       + "<br>%{x:.4f}, %{y:.4f}, %{z:.4f}<extra></extra>")), row=1, col=1)
+    for i, name in enumerate(names):
+        fig.add_trace(go.Scatter(x=t, y=vel[keep, i], mode="lines", name=f"v{name}", text=lines,
+                                 hovertemplate=(f"{name} " + "%{y:.4g} " + machine.axes[i].unit
+                                                + "/s<br>t %{x:.3f} s<br>line %{text}<extra></extra>")),
+                      row=1, col=2)
+    fig.update_scenes(aspectmode="data", xaxis_title=f"{names[linear[0]]} ({unit})" if linear else "",
+                      yaxis_title=f"{names[linear[1]]} ({unit})" if len(linear) > 1 else "",
+                      zaxis_title=f"{names[linear[2]]} ({unit})" if len(linear) > 2 else "")
+    units = ", ".join(sorted({a.unit for a in machine.axes}))
+    fig.update_xaxes(title_text="time (s)", row=1, col=2)
+    fig.update_yaxes(title_text=f"velocity ({units}/s)", row=1, col=2)
+    fig.update_layout(height=800, legend={"orientation": "h"})
+    return fig
+
+
+def save_html(fig: Any, path: str) -> None:
+    """Write the interactive figure as one self-contained HTML file (plotly.js inside: no network)."""
+    import tempfile
+
+    from motiond.cli import UserError
+
+    directory = os.path.dirname(os.path.abspath(path))
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".plot.", suffix=".html", dir=directory)
+    except OSError as exc:
+        raise UserError(f"{path}: cannot write: {exc.strerror}") from None
+    os.close(fd)
+    try:
+        fig.write_html(tmp, include_plotlyjs=True, full_html=True)
+        _usual_mode(tmp)
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise UserError(f"{path}: cannot write: {exc.strerror}") from None
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _usual_mode(path: str) -> None:
+    """A temporary file is private (0600); the figure gets what the umask gives a new file."""
+    mask = os.umask(0)
+    os.umask(mask)
+    os.chmod(path, 0o666 & ~mask)

@@ -103,3 +103,34 @@ def test_csv_has_source_lines_and_velocities(square: Path, tmp_path: Path,
     assert vx[1:] == pytest.approx(np.diff(xs) / 0.002, abs=1e-3)
     cruising = [float(r["vx"]) for r in rows if r["line"] == "5" and 10 < float(r["x"]) < 30]
     assert cruising and max(cruising) == pytest.approx(100.0, rel=1e-3)  # F6000 = 100 mm/s along X
+
+
+def test_html_figure_hover_gives_time_line_and_speed(square: Path, tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    from motiond.plan_plot import build_html_figure
+
+    commands = list(Interpreter(InterpreterSettings(dry_run=True)).run_file(square))
+    flat = array("d")
+    src = []
+    for sp in plan_all(commands, DEMO_MACHINE):
+        flat.extend(sp.positions)
+        src.append((sp.file, sp.line))
+    pts = np.frombuffer(flat).reshape(-1, 3)
+    report = check_stream(pts, commands, DEMO_MACHINE)
+    fig = build_html_figure(str(square), DEMO_MACHINE, pts, src, commands, report)
+    traces = {t.name: t for t in fig.data}
+    programmed = traces["programmed"]
+    xy = {(x, y) for x, y in zip(programmed.x, programmed.y, strict=True) if x is not None}
+    assert set(CORNERS) <= xy
+    planned = traces["planned"]
+    assert len(planned.x) == len(pts)  # a short program: every setpoint
+    assert "line %{text}" in planned.hovertemplate and "speed" in planned.hovertemplate
+    assert list(planned.text) == [str(line) for _f, line in src]
+    t, speed = planned.customdata[:, 0], planned.customdata[:, 1]
+    assert t[0] == pytest.approx(0.002) and max(speed) == pytest.approx(100.0, rel=1e-3)
+    assert fig.layout.scene.aspectmode == "data"  # equal scaling
+    out = tmp_path / "p.html"
+    assert cli.main(["plan", "--json", "--html", str(out), str(square)]) == 0
+    capsys.readouterr()
+    text = out.read_text()
+    assert "<html>" in text and "plotly" in text and "https://cdn" not in text.split("<body>")[0]
