@@ -9,6 +9,8 @@ first line stays).
 from __future__ import annotations
 
 import logging
+import sys
+from typing import Any
 
 CANON = ("gcode_canon", "planner", "fieldbus", "telemetry", "motiond")
 LIBRARIES = ("pymodbus", "canopen", "can", "lcm")
@@ -35,19 +37,35 @@ class FrameDumpFilter(logging.Filter):
         return True
 
 
+class _Stderr(logging.StreamHandler):  # type: ignore[type-arg]
+    """Writes to whatever ``sys.stderr`` is at the time (it may be replaced after set-up)."""
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+
+    @property  # type: ignore[override]
+    def stream(self) -> Any:
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, _value: Any) -> None:
+        pass
+
+
 def setup_logging(verbose: int) -> None:
     """Levels by ``-v`` count; one stderr handler on the root logger (added once)."""
     root = logging.getLogger()
-    handler = next((h for h in root.handlers if getattr(h, "_canon", False)), None)
-    if handler is None:
-        handler = logging.StreamHandler()
+    handler = next((h for h in root.handlers if isinstance(h, _Stderr)), None)
+    if handler is None and not root.handlers:  # as basicConfig: an embedding program's handlers stay
+        handler = _Stderr()
         handler.setFormatter(logging.Formatter(FORMAT))
-        handler._canon = True  # type: ignore[attr-defined]
-        handler.addFilter(FrameDumpFilter())
         root.addHandler(handler)
-    for f in handler.filters:
-        if isinstance(f, FrameDumpFilter):
-            f.active = verbose < 2
+    for h in root.handlers:
+        f = next((f for f in h.filters if isinstance(f, FrameDumpFilter)), None)
+        if f is None:
+            f = FrameDumpFilter()
+            h.addFilter(f)
+        f.active = verbose < 2
     root.setLevel(logging.DEBUG if verbose >= 2 else logging.WARNING)
     for name in CANON:
         logging.getLogger(name).setLevel(logging.DEBUG if verbose >= 1 else logging.INFO)
