@@ -53,6 +53,8 @@ def validate_machine(path: str | None) -> CheckedMachine:
     root = config.root if config is not None and config.root is not None else \
         Table(load_toml(path) if path else {}, path or "")
     file = path or ""
+    if config is None:
+        errors.extend(e for e in _axis_errors(root) if str(e) not in {str(x) for x in errors})
 
     canopen = load = None
     try:
@@ -90,6 +92,22 @@ def load_checked(path: str | None) -> MachineConfig:
     """For ``check`` and ``plan``: the machine file validated whole (:func:`validate_machine`), so a
     ``[canopen]`` or ``[modbus]`` mistake is found before a ``run``; the demo machine as it is."""
     return load_machine(None) if path is None else validate_machine(path).config
+
+
+def _axis_errors(root: Table) -> list[ConfigError]:
+    """Each ``[axes.NAME]`` table read on its own, so that a mistake in one does not hide another's."""
+    from motiond.config import _axis
+
+    out: list[ConfigError] = []
+    axes = root.data.get("axes")
+    if not isinstance(axes, dict):
+        return out
+    for name, data in axes.items():
+        try:
+            _axis(name, Table(data, root.file, f"axes.{name}"))
+        except ConfigError as exc:
+            out.append(exc)
+    return out
 
 
 def _bus_budget(canopen: Any, file: str) -> Any:

@@ -122,3 +122,12 @@ def test_eds_and_two_register_value(tmp_path: Path) -> None:
     keys = [e.key for e in info.value.errors]
     assert keys == ["canopen.axes.x.eds", "modbus.analog_outputs[0].register"]
     assert "0x6040 controlword" in info.value.errors[0].message
+
+
+def test_each_bad_axis_is_named(tmp_path: Path) -> None:
+    bad = machine(tmp_path, ("max_velocity = 200.0", "max_velocity = -200.0"),
+                  ("max_jerk = 40000.0", "max_jerk = 0.0"))
+    with pytest.raises(ConfigErrors) as info:
+        validate_machine(str(bad))
+    keys = [e.key for e in info.value.errors]
+    assert keys[:2] == ["axes.x.max_velocity", "axes.z.max_jerk"]
