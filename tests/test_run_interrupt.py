@@ -64,7 +64,7 @@ def test_signal_stops_names_the_line_and_saves_parameters(tmp_path: Path, sig: s
     try:
         ok, head = _read_until(p.stderr, "started", 60.0)
         assert ok, "".join(head)
-        time.sleep(1.5)  # into line 5's 10 s move
+        time.sleep(3.0)  # well into line 5's 10 s move
         p.send_signal(sig)
         _out, err = p.communicate(timeout=60.0)
     finally:
