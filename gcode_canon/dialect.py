@@ -63,6 +63,12 @@ class Dialect(enum.Enum):
 
 DEFAULT_DIALECT = Dialect.LINUXCNC
 
+GRBL_JUNCTION_DEVIATION_MM = 0.01
+"""Grbl's default junction deviation (``$11``): in the Grbl dialect a program that sets no G64 P
+runs as under ``G64 P0.01`` (mm) instead of LinuxCNC's G64 without P (corners as fast as possible).
+Grbl's other differences handled by the interpreter: end of file ends the program (no M2/M30/%
+needed), and ``$`` system-command lines in a file are skipped with a warning."""
+
 
 class Origin(enum.Enum):
     """Whose meaning a resolved code has."""

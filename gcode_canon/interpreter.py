@@ -104,7 +104,7 @@ from gcode_canon.commands import (
     WaitInput,
     WaitMode,
 )
-from gcode_canon.dialect import Dialect
+from gcode_canon.dialect import GRBL_JUNCTION_DEVIATION_MM, Dialect
 from gcode_canon.errors import GCodeError
 from gcode_canon.expressions import ExpressionReader, near_int
 from gcode_canon.lexer import AXIS_LETTERS, FAST_LINE, Block, parse_line
@@ -483,6 +483,10 @@ class Interpreter:
         self.seen_code = False
         self._resync()  # the machine may have been jogged or homed since the last program
         self._fast_ok = self.fast_path_allowed()
+        if self.dialect is Dialect.GRBL and self.control == (MotionControlMode.CONTINUOUS, 0.0, 0.0):
+            # Grbl blends every corner within its junction deviation ($11); a G64 P in the program wins
+            self.control = (MotionControlMode.CONTINUOUS, GRBL_JUNCTION_DEVIATION_MM, 0.0)
+            yield SetMotionControlMode(*self.control, file=source.name, line=1)
         try:
             yield from self._loop(main=source)
         finally:
@@ -523,6 +527,10 @@ class Interpreter:
                 self._tail = None
                 stripped = raw.strip()
                 if not stripped:
+                    continue
+                if stripped[0] == "$" and self.dialect is Dialect.GRBL:
+                    log.warning("%s:%d: Grbl system command %r skipped (not G-code)", self.file, self.line,
+                                stripped)
                     continue
                 if stripped == "%":
                     if not in_main:
@@ -570,6 +578,12 @@ class Interpreter:
                         return
                     continue
                 if main is None:
+                    return
+                if self.dialect is Dialect.GRBL:
+                    # Grbl has no program end: the end of the file ends the program (modes stay, as
+                    # after a closing %)
+                    self._end_program(None)
+                    yield from self._drain()
                     return
                 if settings.require_program_end:
                     last = max(source.line, 1)

@@ -12,17 +12,19 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import logging
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from gcode_canon.errors import GCodeError
 from motiond.configkit import ConfigError
+from motiond.logsetup import setup_logging
 
 # name -> (module, one-line help). Add a line here for a new sub-command.
 COMMANDS: dict[str, tuple[str, str]] = {
     "check": ("motiond.cmd_check", "interpret a program without a machine and print its canonical commands"),
     "plan": ("motiond.cmd_plan", "plan a program without a machine: setpoints checked against the limits"),
+    "config": ("motiond.cmd_config", "check a machine file offline (every table) and print the machine"),
     "run": ("motiond.cmd_run", "run a program on the machine (the built-in simulated demo by default)"),
     "daemon": ("motiond.cmd_daemon", "run the machine as a daemon, commanded and watched over LCM"),
     "sim": ("motiond.cmd_sim", "run simulated drives or I/O as a separate process, or inject a drive fault"),
@@ -38,6 +40,32 @@ class UserError(Exception):
     """A mistake the user can fix (wrong option, missing file): printed as one line, exit 1."""
 
 
+def program_file(name: str) -> Path:
+    """The G-code program named on the command line, or a :class:`UserError` that says what is wrong
+    with it: missing, a directory, not a regular file (a device such as /dev/null, a pipe), unreadable."""
+    import stat
+
+    path = Path(name)
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        raise UserError(f"{name}: no such file") from None
+    except OSError as exc:
+        raise UserError(f"{name}: {exc.strerror}") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise UserError(f"{name}: is a directory, not a G-code program")
+    if not stat.S_ISREG(st.st_mode):
+        kind = "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else \
+            "a pipe" if stat.S_ISFIFO(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode) else "special"
+        raise UserError(f"{name}: is {kind} file, not a G-code program (a regular file is needed)")
+    try:
+        with path.open("rb"):
+            pass
+    except OSError as exc:
+        raise UserError(f"{name}: cannot read: {exc.strerror or exc}") from None
+    return path
+
+
 def add_common(parser: argparse.ArgumentParser, *, program: bool = True) -> None:
     """Options that mean the same for check, plan and run."""
     parser.add_argument("--config", metavar="machine.toml", help="machine configuration file")
@@ -48,9 +76,21 @@ def add_common(parser: argparse.ArgumentParser, *, program: bool = True) -> None
         parser.add_argument("file", metavar="FILE.ngc", help="G-code program")
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("canon")
+    except PackageNotFoundError:
+        return "(not installed: version unknown)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="canon", description="canon: G-code to CiA 402 servo drives")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    parser.add_argument("--version", action="version", version=f"canon {_version()}")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="more log output: -v canon's debug messages, -vv the libraries' too "
+                             "(default: canon's at INFO, pymodbus/canopen/python-can at WARNING)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name, (module, help_text) in COMMANDS.items():
@@ -69,10 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.WARNING - 10 * min(args.verbose, 2),
-        format="%(levelname)s %(name)s: %(message)s",
-    )
+    setup_logging(args.verbose)
     module = importlib.import_module(args._module)
     try:
         return int(module.run(args) or 0)

@@ -3,7 +3,8 @@
 A check is a dry run: the machine starts at zero with every offset zero (or as a ``--var`` parameter
 file says), inputs read 0, probes trip at their end point, and no parameter file is ever written.
 Text output names each command as LinuxCNC's canonical function (``STRAIGHT_FEED(...)``) with its
-source line, so it can be set beside ``rs274`` output; ``--json`` prints one object per command.
+source line, so it can be set beside ``rs274`` output (a line of a subroutine file as ``FILE:LINE``);
+``--json`` prints one object per command.
 ``--dialect`` picks the meaning of the codes LinuxCNC and gcode-canon disagree on; ``--subroutine-path``
 (repeatable) lists the directories ``o<name> call`` looks in (then the program's own directory). The
 machine file's ``[interpreter]`` table gives the defaults of these (:mod:`motiond.interp_settings`).
@@ -13,8 +14,11 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
-from motiond.cli import UserError, add_common
+from motiond.cli import add_common, program_file
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,31 +29,47 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     from gcode_canon.interpreter import Interpreter
     from gcode_canon.machine import DryRunMachine
-    from motiond.config import load_machine
+    from motiond.config_check import load_checked
     from motiond.interp_settings import settings_from_args
+    from motiond.progress import line_progress
 
-    if not Path(args.file).is_file():
-        raise UserError(f"{args.file}: no such file")
+    program_file(args.file)
     # the demo machine without --config: then any of the nine axes may be named
-    settings = settings_from_args(load_machine(args.config), args, dry_run=True)
+    settings = settings_from_args(load_checked(args.config), args, dry_run=True)
     interp = Interpreter(settings, DryRunMachine())
     out = sys.stdout
     write = out.write
+    # progress on a terminal while the commands go to a file or a pipe (on the same terminal the
+    # commands themselves show the progress)
+    show = sys.stderr.isatty() and not out.isatty() and not args.json
+    with line_progress(f"checking {Path(args.file).name}", args.file, enabled=show) as advance:
+        _write(interp, args, write, advance if show else None)
+    out.flush()
+    return 0
+
+
+def _write(interp: Any, args: argparse.Namespace, write: Callable[[str], Any],
+           advance: Callable[[int], None] | None) -> None:
+    from motiond.progress import tracked
+
+    commands = interp.run_file(args.file)
+    if advance is not None:
+        commands = tracked(commands, args.file, advance)
     if args.json:
         import json
 
         dumps = json.dumps
-        for cmd in interp.run_file(args.file):
+        for cmd in commands:
             write(dumps(to_json(cmd)) + "\n")
     else:
-        for cmd in interp.run_file(args.file):
-            write(f"{cmd.line:>6} {format_text(cmd)}\n")
-    out.flush()
-    return 0
+        main = args.file
+        for cmd in commands:
+            if cmd.file and cmd.file != main:  # a subroutine's file: FILE:LINE where the number stands
+                write(f"{cmd.file}:{cmd.line} {format_text(cmd)}\n")
+            else:
+                write(f"{cmd.line:>6} {format_text(cmd)}\n")
 
 
 def _num(v: float) -> str:

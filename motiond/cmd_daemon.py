@@ -12,7 +12,8 @@ file could not be written: the message names it and says why).
 The parameter file is ``--var``, else the configuration's ``[interpreter] var_file``, else
 ``<state dir>/<machine name>.var``; the state directory is
 ``--state-dir``, else ``$STATE_DIRECTORY`` (systemd's ``StateDirectory=``), else
-``$XDG_STATE_HOME/canon``, else ``~/.local/state/canon``.
+``$XDG_STATE_HOME/canon``, else ``~/.local/state/canon``. A lock there (:mod:`motiond.instance_lock`)
+refuses a second daemon or ``canon run`` for the same machine file, naming the first one's PID.
 """
 
 from __future__ import annotations
@@ -29,7 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", metavar="machine.toml", help="machine configuration (default: the demo)")
     parser.add_argument("--tool-table", metavar="FILE", help="LinuxCNC-format tool table")
     parser.add_argument("--var", metavar="FILE", help="parameter file (default: in the state directory)")
-    parser.add_argument("--state-dir", metavar="DIR", help="where the parameter file lives by default")
+    parser.add_argument("--state-dir", metavar="DIR",
+                        help="where the parameter file lives by default, and the machine's lock (one run "
+                             "or daemon per machine file)")
     parser.add_argument("--url", help="LCM URL (default: [telemetry] url)")
     parser.add_argument("--program-dir", action="append", metavar="DIR",
                         help="a directory the run command takes programs from (repeatable; default: "
@@ -153,11 +156,22 @@ def root_warning() -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from motiond.config import load_machine
+    from motiond.instance_lock import lock_machine
+
+    config = load_machine(args.config)
+    lock = lock_machine(args.config, config.limits.name, args.state_dir)
+    try:
+        return _run_locked(args, config)
+    finally:
+        lock.release()
+
+
+def _run_locked(args: argparse.Namespace, config: Any) -> int:
     import signal
     import threading
 
     from motiond.cli import UserError
-    from motiond.config import load_machine
     from motiond.configkit import Table
     from motiond.runtime import MachineError
     from motiond.states import CommandRefused
@@ -168,7 +182,6 @@ def run(args: argparse.Namespace) -> int:
     warning = root_warning()
     if warning:
         print(warning, file=sys.stderr, flush=True)
-    config = load_machine(args.config)
     tele = TelemetryConfig.from_table(config.telemetry)
     if args.url:
         tele = TelemetryConfig.from_table(Table({**config.telemetry.data, "url": args.url}, "--url",

@@ -5,8 +5,11 @@ the configured machine (the demo mill without ``--config``), and the setpoint st
 with ``planner.check_stream``: the run time, each axis's peak velocity, acceleration and jerk
 against its limits, the deviation from the programmed path and the exact stops.
 
-``--plot out.png`` draws the tool path and the velocity, acceleration and jerk over time;
-``--setpoints out.csv`` writes the stream (``t,x,y,z,...``, one row per cycle); ``--json`` prints the
+``--plot out.png`` draws the programmed path under the planned one (3D and XY top view), the worst
+deviation with its source line, and the velocity, acceleration and jerk over time with the limits
+(:mod:`motiond.plan_plot`); ``--html out.html`` the same interactively (hover gives the time, the source
+line and the speed); ``--setpoints out.csv`` writes the stream (``t,file,line,x,y,z,...,vx,vy,
+vz,...``, one row per cycle); ``--json`` prints the
 summary as one JSON object. Exit status 0 when the stream passes every check, 2 when it does not
 (a planner fault to report), 1 for a user mistake.
 """
@@ -15,9 +18,11 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
-from motiond.cli import UserError, add_common
+from motiond.cli import UserError, add_common, program_file
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,6 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     add_common(parser)
     parser.add_argument("--plot", metavar="out.png", help="draw tool path, velocity, acceleration, jerk")
+    parser.add_argument("--html", metavar="out.html",
+                        help="interactive figure (hover: time, source line, speed), one self-contained file")
     parser.add_argument("--setpoints", metavar="out.csv", help="write the setpoint stream as CSV")
     add_interp_arguments(parser)
 
@@ -32,36 +39,53 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import time
     from array import array
-    from pathlib import Path
 
     import numpy as np
 
     from gcode_canon.interpreter import Interpreter
     from gcode_canon.machine import DryRunMachine
-    from motiond.config import load_machine
+    from motiond.config_check import load_checked
     from motiond.interp_settings import settings_from_args
+    from motiond.progress import line_progress, tracked
     from planner import check_stream, plan_all
 
-    if not Path(args.file).is_file():
-        raise UserError(f"{args.file}: no such file")
-    config = load_machine(args.config)
+    program_file(args.file)
+    config = load_checked(args.config)
     machine = config.limits
     settings = settings_from_args(config, args, dry_run=True)
     interp = Interpreter(settings, DryRunMachine())
     started = time.perf_counter()
-    commands = list(interp.run_file(args.file))
     n = len(machine.axes)
     flat = array("d")
-    for sp in plan_all(commands, machine):
-        flat.extend(sp.positions)
+    commands: list[Any] = []
+    show = sys.stderr.isatty() and not args.json
+    with line_progress(f"planning {Path(args.file).name}", args.file, enabled=show) as advance:
+        # interpreted lazily as the planner asks (its lookahead window), kept for the check
+        source = tracked(interp.run_file(args.file), args.file, advance)
+
+        def recorded() -> Iterator[Any]:
+            for cmd in source:
+                commands.append(cmd)
+                yield cmd
+
+        src: list[tuple[str, int]] = []  # each setpoint's source file and line
+        for sp in plan_all(recorded(), machine):
+            flat.extend(sp.positions)
+            src.append((sp.file, sp.line))
     planning_s = time.perf_counter() - started
     pts = np.frombuffer(flat, dtype=float).reshape(-1, n) if len(flat) else np.zeros((0, n))
     report = check_stream(pts, commands, machine)
     summary = _summary(args.file, config, report, planning_s)
     if args.setpoints:
-        _write_csv(args.setpoints, machine, pts)
+        _write_csv(args.setpoints, machine, pts, src)
     if args.plot:
-        _plot(args.plot, args.file, machine, pts, report)
+        from motiond.plan_plot import build_figure, save_figure
+
+        save_figure(build_figure(args.file, machine, pts, src, commands, report), args.plot)
+    if args.html:
+        from motiond.plan_plot import build_html_figure, save_html
+
+        save_html(build_html_figure(args.file, machine, pts, src, commands, report), args.html)
     if args.json:
         import json
 
@@ -132,92 +156,25 @@ def _print_table(summary: dict[str, Any], report: Any) -> None:
     console.print("[green]all checks pass[/green]" if report.ok else "[red]checks failed[/red]")
 
 
-def _write_csv(path: str, machine: Any, pts: Any) -> None:
+def _write_csv(path: str, machine: Any, pts: Any, src: list[tuple[str, int]]) -> None:
+    """One row per cycle: time, the setpoint's source file and line, positions, per-axis velocities
+    (the difference from the cycle before over the cycle time, as the drives see it)."""
+    import csv
     import io
+
+    import numpy as np
 
     from gcode_canon.atomicfile import atomic_write
 
     out = io.StringIO()
-    out.write(",".join(["t", *machine.names]) + "\n")
+    w = csv.writer(out, lineterminator="\n")
+    w.writerow(["t", "file", "line", *machine.names, *(f"v{a}" for a in machine.names)])
     T = machine.cycle_s
-    for k, row in enumerate(pts.tolist(), start=1):
-        out.write(f"{k * T:.6f}," + ",".join(repr(v) for v in row) + "\n")
+    vel = np.diff(np.vstack([np.zeros((1, pts.shape[1])), pts]), axis=0) / T if len(pts) else pts
+    for k, (row, v) in enumerate(zip(pts.tolist(), vel.tolist(), strict=True)):
+        file, line = src[k]
+        w.writerow([f"{(k + 1) * T:.6f}", file, line, *map(repr, row), *(f"{x:.6g}" for x in v)])
     try:
         atomic_write(path, out.getvalue().encode())
     except OSError as exc:
         raise UserError(f"{path}: cannot write: {exc.strerror}") from None
-
-
-def _envelope(t: Any, y: Any, buckets: int = 4000) -> tuple[Any, Any, Any]:
-    """Min and max of ``y`` in at most ``buckets`` time slices, so that no peak is lost in the plot."""
-    import numpy as np
-
-    if len(y) <= buckets:
-        return t, y, y
-    k = int(np.ceil(len(y) / buckets))
-    m = len(y) // k * k
-    return t[:m:k], y[:m].reshape(-1, k).min(axis=1), y[:m].reshape(-1, k).max(axis=1)
-
-
-def _plot(path: str, title: str, machine: Any, pts: Any, report: Any) -> None:
-    import os
-    import tempfile
-
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    T = machine.cycle_s
-    start = np.zeros((3, pts.shape[1]))
-    padded = np.vstack([start, pts, np.repeat(pts[-1:], 3, axis=0)]) if len(pts) else start
-    fig = plt.figure(figsize=(14, 9), layout="constrained")
-    grid = fig.add_gridspec(3, 2, width_ratios=(1.1, 1.4))
-    names = machine.names
-    linear = [i for i, a in enumerate(machine.axes) if not a.rotary]
-    ax_path = fig.add_subplot(grid[:, 0], projection="3d" if len(linear) >= 3 else None)
-    speed = np.linalg.norm(np.diff(padded[2:-3][:, linear[:3]], axis=0), axis=1) / T
-    if len(pts) > 1 and len(linear) >= 3:
-        xs, ys, zs = (pts[:, i] for i in linear[:3])
-        sc = ax_path.scatter(xs, ys, zs, c=speed, s=1, cmap="viridis")
-        ax_path.set_zlabel(names[linear[2]].upper())
-    elif len(pts) > 1 and len(linear) >= 2:
-        sc = ax_path.scatter(pts[:, linear[0]], pts[:, linear[1]], c=speed, s=1, cmap="viridis")
-    else:
-        sc = None
-    if sc is not None:
-        fig.colorbar(sc, ax=ax_path, shrink=0.6, label="path speed (units/s)")
-        ax_path.set_xlabel(names[linear[0]].upper())
-        ax_path.set_ylabel(names[linear[1]].upper())
-    ax_path.set_title(f"{os.path.basename(title)}: tool path, {report.duration_s:.2f} s")
-    for row, (order, key) in enumerate(((1, "velocity"), (2, "acceleration"), (3, "jerk"))):
-        ax = fig.add_subplot(grid[row, 1])
-        d = np.diff(padded, order, axis=0) / T**order
-        t = (np.arange(len(d)) - 2) * T
-        for i, name in enumerate(names):
-            tt, lo, hi = _envelope(t, d[:, i])
-            line = ax.plot(tt, hi, lw=0.8, label=name.upper())[0]
-            if lo is not hi:
-                ax.fill_between(tt, lo, hi, color=line.get_color(), alpha=0.5)
-            limit = getattr(report.limits[name], key)
-            ax.axhline(limit, color=line.get_color(), ls="--", lw=0.6)
-            ax.axhline(-limit, color=line.get_color(), ls="--", lw=0.6)
-        ax.set_ylabel(f"{key} (/s{'' if order == 1 else '²' if order == 2 else '³'})")
-        ax.grid(alpha=0.3)
-        if row == 0:
-            ax.legend(loc="upper right", ncol=len(names), fontsize="small")
-            ax.set_title("per axis, from the setpoints (dashed: limits)")
-    ax.set_xlabel("time (s)")
-    directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".plot.", suffix=".png", dir=directory)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=110)
-        os.replace(tmp, path)
-    except OSError as exc:
-        raise UserError(f"{path}: cannot write: {exc.strerror}") from None
-    finally:
-        plt.close(fig)
-        if os.path.exists(tmp):
-            os.unlink(tmp)

@@ -11,7 +11,8 @@ line the program never reaches, or one inside a subroutine or loop body, exits 1
 and the reason, nothing moved.
 
 Exit status 0 when the program ran to its end; 1 with ``FILE:LINE: message`` (a G-code error) or the
-fault's reason (a drive, the I/O, a late cycle) on stderr; 130 on Ctrl-C or SIGTERM (motion stopped).
+fault's reason (a drive, the I/O, a late cycle) on stderr; 130 on Ctrl-C or SIGTERM: a jerk-limited
+stop on the path, then "stopped at FILE:LINE (resume with --start-line LINE)" and the parameters saved.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import sys
 from typing import Any
 
 SETTLE_S = 0.5  # after the last setpoint, wait this long at most for the drives to settle
+STOP_TIMEOUT_S = 10.0  # Ctrl-C: the jerk-limited stop must be at rest by then (a few 100 ms at most)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -35,6 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="run from line N: the lines before it are interpreted without moving, then "
                              "tool, spindle, coolant and override switches are restored and the machine "
                              "approaches the start point (Z up, X Y, Z down) (default 1: the whole file)")
+    parser.add_argument("--state-dir", metavar="DIR",
+                        help="where the machine's lock lives (one run or daemon per machine file; default "
+                             "as canon daemon's)")
     parser.add_argument("--late-fault-ms", type=float, metavar="MS",
                         help="a cycle starting later than this is a fault (default: 10 cycles, at least "
                              "50 ms; 1 s with simulated drives)")
@@ -55,6 +60,66 @@ def _fmt(v: float) -> str:
     return f"{v:.3g}" if abs(v) < 1000 else f"{v / 1000:.3g}k"
 
 
+def timing_verdict(late_s: list[float], period_s: float, limit_s: float,
+                   heartbeat_consumer_ms: int) -> tuple[str, str]:
+    """Late cycles judged against what a real drive tolerates: ``("ok" | "rough" | "fault", words)``.
+
+    A cycle late by less than a period still delivers its setpoint before the next SYNC. One late by
+    more leaves a real drive a SYNC (or more) without a new target: it holds the last one, a velocity
+    step. Beyond ``limit_s`` (canon's late-cycle fault on real drives, ten cycles but at least 50 ms,
+    standing in for the drives' setpoint timeout) or the drives' heartbeat consumer time (a stall that
+    long silences the master's heartbeat too), real drives fault: the run would have stopped.
+    """
+    period_ms = period_s * 1000
+    n = len(late_s)
+    if n == 0:
+        return "ok", "every cycle on time: a real drive would have been happy"
+    worst = max(late_s)
+    missed = sum(1 for by in late_s if by > period_s)
+    over = [f"canon's late-cycle limit for real drives ({limit_s * 1000:g} ms)"] if worst > limit_s else []
+    if heartbeat_consumer_ms and worst * 1000 > heartbeat_consumer_ms:
+        over.append(f"the drives' heartbeat consumer time ({heartbeat_consumer_ms} ms)")
+    if over:
+        k = sum(1 for by in late_s
+                if by > limit_s or (heartbeat_consumer_ms and by * 1000 > heartbeat_consumer_ms))
+        return "fault", (f"NOT fit for a real machine: the worst cycle started {worst * 1000:.1f} ms late, "
+                         f"beyond {' and '.join(over)}; on real drives the run would have stopped with a "
+                         f"fault ({k} such cycle{'s' if k != 1 else ''})")
+    if missed == 0:
+        return "ok", (f"{n} cycles late but each by less than one period ({period_ms:g} ms, worst "
+                      f"{worst * 1000:.1f} ms): every setpoint arrived before the next SYNC; a real drive "
+                      "would not have noticed")
+    return "rough", (f"{missed} cycles late by more than one period ({period_ms:g} ms, worst "
+                     f"{worst * 1000:.1f} ms): a real drive would have held its last setpoint for a SYNC or "
+                     "more each time (a velocity step, a jolt), within its tolerance "
+                     f"({limit_s * 1000:g} ms): no fault, but rough motion")
+
+
+def time_breakdown(result: Any, period_s: float) -> dict[str, float]:
+    """Where a run's wall time went: moving, before the first setpoint, standing (dwells, waits, the
+    planner waiting for the interpreter), and deadlines that never ran (the process not scheduled)."""
+    executed = result.cycles * period_s
+    moving = result.moving_cycles * period_s
+    before = min(result.first_setpoint_s, max(executed - moving, 0.0))
+    return {
+        "total_s": result.duration_s,
+        "moving_s": moving,
+        "before_first_setpoint_s": before,
+        "standing_s": max(executed - moving - before, 0.0),
+        "skipped_s": max(result.duration_s - executed, 0.0),
+    }
+
+
+def _tolerances(machine: Any) -> tuple[float, int]:
+    """What a real machine of this configuration tolerates: canon's late-cycle limit for real drives
+    and the drives' heartbeat consumer time as configured (not the simulation's relaxed values)."""
+    from motiond.config_canopen import canopen_for_machine
+
+    configured = canopen_for_machine(machine.config)
+    hb = configured.heartbeat_consumer_ms if configured.heartbeat_producer_ms else 0
+    return max(10 * machine.T, 0.050), hb
+
+
 def summary_dict(machine: Any, result: Any) -> dict[str, Any]:
     """The run's figures as plain data (``--json`` prints it)."""
     axes = {}
@@ -70,7 +135,13 @@ def summary_dict(machine: Any, result: Any) -> dict[str, Any]:
             "final_actual": result.final_actual[i] if result.final_actual else None,
             "program_final": result.expected_final[i] if result.expected_final else None,
         }
+    limit_s, hb = _tolerances(machine)
+    verdict, words = timing_verdict(result.late_s, machine.T, limit_s, hb)
     return {
+        "timing": {"verdict": verdict, "text": words, "real_late_limit_ms": limit_s * 1000,
+                   "heartbeat_consumer_ms": hb,
+                   "late_by_more_than_a_period": sum(1 for by in result.late_s if by > machine.T)},
+        "time": time_breakdown(result, machine.T),
         "program": result.program,
         "ok": result.ok,
         "error": result.error,
@@ -103,6 +174,20 @@ def print_summary(machine: Any, result: Any, console: Any) -> None:
     console.print(f"[bold]{result.program}[/] on {d['machine']}: ran in {d['duration_s']:.2f} s, motion "
                   f"{d['cycle_s']:.3f} s ({d['cycles']} cycles of {d['period_ms']:g} ms), "
                   f"{d['late_cycles']} late cycles (worst {d['worst_late_ms']:.1f} ms)", highlight=False)
+    console.print(f"timing: {d['timing']['text']}", highlight=False)
+    tb = d["time"]
+    if tb["total_s"] > 1.05 * tb["moving_s"] + 0.5:
+        parts = [f"{tb['moving_s']:.2f} s moving"]
+        if tb["before_first_setpoint_s"] >= 0.05:
+            parts.append(f"{tb['before_first_setpoint_s']:.2f} s before the first setpoint (reading and "
+                         "planning ahead, starting the drives' stream)")
+        if tb["standing_s"] >= 0.05:
+            parts.append(f"{tb['standing_s']:.2f} s standing (dwells, waits for inputs or tool changes, the "
+                         "planner waiting for the interpreter)")
+        if tb["skipped_s"] >= 0.05:
+            parts.append(f"{tb['skipped_s']:.2f} s of cycles that never ran (deadlines skipped: the process "
+                         "was not scheduled in time: a loaded or non-real-time PC)")
+        console.print(f"where the {tb['total_s']:.2f} s went: " + "; ".join(parts), highlight=False)
     t = Table(box=box.SIMPLE_HEAD)
     for col in ("axis", "velocity", "acceleration", "jerk", "FE max", "final"):
         t.add_column(col, justify="left" if col == "axis" else "right", no_wrap=True)
@@ -137,30 +222,96 @@ def _settle(machine: Any, timeout: float = SETTLE_S) -> None:
         time.sleep(0.01)
 
 
+def stop_report(program: str, place: tuple[str, int]) -> str:
+    """Where an interrupted run stopped, in the words ``--start-line`` needs."""
+    file, line = place
+    if line <= 0:
+        return f"stopped before the first motion of {program} (nothing to resume: run it from the start)"
+    if not file or _same_file(file, program):
+        return f"stopped at {program}:{line} (resume with --start-line {line})"
+    return (f"stopped at {file}:{line}, inside a subroutine that {program} calls (--start-line takes a "
+            f"line of {program}: the line of the call)")
+
+
+def _same_file(a: str, b: str) -> bool:
+    import os
+
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return a == b
+
+
+def _file_state(path: Any) -> tuple[int, int] | None:
+    import os
+
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_ino, st.st_mtime_ns
+
+
+def _interrupted(machine: Any, program: str) -> int:
+    """Ctrl-C or SIGTERM while the program runs: a jerk-limited stop on the path (the planner's
+    abort, the drives kept streaming until the motion is at rest), then the machine shut down (drives
+    disabled, outputs safe, parameters written) and the place to resume from printed."""
+    import contextlib
+
+    from motiond.states import CommandRefused
+
+    with contextlib.suppress(CommandRefused):  # refused: a fault is already stopping it
+        machine.abort()
+    at_rest = machine.wait_at_rest(STOP_TIMEOUT_S)
+    place = machine.motion_place
+    var = machine.interp.settings.var_file
+    before = _file_state(var) if var is not None else None
+    machine.shutdown()
+    print(f"canon run: interrupted: {stop_report(program, place)}", file=sys.stderr)
+    if not at_rest:
+        print(f"canon run: the motion was not at rest after {STOP_TIMEOUT_S:g} s: the drives were "
+              "disabled while moving", file=sys.stderr)
+    if var is not None:
+        after = _file_state(var)
+        if after is not None and after != before:
+            print(f"canon run: parameters saved to {var}", file=sys.stderr)
+        else:
+            print(f"canon run: the parameters could not be saved to {var}", file=sys.stderr)
+    return 130
+
+
 def run(args: argparse.Namespace) -> int:
     import logging
+
+    from motiond.cli import program_file
+    from motiond.config_check import load_checked
+    from motiond.instance_lock import lock_machine
+    from motiond.interp_settings import settings_from_args
+
+    if not getattr(args, "verbose", 0):  # the error is printed once, below, not also as a log line
+        for name in ("motiond.runtime", "fieldbus"):
+            logging.getLogger(name).setLevel(logging.CRITICAL)
+    path = program_file(args.file)
+    config = load_checked(args.config)
+    settings = settings_from_args(config, args, dry_run=False)
+    lock = lock_machine(args.config, config.limits.name, args.state_dir)
+    try:
+        return _run_locked(args, path, config, settings)
+    finally:
+        lock.release()
+
+
+def _run_locked(args: argparse.Namespace, path: Any, config: Any, settings: Any) -> int:
     import signal
-    import time
-    from pathlib import Path
 
     from rich.console import Console
 
     from motiond.cli import UserError
-    from motiond.config import load_machine
-    from motiond.interp_settings import settings_from_args
     from motiond.runtime import Machine, MachineError
     from motiond.states import CommandRefused
     from telemetry.config import TelemetryConfig
     from telemetry.publisher import open_lcm
 
-    if not getattr(args, "verbose", 0):  # the error is printed once, below, not also as a log line
-        for name in ("motiond.runtime", "fieldbus"):
-            logging.getLogger(name).setLevel(logging.CRITICAL)
-    path = Path(args.file)
-    if not path.is_file():
-        raise UserError(f"{args.file}: no such file")
-    config = load_machine(args.config)
-    settings = settings_from_args(config, args, dry_run=False)
     tele = TelemetryConfig.from_table(config.telemetry)
     if args.url:
         from motiond.configkit import Table
@@ -207,12 +358,7 @@ def run(args: argparse.Namespace) -> int:
             else:
                 result = machine.wait_job(job)
         except KeyboardInterrupt:
-            machine.abort()
-            deadline = time.monotonic() + 5.0
-            while machine.job is not None and time.monotonic() < deadline:
-                time.sleep(0.02)
-            print("canon run: interrupted: motion stopped", file=sys.stderr)
-            return 130
+            return _interrupted(machine, str(path))
         assert result is not None
         if not result.ok:
             print(result.error or "program aborted", file=sys.stderr)

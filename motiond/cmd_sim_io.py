@@ -38,7 +38,7 @@ import queue
 import signal
 import threading
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # heavy imports stay inside run(): `canon check` builds this parser too
     from fieldbus.modbus.config import ModbusConfig
@@ -94,9 +94,7 @@ def _serve(args: argparse.Namespace, say: Callable[[str], None]) -> int:
                 raise UserError(f"{args.config}: --serial simulates the one [[modbus.devices]] that has "
                                 f"serial = ...; the file has {len(devices)}")
         else:
-            devices = [d for d in cfg.devices if d.simulate]
-            if not devices:
-                raise UserError(f"{args.config}: no [[modbus.devices]] has simulate = true")
+            devices = _devices_to_serve(cfg, args.config, say)
     else:
         devices = list(demo_modbus().devices)
     if args.serial is not None:
@@ -164,6 +162,30 @@ def _serve(args: argparse.Namespace, say: Callable[[str], None]) -> int:
             signal.signal(sig, handler)
     say("stopped")
     return 0
+
+
+_LOOPBACK = ("127.0.0.1", "localhost", "::1")
+
+
+def _devices_to_serve(cfg: ModbusConfig, path: str, say: Callable[[str], None]) -> list[Any]:
+    """The Modbus TCP devices of the file that a daemon would connect to on this host and that nobody
+    else serves: ``simulate = false`` on a loopback host. A file with none of those: its ``simulate =
+    true`` devices (which a daemon with this file serves itself: said in a note)."""
+    from motiond.cli import UserError
+
+    tcp = [d for d in cfg.devices if not d.serial]
+    needed = [d for d in tcp if not d.simulate and d.host in _LOOPBACK]
+    if needed:
+        return needed
+    simulated = [d for d in tcp if d.simulate]
+    if simulated:
+        names = ", ".join(repr(d.name) for d in simulated)
+        say(f"note: a daemon with {path} serves {names} itself (simulate = true): this module is for "
+            "other clients, or for a daemon whose file says simulate = false")
+        return simulated
+    where = ", ".join(f"{d.name!r} at {d.serial or f'{d.host}:{d.port}'}" for d in cfg.devices)
+    raise UserError(f"{path}: no [[modbus.devices]] to serve on this host ({where}): a device is served "
+                    "when its host is 127.0.0.1 or localhost (or with --serial, the one with serial = ...)")
 
 
 def _read_script(path: str) -> tuple[list[tuple[str, Rule]], list[tuple[str, tuple[float, str, int, int]]]]:

@@ -9,13 +9,16 @@ from __future__ import annotations
 
 import dataclasses
 import ipaddress
+import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from fieldbus.canopen.config import CanBusConfig, CanopenConfig, DriveConfig
 from fieldbus.canopen.pdo import LAYOUTS
-from motiond.configkit import Table, in_range, non_negative, one_of, positive
+from motiond.configkit import Table, in_range, one_of, positive
+
+_VELOCITY_MARGIN = CanopenConfig.velocity_margin  # the dataclass default: what the master uses
 
 
 def demo_canopen(axis_names: Sequence[str], cycle_s: float,
@@ -97,7 +100,7 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
                 raise a.error("eds", f"no such file: {path}")
             eds = str(path)
         lim = _limits(name, axis_limits)
-        drives.append(DriveConfig(
+        drive = DriveConfig(
             axis=name, node_id=node_id, eds=eds,
             counts_per_unit=a.get("counts_per_unit", float, 10000.0, check=positive),
             direction=a.get("direction", int, 1, check=one_of(1, -1)),
@@ -105,10 +108,12 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
             following_error_window=a.get("following_error_window", float, 1.0, check=positive),
             homing=a.get("homing", str, "set", check=one_of("set", "cia402")),
             homing_method=a.get("homing_method", int, 35, check=in_range(-128, 127)),
-            vendor_id=a.get("vendor_id", int, None, check=non_negative),
-            product_code=a.get("product_code", int, None, check=non_negative),
+            vendor_id=a.get("vendor_id", int, None, check=in_range(0, U32)),
+            product_code=a.get("product_code", int, None, check=in_range(0, U32)),
             **lim,
-        ))
+        )
+        check_drive_ranges(a, drive)
+        drives.append(drive)
         a.check_unknown()
     axes.check_unknown()
     t.check_unknown()
@@ -119,6 +124,42 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
         state_timeout_s=state_timeout, homing_timeout_s=homing_timeout, max_bus_load=max_load / 100.0,
         pdo_layout=layout, following_error_every=fe_every, status_refresh_ms=refresh,
         realtime_priority=rt_priority, cpu_latency_us=None if cpu_latency < 0 else cpu_latency)
+
+
+U32 = 2**32 - 1
+I32 = (-(2**31), 2**31 - 1)
+
+
+def check_drive_ranges(a: Table, d: DriveConfig) -> None:
+    """The values the master writes to the drive in counts must fit the CiA 402 objects' 32-bit
+    types: the error names ``counts_per_unit`` (the scale that makes them too big) and the other key.
+
+    ``a``: the ``[canopen.axes.<name>]`` table; the limits come from ``[axes.<name>]``.
+    """
+    scale = d.counts_per_unit
+    margin = _VELOCITY_MARGIN
+    unit = f"counts_per_unit {scale:.10g}"
+    checks = (
+        ("max profile velocity 0x607F", f"axes.{d.axis}.max_velocity", d.max_velocity * margin,
+         f" (x {margin:g}: the drive's margin over the planner's limit)"),
+        ("quick stop deceleration 0x6085", f"axes.{d.axis}.quick_stop_deceleration",
+         d.quick_stop_deceleration, ""),
+        ("following error window 0x6065", f"{a.key('following_error_window')}", d.following_error_window, ""),
+    )
+    for obj, key, value, note in checks:
+        counts = math.ceil(value * scale)
+        if counts > U32:
+            raise a.error("counts_per_unit", f"{unit} x {key} {value:g}{note} = {counts:,} counts, beyond "
+                          f"the drive's {obj} (UNSIGNED32, at most {U32:,}): fewer counts per unit (scale "
+                          f"in the drive, e.g. its position factor 0x6093) or a lower {key}")
+    for key, pos in (("min_position", d.min_position), ("max_position", d.max_position)):
+        if pos is None:
+            continue
+        counts = round((pos - d.home_offset) * scale)
+        if not I32[0] <= counts <= I32[1]:
+            raise a.error("counts_per_unit", f"{unit}: axes.{d.axis}.{key} {pos:g} is {counts:,} counts from "
+                          f"home (home_offset {d.home_offset:g}), beyond the drive's 32-bit position "
+                          f"(0x607A: {I32[0]:,} to {I32[1]:,})")
 
 
 def canopen_from_file(data: dict[str, Any], file: str = "") -> CanopenConfig:

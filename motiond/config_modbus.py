@@ -187,6 +187,7 @@ def _analog_output(t: Table, device: str) -> AnalogOutputMap:
     index = _index(t)
     register = t.get("register", int, check=_address)
     conv = _conversion(t)
+    _fits(t, "register", register, conv)
     safe = t.get("safe", float, 0.0)
     try:
         encode(safe, conv)
@@ -213,4 +214,14 @@ def _analog_input(t: Table, device: str) -> AnalogInputMap:
     index = _index(t)
     key = _one_of_keys(t, ("input_register", "holding_register"))
     register = t.get(key, int, check=_address)
-    return AnalogInputMap(index, device, register, _conversion(t), AnalogSource(key))
+    conv = _conversion(t)
+    _fits(t, key, register, conv)
+    return AnalogInputMap(index, device, register, conv, AnalogSource(key))
+
+
+def _fits(t: Table, key: str, register: int, conv: Conversion) -> None:
+    """A two-register value must not run past the last Modbus address."""
+    last = register + conv.type.registers - 1
+    if last > 65535:
+        raise t.error(key, f"{conv.type.value} takes registers {register} and {last}: beyond the last "
+                           "Modbus address 65535")

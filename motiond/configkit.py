@@ -29,6 +29,18 @@ class ConfigError(ValueError):
         super().__init__(f"{where}{key + ': ' if key else ''}{message}")
 
 
+class ConfigErrors(ConfigError):
+    """Several problems in one file (``canon config check`` reports them all): one line each."""
+
+    def __init__(self, errors: list[ConfigError]) -> None:
+        self.errors = errors
+        first = errors[0]
+        super().__init__(first.file, first.key, first.message)
+
+    def __str__(self) -> str:
+        return "\n".join(str(e) for e in self.errors)
+
+
 def load_toml(path: str | Path) -> dict[str, Any]:
     """Read a TOML file; syntax errors become :class:`ConfigError` with the line TOML reports."""
     p = Path(path)

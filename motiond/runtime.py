@@ -76,6 +76,8 @@ SIM_FEEDBACK_TIMEOUT_S = 0.5
 SIM_HEARTBEAT_CONSUMER_MS = 1500
 """And a heartbeat this late (both ways): on a loaded PC the process can stall for a few 100 ms."""
 """With drives simulated in this process, a TPDO may be this late before it is a fault (real: 0.1 s)."""
+LATE_LOG = 100_000
+"""The lateness of this many late cycles is kept (for the run summary's verdict)."""
 SERVICE_JOIN_S = 5.0
 """Shutdown waits this long for the service thread to end an interrupted operation."""
 _END = object()  # end of a job's commands in the queue
@@ -127,6 +129,11 @@ class JobResult:
     final_actual: tuple[float, ...] = ()
     expected_final: tuple[float, ...] = ()
     first_cycle: int = 0
+    # where the time went (the run summary explains a run longer than its motion with these)
+    moving_cycles: int = 0  # cycles in which some axis moved
+    first_setpoint_s: float = 0.0  # from the start of the job to its first setpoint
+    last_setpoint_s: float = 0.0  # ... to its last
+    late_s: list[float] = field(default_factory=list)  # how late each late cycle of the job started
 
 
 @dataclass(frozen=True, slots=True)
@@ -216,6 +223,9 @@ class _Job:
         self.line = 0
         self.lines_total = 0
         self.run_from: _RunFrom | None = None
+        self.moving_cycles = 0
+        self.t_first = 0.0
+        self.t_last = 0.0
 
     @property
     def skipping(self) -> bool:
@@ -435,6 +445,7 @@ class Machine:
         self.cycle = 0
         self.late_cycles = 0
         self.worst_late_s = 0.0
+        self.late_log: collections.deque[tuple[int, float]] = collections.deque(maxlen=LATE_LOG)
         self.last_error = ""
         self.last_error_utime = 0
         self._commanded = tuple(0.0 for _ in range(self.n))
@@ -828,6 +839,7 @@ class Machine:
 
     def _on_late(self, k: int, by: float) -> None:
         self.late_cycles += 1
+        self.late_log.append((self.cycle, by))
         self.worst_late_s = max(self.worst_late_s, by)
         if by > self.late_fault_s and self.master is not None and self.master.streaming:
             self._post_fault(f"cycle {k} started {by * 1e3:.1f} ms late (limit "
@@ -983,6 +995,11 @@ class Machine:
                     pk.following_error = fe
             if sp.line:
                 job.line = sp.line
+            if any(vel):
+                job.moving_cycles += 1
+            if not job.t_first:
+                job.t_first = self._actual_t
+            job.t_last = self._actual_t
         self._commanded = pos
         self._velocity = vel
         self._acc = acc
@@ -1093,7 +1110,10 @@ class Machine:
             peaks={name: job.peaks[i] for i, name in enumerate(self.names)}, outputs=job.outputs,
             final_commanded=tuple(self._commanded), final_actual=tuple(self._actual),
             expected_final=tuple(self.interp.position[i] for i in self.limits.pose_index),
-            first_cycle=job.cycle0)
+            first_cycle=job.cycle0, moving_cycles=job.moving_cycles,
+            first_setpoint_s=job.t_first - job.t0 if job.t_first else 0.0,
+            last_setpoint_s=job.t_last - job.t0 if job.t_last else 0.0,
+            late_s=[by for c, by in self.late_log if c >= job.cycle0])
         job.result = res
         job.done.set()
         if ok:
@@ -1430,9 +1450,12 @@ class Machine:
 
     def _modal_state(self, file: str, line: int) -> ModalState:
         """The interpreter's modal state now, for the status (job thread, or before it starts)."""
+        from motiond.status_view import status_gcodes  # the codes as the dialect shows them
+
         interp = self.interp
-        return ModalState(tuple(interp.active_gcodes()), tuple(interp.active_mcodes()), float(interp.feed),
-                          int(interp.current_tool), float(interp.parameter(5403)), file=file, line=line)
+        return ModalState(status_gcodes(interp.active_gcodes(), interp.dialect),
+                          tuple(interp.active_mcodes()), float(interp.feed), int(interp.current_tool),
+                          float(interp.parameter(5403)), file=file, line=line)
 
     def _job_main(self, job: _Job, source: Callable[[], Any]) -> None:
         interp = self.interp
@@ -1914,3 +1937,21 @@ class Machine:
     @property
     def job(self) -> _Job | None:
         return self._job
+
+    def wait_at_rest(self, timeout: float) -> bool:
+        """After :meth:`abort`: True once the program has ended and its jerk-limited stop on the path
+        has brought the motion to rest (or a fault ended it); False after ``timeout`` seconds."""
+        deadline = time.monotonic() + timeout
+        while True:
+            if (self._job is None and not self._aborting
+                    and self.states.state not in (State.RUNNING, State.PAUSED)):
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.01)
+
+    @property
+    def motion_place(self) -> tuple[str, int]:
+        """The file and line of the last setpoint sent to the drives (line 0 before any motion)."""
+        line, file = self._line
+        return file, line

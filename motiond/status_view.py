@@ -38,6 +38,24 @@ STALE_AFTER_S = 1.0  # a snapshot older than this is flagged: the daemon may hav
 
 # ---- decoding ------------------------------------------------------------------------------------
 
+_EXTENSION_OFF = frozenset({"G15", "G50", "G69", "G23"})  # the gcode-canon transform groups at rest
+
+
+def status_gcodes(codes: Sequence[str], dialect: Any) -> tuple[str, ...]:
+    """The active G codes as the status shows them in ``dialect`` (a ``gcode_canon.dialect.Dialect``).
+
+    In the gcode-canon dialect, every group as the interpreter lists it. In the LinuxCNC dialect (and
+    Grbl's), what LinuxCNC would show: no lathe radius mode G8 (LinuxCNC reports the lathe group on a
+    lathe only; G7 stays, a program asked for it), and the gcode-canon transform groups (polar,
+    scaling, rotation, mirroring: codes LinuxCNC does not know) only while a program has one on.
+    """
+    from gcode_canon.dialect import Dialect
+
+    if dialect is Dialect.GCODE_CANON:
+        return tuple(codes)
+    return tuple(c for c in codes if c != "G8" and c not in _EXTENSION_OFF)
+
+
 def _as_status(msg: Any) -> Any:
     if isinstance(msg, bytes | bytearray | memoryview):
         from telemetry.lcmtypes.canon import status

@@ -19,6 +19,15 @@ os.environ["CANON_KEY"] = TEST_KEY.hex()  # clients sign with it; the daemons un
 PROGRAMS = Path(__file__).resolve().parent / "programs"
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    # canon run and canon daemon lock their machine in the state directory: tests (and their
+    # subprocesses) get a private one, so that runs elsewhere on this host do not refuse theirs
+    import tempfile
+
+    os.environ.pop("STATE_DIRECTORY", None)
+    os.environ["XDG_STATE_HOME"] = tempfile.mkdtemp(prefix="canon-test-state-")
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     if os.environ.get("CANON_NETNS") == "1":
         return

@@ -167,7 +167,24 @@ def test_sim_io_without_a_simulated_device(tmp_path: Path, capsys) -> None:
     cfg = tmp_path / "m.toml"
     cfg.write_text('[[modbus.devices]]\nname = "real"\nhost = "192.0.2.1"\n')
     assert main(["sim", "io", "--config", str(cfg)]) == 1
-    assert "no [[modbus.devices]] has simulate = true" in capsys.readouterr().err
+    assert "no [[modbus.devices]] to serve on this host ('real' at 192.0.2.1:502)" in capsys.readouterr().err
+
+
+def test_sim_io_serves_the_device_a_daemon_connects_to(tmp_path: Path) -> None:
+    # simulate = false on this host: the daemon connects to it and does not serve it itself
+    cfg = tmp_path / "m.toml"
+    cfg.write_text('[[modbus.devices]]\nname = "io"\nhost = "127.0.0.1"\nport = 1\nunit = 3\n'
+                   'simulate = false\n\n[[modbus.devices]]\nname = "remote"\nhost = "192.0.2.1"\n')
+    sim = SimProcess("--config", str(cfg), "--port", "0")
+    try:
+        assert any("'io' (unit 3) listening on 127.0.0.1:" in line for line in sim.lines)
+
+        async def fn(c):
+            return not (await c.read_coils(0, count=1, device_id=3)).isError()
+
+        assert client_io(sim.port, fn)
+    finally:
+        sim.stop()
 
 
 def test_sim_io_port_in_use_is_a_clear_error(capsys) -> None:

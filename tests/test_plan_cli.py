@@ -77,10 +77,11 @@ def test_setpoints_csv_and_plot(capsys: pytest.CaptureFixture[str], program: Pat
     summary = json.loads(out)
     with csv_path.open() as fh:
         rows = list(csv.reader(fh))
-    assert rows[0] == ["t", "x", "y", "z"]
+    assert rows[0] == ["t", "file", "line", "x", "y", "z", "vx", "vy", "vz"]
     assert len(rows) - 1 == summary["cycles"]
     assert float(rows[1][0]) == pytest.approx(0.002)
-    assert [float(v) for v in rows[-1][1:]] == [10.0, 30.0, 5.0]
+    assert [float(v) for v in rows[-1][3:6]] == [10.0, 30.0, 5.0]
+    assert rows[-1][1:3] == [str(program), "13"]  # the last move, G0 Z5
     assert float(rows[-1][0]) == pytest.approx(summary["duration_s"])
     data = png_path.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20000

@@ -93,3 +93,33 @@ def test_status_modal_codes_follow_the_executing_block(machine: Machine, tmp_pat
         time.sleep(0.01)
     end = machine.status()  # no job: the interpreter's state, which the machine has now reached
     assert "G91" in end.gcodes and "G18" in end.gcodes and "M7" in end.mcodes and end.feed_rate == 2000.0
+
+
+@pytest.mark.parametrize(("dialect", "shown", "hidden"), [
+    ("linuxcnc", ["G17", "G21", "G54", "G64"], ["G8", "G15", "G50", "G69", "G23"]),
+    ("gcode-canon", ["G17", "G8", "G15", "G50", "G69", "G23"], []),
+])
+def test_status_modal_codes_are_dialect_aware(tmp_path: Path, dialect: str, shown: list[str],
+                                              hidden: list[str]) -> None:
+    from motiond.interp_settings import build_settings
+
+    config = load_machine(None)
+    m = Machine(config, lc=None, interp_settings=build_settings(config, dialect=dialect, dry_run=False))
+    try:
+        m.start()
+        codes = list(m.status().gcodes)
+    finally:
+        m.shutdown()
+    for code in shown:
+        assert code in codes, codes
+    for code in hidden:
+        assert code not in codes, codes
+
+
+def test_an_active_extension_still_shows_in_the_linuxcnc_dialect() -> None:
+    from gcode_canon.dialect import Dialect
+    from motiond.status_view import status_gcodes
+
+    codes = ("G1", "G17", "G21", "G90", "G91.1", "G94", "G40", "G49", "G80", "G54", "G64", "G97", "G8",
+             "G16", "G50", "G68", "G23")
+    assert status_gcodes(codes, Dialect.LINUXCNC)[-3:] == ("G97", "G16", "G68")

@@ -1,0 +1,49 @@
+"""``canon --version``, the program file named on the command line (clear messages for what is not a
+readable regular file), and ``canon check`` naming the file of a subroutine's lines."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from importlib.metadata import version
+from pathlib import Path
+
+import pytest
+
+from motiond.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_version() -> None:
+    r = subprocess.run([sys.executable, "-m", "motiond.cli", "--version"], capture_output=True, text=True,
+                       timeout=60, cwd=ROOT)
+    assert r.returncode == 0 and r.stdout.strip() == f"canon {version('canon')}"
+
+
+@pytest.mark.parametrize("command", ["check", "plan", "run"])
+def test_what_is_wrong_with_the_program_file(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                             command: str) -> None:
+    afile = tmp_path / "a.ngc"
+    afile.write_text("%\nM2\n%\n")
+    for name, words in ((str(tmp_path), "is a directory, not a G-code program"),
+                        ("/dev/null", "is a device file, not a G-code program"),
+                        (str(afile / "x.ngc"), "Not a directory"),
+                        (str(tmp_path / "none.ngc"), "no such file")):
+        assert main([command, "--no-telemetry", name] if command == "run" else [command, name]) == 1
+        err = capsys.readouterr().err.strip()
+        assert err.startswith(f"canon {command}: {name}: ") and words in err and "\n" not in err, err
+
+
+def test_check_names_the_subroutine_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    subs = tmp_path / "subs"
+    subs.mkdir()
+    (subs / "dr.ngc").write_text("o<dr> sub\nG1 Z-1 F100\no<dr> endsub\nM2\n")
+    prog = tmp_path / "main.ngc"
+    prog.write_text("%\nG0 X1\no<dr> call\nG0 X2\nM2\n%\n")
+    assert main(["check", "--subroutine-path", str(subs), str(prog)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split()[:2] == ["2", "STRAIGHT_TRAVERSE(1.0000,"]
+    feed = f"{subs / 'dr.ngc'}:2 STRAIGHT_FEED(1.0000, 0.0000, -1.0000"
+    assert any(line.startswith(feed) for line in lines)
+    assert lines[-1].split() == ["5", "PROGRAM_END(FALSE)"]

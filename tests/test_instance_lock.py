@@ -1,0 +1,104 @@
+"""One ``canon run`` or ``canon daemon`` per machine file: a second is refused naming the first's PID.
+
+The processes run with ``--no-telemetry`` or ``memq://`` (nothing joins a multicast group) and their
+own state directory (``--state-dir`` or ``XDG_STATE_HOME``).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+from motiond.instance_lock import InstanceLock, MachineInUse, lock_path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+PROGRAM = "%\nG21 G90 G94\nG0 X0 Y0 Z0\nG1 X100 F600\nM2\n%\n"  # a 10 s move
+
+
+def canon(*args: str, env: dict[str, str]) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-m", "motiond.cli", *args], cwd=ROOT, env=env, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+
+def wait_for_line(p: subprocess.Popen[str], marker: str, timeout: float = 60.0) -> str:
+    lines: list[str] = []
+    found = threading.Event()
+
+    def reader() -> None:
+        assert p.stderr is not None
+        for line in p.stderr:
+            lines.append(line)
+            if marker in line:
+                found.set()
+                return
+
+    threading.Thread(target=reader, daemon=True).start()
+    assert found.wait(timeout), "".join(lines)
+    return "".join(lines)
+
+
+def stop(p: subprocess.Popen[str]) -> None:
+    if p.poll() is None:
+        p.send_signal(signal.SIGINT)
+        try:
+            p.wait(30)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+@pytest.fixture
+def env(tmp_path: Path) -> dict[str, str]:
+    e = dict(os.environ)
+    e.pop("STATE_DIRECTORY", None)
+    e["XDG_STATE_HOME"] = str(tmp_path / "state")
+    return e
+
+
+@pytest.mark.parametrize("first", ["run", "daemon"])
+def test_second_process_for_the_same_machine_is_refused(tmp_path: Path, env: dict[str, str],
+                                                         first: str) -> None:
+    prog = tmp_path / "long.ngc"
+    prog.write_text(PROGRAM)
+    if first == "run":
+        a = canon("-v", "run", "--no-telemetry", str(prog), env=env)
+        marker = "started"
+    else:
+        a = canon("daemon", "--url", "memq://", "--var", str(tmp_path / "d.var"), env=env)
+        marker = "canon daemon: machine"
+    try:
+        wait_for_line(a, marker)
+        b = canon("run", "--no-telemetry", str(prog), env=env)
+        _out, err = b.communicate(timeout=60)
+        assert b.returncode == 1, err
+        assert f"the demo machine is in use by process {a.pid}" in err
+        assert "Traceback" not in err
+    finally:
+        stop(a)
+    assert a.returncode in (0, 130)
+    # once the first has ended, the machine is free again
+    (tmp_path / "short.ngc").write_text("%\nG0 X1\nM2\n%\n")
+    c = canon("run", "--no-telemetry", str(tmp_path / "short.ngc"), env=env)
+    _out, err = c.communicate(timeout=120)
+    assert c.returncode == 0, err
+
+
+def test_lock_is_per_machine_file_and_released(tmp_path: Path) -> None:
+    a_cfg, b_cfg = tmp_path / "a.toml", tmp_path / "b.toml"
+    la = lock_path(a_cfg, "mill", tmp_path / "s")
+    assert lock_path(str(tmp_path / "." / "a.toml"), "mill", tmp_path / "s") == la
+    assert lock_path(b_cfg, "mill", tmp_path / "s") != la
+    assert lock_path(None, "mill", tmp_path / "s") != la
+    first = InstanceLock(la, "machine file a.toml").acquire()
+    with pytest.raises(MachineInUse, match=f"machine file a.toml is in use by process {os.getpid()}"):
+        InstanceLock(la, "machine file a.toml").acquire()
+    InstanceLock(lock_path(b_cfg, "mill", tmp_path / "s"), "b").acquire().release()
+    first.release()
+    InstanceLock(la, "machine file a.toml").acquire().release()
