@@ -229,7 +229,7 @@ def describe(m: CheckedMachine) -> list[Any]:
                f"{', '.join(map(str, it.subroutine_path)) or '(the program directory)'}")
     t = m.telemetry
     out.append(f"telemetry: {t.url} at {t.status_hz:g} Hz"
-               f"{'; commands need the token' if t.token else ''}")
+               f"; commands signed with the key in {t.key_file or '<state dir>/command.key'}")
     return out
 
 
