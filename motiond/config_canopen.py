@@ -13,7 +13,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from fieldbus.canopen.config import CanBusConfig, CanopenConfig, DriveConfig
+from fieldbus.canopen.config import HOLDING_QUICK_STOP_OPTIONS, CanBusConfig, CanopenConfig, DriveConfig
 from fieldbus.canopen.pdo import LAYOUTS
 from motiond.configkit import Table, in_range, non_negative, one_of, positive
 
@@ -97,6 +97,12 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
                 raise a.error("eds", f"no such file: {path}")
             eds = str(path)
         lim = _limits(name, axis_limits)
+        qs_option = a.get("quick_stop_option", int, None, check=one_of(1, 2, 3, 4, 5, 6, 7, 8))
+        if layout == "standard" and qs_option in HOLDING_QUICK_STOP_OPTIONS:
+            raise a.error("quick_stop_option",
+                          f"{qs_option} ends a quick stop in Quick stop active, which the standard layout's "
+                          "cyclic controlword (enable operation, 0x0F) would undo: use 1-4 here, or "
+                          "pdo_layout = \"compact\" to hold the position after a quick stop")
         drives.append(DriveConfig(
             axis=name, node_id=node_id, eds=eds,
             counts_per_unit=a.get("counts_per_unit", float, 10000.0, check=positive),
@@ -107,6 +113,7 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
             homing_method=a.get("homing_method", int, 35, check=in_range(-128, 127)),
             vendor_id=a.get("vendor_id", int, None, check=non_negative),
             product_code=a.get("product_code", int, None, check=non_negative),
+            quick_stop_option=qs_option,
             **lim,
         ))
         a.check_unknown()

@@ -129,7 +129,8 @@ def test_injected_by_sdo_mid_move_the_master_stops_everything() -> None:
         assert r.master.positions() == held
         assert wait_for(lambda: r.sim(2).state == State.FAULT, 2.0)
         assert wait_for(lambda: all(r.sim(n).velocity == 0.0 for n in (1, 2, 3)), 2.0)  # stopped
-        assert r.sim(1).state == State.QUICK_STOP_ACTIVE and r.sim(3).state == State.QUICK_STOP_ACTIVE
+        # standard layout: quick stop option 2 ends in Switch on disabled
+        assert r.sim(1).state == State.SWITCH_ON_DISABLED and r.sim(3).state == State.SWITCH_ON_DISABLED
         r.master.reset_faults()
         r.master.enable()
         assert r.master.fault is None

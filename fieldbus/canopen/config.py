@@ -60,6 +60,8 @@ class DriveConfig:
     quick_stop_deceleration: float = 5000.0
     vendor_id: int | None = None
     product_code: int | None = None
+    #: 0x605A written at boot; None: the layout's safe default (:func:`quick_stop_option`)
+    quick_stop_option: int | None = None
 
     @property
     def eds_path(self) -> str:
@@ -105,6 +107,26 @@ class CanopenConfig:
             if d.axis == axis:
                 return d
         raise KeyError(f"no drive for axis {axis!r}")
+
+
+#: quick stop options (0x605A) that end in Quick stop active, where "enable operation" (0x0F) is CiA 402's
+#: transition 16 back to Operation enabled
+HOLDING_QUICK_STOP_OPTIONS = (5, 6, 7, 8)
+
+
+def quick_stop_option(drive: DriveConfig, layout: str) -> int:
+    """The quick stop option written to ``drive`` at boot.
+
+    In the ``standard`` layout the master sends "enable operation" (0x0F) in every cyclic RPDO. A
+    drive that stopped itself (its quick-stop input, a limit switch) between the master's last look at
+    its statusword and the next RPDO would take that 0x0F as transition 16 and move on, when its quick
+    stop option ends in Quick stop active (5-8). Option 2 (ramp down, then Switch on disabled) has no
+    transition 16: the cyclic 0x0F cannot undo the stop. The ``compact`` layout sends the controlword
+    only on a change, so there option 6 (ramp down and hold the position) is safe and the default.
+    """
+    if drive.quick_stop_option is not None:
+        return drive.quick_stop_option
+    return 2 if layout == "standard" else 6
 
 
 class AxisScale:

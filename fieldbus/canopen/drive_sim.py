@@ -25,9 +25,11 @@ Behaviour a real drive has and the tests rely on:
 * EMCY on every fault, and the reset EMCY (code 0) on fault reset.
 
 Faults are injected from tests: :meth:`inject_fault`, :meth:`drop_heartbeat`, :meth:`abort_sdo`,
-``boot_delay_s``, :meth:`stall`. From another process, as a test bench does on a real bus, by SDO to
-the simulation-only object 0x2F00 (:data:`SIM_INJECT`): sub 2 a delay in ms, then sub 1 an EMCY code;
-the drive faults with that code exactly as :meth:`inject_fault` does (``canon sim inject``).
+``boot_delay_s``, :meth:`stall`, the local quick-stop input :meth:`set_quick_stop_input` (also by SDO:
+0x2F00:03 = 1/0, ``canon sim inject --quick-stop on|off``). From another process, as a test bench
+does on a real bus, by SDO to the simulation-only object 0x2F00 (:data:`SIM_INJECT`): sub 2 a delay in
+ms, then sub 1 an EMCY code; the drive faults with that code exactly as :meth:`inject_fault` does
+(``canon sim inject``).
 """
 
 from __future__ import annotations
@@ -62,6 +64,8 @@ EMCY_GENERIC = 0x1000
 # writing 0 to sub 1 cancels faults still waiting for their delay.
 SIM_INJECT = 0x2F00
 SIM_INJECT_CODE, SIM_INJECT_DELAY_MS = 1, 2
+#: sub 3: the drive's local quick-stop input (1 active, 0 released), as a wired button or limit switch
+SIM_QUICK_STOP_INPUT = 3
 
 _LIVE = {0x6041, 0x6061, 0x6062, 0x6064, 0x60F4, 0x603F, 0x1001}
 
@@ -128,6 +132,7 @@ class SimDrive:
         self.missed_setpoints = 0
         self.late_syncs = 0
         self.heartbeats_sent = 0
+        self.enables = 0  # times the drive entered Operation enabled
         self.emcys: list[int] = []
         self.latched: list[tuple[int, int]] = []  # (sync number, target) when record_targets is on
         self.record_targets = False
@@ -138,6 +143,12 @@ class SimDrive:
         self._stalled = False
         self.sdo_silent: set[int] = set()  # SDO requests to these indexes get no answer
         self.ignore_controlword = False  # a drive stuck in its state
+        # the drive's local quick-stop input (:meth:`set_quick_stop_input`): while it is active the
+        # drive does not enable
+        self.quick_stop_input = False
+        # CiA 402 allows transition 16 (Quick stop active -> Operation enabled, options 5-8) at any
+        # time; many drives take it only once the ramp has ended (False), strict ones at once (True)
+        self.reenable_during_quick_stop_ramp = False
         # beyond 0x6065 the drive faults (EMCY 0x8611); False: it only sets statusword bit 13, as
         # drives whose following-error reaction is "report" do
         self.fault_on_following_error = True
@@ -414,6 +425,8 @@ class SimDrive:
                 self._homing = False
             elif index == SIM_INJECT and subindex == SIM_INJECT_CODE:
                 self._injected_by_sdo(struct.unpack_from("<H", data)[0])
+            elif index == SIM_INJECT and subindex == SIM_QUICK_STOP_INPUT:
+                self.set_quick_stop_input(bool(data[0]))
             else:
                 self._params_dirty = True
             self._event_tpdos()
@@ -450,6 +463,8 @@ class SimDrive:
                     extra |= cia402.SW_BIT12 | cia402.SW_TARGET_REACHED
                 if self._homing_error:
                     extra |= cia402.SW_BIT13
+        elif self.state == State.QUICK_STOP_ACTIVE and self.velocity == 0:
+            extra |= cia402.SW_TARGET_REACHED  # halted at the end of the quick stop ramp
         return cia402.statusword_for(self.state, extra)
 
     _window = 0xFFFFFFFF
@@ -497,12 +512,16 @@ class SimDrive:
             elif self.mode == cia402.MODE_HOMING and cw & cia402.CW_HOMING_START \
                     and not previous & cia402.CW_HOMING_START:
                 self._start_homing()
-        elif (s == State.QUICK_STOP_ACTIVE and cmd == Command.ENABLE_OPERATION and self.velocity == 0
+        elif (s == State.QUICK_STOP_ACTIVE and cmd == Command.ENABLE_OPERATION
+              and (self.velocity == 0 or self.reenable_during_quick_stop_ramp)
               and self._qs_option in (5, 6, 7, 8)):
             self._enable()
 
     def _enable(self) -> None:
         # As drives do: the demand starts where the motor is, so enabling never jumps.
+        if self.quick_stop_input:
+            return  # the input holds the drive in its stop
+        self.enables += 1
         self.state = State.OPERATION_ENABLED
         self.demand = self.actual
         self.target = round(self.actual)
@@ -685,6 +704,18 @@ class SimDrive:
             self._sdo_aborts[(index, subindex)] = code
         else:
             self._sdo_aborts.pop((index, subindex), None)
+
+    def set_quick_stop_input(self, active: bool) -> None:
+        """The drive's local quick-stop input (a wired stop button, a limit switch on the drive): on
+        activation in Operation enabled the drive goes to Quick stop active and ramps down at 0x6085,
+        ending as its quick stop option (0x605A) says; while it is active the drive does not enable."""
+        with self.lock:
+            self.quick_stop_input = active
+            if active and self.state == State.OPERATION_ENABLED:
+                log.info("drive %d: local quick stop input", self.id)
+                self._homing = False
+                self.state = State.QUICK_STOP_ACTIVE
+            self._event_tpdos()
 
     def inject_disable(self) -> None:
         """Drop to Switch on disabled, as a drive does when its safe-torque-off input opens."""

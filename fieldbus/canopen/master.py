@@ -19,10 +19,15 @@ Design choices:
   period (the drive latches on SYNC).
 * Counts are converted from absolute positions each cycle (``AxisScale``): no drift.
 * Quick stop (on any fault, or asked for): every drive gets the CiA 402 quick-stop controlword at once
-  and no new target is streamed; the drives decelerate on their own 0x6085 ramp and, with quick-stop
-  option 6 that boot writes to 0x605A, stay in Quick stop active holding position (a vertical axis
-  does not drop). The master keeps the last commanded positions; the planner restarts from
-  :meth:`positions` after :meth:`reset_faults` and :meth:`enable`.
+  and no new target is streamed; the drives decelerate on their own 0x6085 ramp. The quick stop option
+  boot writes to 0x605A depends on the layout (:func:`~fieldbus.canopen.config.quick_stop_option`):
+  ``compact`` 6, the drives stay in Quick stop active holding position (a vertical axis does not drop);
+  ``standard`` 2, the drives end in Switch on disabled, because its cyclic controlword 0x0F would
+  otherwise re-enable a drive that stopped itself (transition 16). The master keeps the last commanded
+  positions; the planner restarts from :meth:`positions` after :meth:`reset_faults` and :meth:`enable`.
+* A drive that leaves Operation enabled by itself (its own quick stop, disabled, fault) is seen in the
+  first statusword after it (every SYNC in ``standard``, on the change in ``compact``): the machine
+  stops, the fault names node, state and reason, and the master never re-enables it.
 * Faults are reported once (the first, which caused the stop) in :attr:`fault`; later ones go to
   :attr:`fault_log`.
 """
@@ -45,7 +50,13 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError
 from fieldbus.canopen import cia402
 from fieldbus.canopen.busload import BusLoad, alternatives, bus_load
 from fieldbus.canopen.cia402 import State
-from fieldbus.canopen.config import AxisScale, CanopenConfig, DriveConfig
+from fieldbus.canopen.config import (
+    HOLDING_QUICK_STOP_OPTIONS,
+    AxisScale,
+    CanopenConfig,
+    DriveConfig,
+    quick_stop_option,
+)
 from fieldbus.canopen.pdo import CONTROLWORD, TARGET_POSITION, Pdo, PdoLayout
 
 log = logging.getLogger(__name__)
@@ -125,6 +136,8 @@ class _Drive:
         self.enabled_at = math.inf  # TPDOs older than this predate the enable
         self.booted = threading.Event()
         self.homing = False
+        self.qs_option = quick_stop_option(cfg, layout.name)
+        self.last_emcy: canopen.emcy.EmcyError | None = None
 
     def describe(self) -> str:
         return f"node {self.cfg.node_id} (axis {self.cfg.axis})"
@@ -221,6 +234,7 @@ class CanopenMaster:
     def _on_emcy(self, d: _Drive, entry: canopen.emcy.EmcyError) -> None:
         if entry.code & 0xFF00 == 0:
             return  # error reset
+        d.last_emcy = entry
         self.raise_fault(d.cfg.node_id, f"EMCY 0x{entry.code:04X} {entry.get_desc() or 'error'}".rstrip())
 
     @staticmethod
@@ -313,7 +327,7 @@ class CanopenMaster:
             ("following error window", 0x6065, 0, "I", d.window),
             ("max profile velocity", 0x607F, 0, "I", vmax),
             ("quick stop deceleration", 0x6085, 0, "I", qsd),
-            ("quick stop option", 0x605A, 0, "h", 6),
+            ("quick stop option", 0x605A, 0, "h", d.qs_option),
             *self.layout.sdo_steps(cfg.node_id),
             ("producer heartbeat time", 0x1017, 0, "H", conf.heartbeat_producer_ms),
             ("consumer heartbeat time", 0x1016, 1, "I",
@@ -390,6 +404,11 @@ class CanopenMaster:
                 code = self._sdo(d, "error code", 0x603F, 0, "H")
                 raise CanopenError(f"{d.describe()}: in '{state}' (error code 0x{code:04X}): "
                                    "reset_faults() first")
+            if state == State.QUICK_STOP_ACTIVE and d.qs_option not in HOLDING_QUICK_STOP_OPTIONS:
+                # this quick stop option has no way back to Operation enabled: the ramp ends in
+                # Switch on disabled, from where the drive is enabled step by step
+                self._wait_state(d, State.SWITCH_ON_DISABLED, timeout, "its quick stop")
+                continue
             step = cia402.next_step(state)
             if step is None:
                 raise CanopenError(f"{d.describe()}: stuck in '{state}' (statusword 0x{sw:04X}), "
@@ -535,8 +554,7 @@ class CanopenMaster:
                 continue  # no TPDO yet since enabling
             state = cia402.decode(d.statusword)
             if state != State.OPERATION_ENABLED:
-                self.raise_fault(d.cfg.node_id, f"left Operation enabled: now '{state}' "
-                                                f"(statusword 0x{d.statusword:04X})")
+                self.raise_fault(d.cfg.node_id, self._stopped_itself(d, state))
                 return
             if abs(d.following_error) > d.window:
                 fe = d.following_error / d.scale.scale
@@ -550,6 +568,24 @@ class CanopenMaster:
                                                 f"{d.cfg.following_error_window:g} (the drive reports it: "
                                                 f"statusword 0x{d.statusword:04X}, bit 13)")
                 return
+
+    def _stopped_itself(self, d: _Drive, state: State) -> str:
+        """The fault text of a drive seen out of Operation enabled while streaming: the state and why a
+        drive goes there by itself. The master never re-enables it (only reset + enable do)."""
+        if state == State.QUICK_STOP_ACTIVE:
+            why = ("the drive's own quick stop (its quick-stop input, a limit switch or a stop it decided "
+                   "itself); it ramps down on its own quick stop deceleration")
+        elif state == State.SWITCH_ON_DISABLED:
+            why = ("the drive disabled itself (its enable or safe-torque-off input, or a quick stop that "
+                   "ends in Switch on disabled)")
+        elif state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+            e = d.last_emcy
+            why = (f"a drive fault, EMCY 0x{e.code:04X} {e.get_desc() or ''}".rstrip() if e is not None
+                   else "a drive fault (no EMCY received)")
+        else:
+            why = "the drive changed state by itself"
+        return (f"left Operation enabled: now '{state}' (statusword 0x{d.statusword:04X}): {why}; "
+                "not re-enabled")
 
     def feedback(self) -> DriveFeedback:
         return DriveFeedback(

@@ -1,0 +1,94 @@
+"""The master against drives that behave as strict third-party CiA 402 drives do (issue 12): a drive
+that stops itself, shutdown, setpoints from the first SYNC in Operation enabled, optional objects,
+EMCY classes, the drive's limits. On the virtual bus; the udp_multicast variants are in
+``test_canopen_multiprocess.py``."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+from canopen_helpers import wait_for
+
+from fieldbus.canopen.cia402 import State
+from motiond.config_canopen import read_canopen
+from motiond.configkit import ConfigError, Table
+
+
+def _move(start: tuple[float, ...], k0: int = 0, speed: float = 50.0, period: float = 0.002):
+    """A steady move of every axis at ``speed`` mm/s from ``start``: positions of cycle ``k``."""
+    return lambda k: [p + speed * period * (k0 + k) for p in start]
+
+
+@pytest.mark.parametrize("layout", ["standard", "compact"])
+def test_a_drive_local_quick_stop_mid_move_stops_the_machine_and_is_never_undone(rig, layout):
+    """A strict drive takes "enable operation" in Quick stop active at once (transition 16, legal with
+    quick stop options 5-8). Its local quick-stop input is tapped mid-move: the master must see it
+    within one SYNC, stop every axis, name node, state and reason, and never re-enable the drive."""
+    r = rig(2, pdo_layout=layout)
+    for sim in r.sims.drives.values():
+        sim.reenable_during_quick_stop_ramp = True
+    start = r.master.positions()
+    r.run(60, _move(start, speed=100.0))
+    time.sleep(0.01)  # the last SYNC's TPDOs are in: the master's latest statusword says enabled
+    enables = r.sim(2).enables
+    r.sim(2).set_quick_stop_input(True)
+    r.sim(2).set_quick_stop_input(False)  # a tap: the input is released at once
+    r.run(30, _move(start, 60, speed=100.0))
+    f = r.master.fault
+    assert f is not None, "the drive's own quick stop went unseen"
+    assert (f.node, f.axis) == (2, "y")
+    # the ramp (100 mm/s at 5000 mm/s^2: 20 ms) shows Quick stop active; a stalled reader thread may
+    # see only its end (standard: Switch on disabled), which the reason names as a quick stop too
+    assert "quick stop" in f.reason and "not re-enabled" in f.reason
+    assert r.sim(2).enables == enables, "the master re-enabled a drive that stopped itself"
+    r.run(30)
+    assert r.sim(2).enables == enables
+    assert wait_for(lambda: all(s.velocity == 0.0 for s in r.sims.drives.values()), 2.0)
+    for node in (1, 2):
+        assert r.sim(node).state != State.OPERATION_ENABLED
+    # compact holds the position (option 6); standard ends in Switch on disabled (option 2)
+    ends_in = State.QUICK_STOP_ACTIVE if layout == "compact" else State.SWITCH_ON_DISABLED
+    assert wait_for(lambda: r.sim(2).state == ends_in, 2.0)
+
+
+@pytest.mark.parametrize("layout", ["standard", "compact"])
+def test_a_held_quick_stop_input_keeps_the_drive_stopped_until_released(rig, layout):
+    r = rig(1, pdo_layout=layout)
+    r.run(20)
+    r.sim(1).set_quick_stop_input(True)
+    r.run(20)
+    f = r.master.fault
+    # at rest the ramp is over at once: standard (option 2) may already show Switch on disabled
+    assert f is not None and f.node == 1 and "not re-enabled" in f.reason
+    assert "quick stop" in f.reason
+    r.master.reset_faults()
+    with pytest.raises(Exception, match="node 1"):
+        r.master.enable()  # the input still holds the drive
+    r.sim(1).set_quick_stop_input(False)
+    r.master.reset_faults()
+    r.master.enable()
+    r.run(10)
+    assert r.master.fault is None
+    assert r.master.state[0].state == State.OPERATION_ENABLED
+
+
+def test_the_standard_layout_writes_quick_stop_option_2_and_compact_6(rig):
+    a = rig(1, pdo_layout="standard")
+    b = rig(1, pdo_layout="compact")
+    assert a.sim(1)._value(0x605A) == 2
+    assert b.sim(1)._value(0x605A) == 6
+
+
+def _canopen(axis: dict, layout: str = "standard") -> None:
+    root = Table({"canopen": {"pdo_layout": layout, "axes": {"x": {"node_id": 1, **axis}}}}, "m.toml")
+    return read_canopen(root, ["x"], 0.002)
+
+
+def test_a_holding_quick_stop_option_is_refused_in_the_standard_layout():
+    with pytest.raises(ConfigError, match=r"canopen\.axes\.x\.quick_stop_option.*compact"):
+        _canopen({"quick_stop_option": 6})
+    assert _canopen({"quick_stop_option": 6}, "compact").drives[0].quick_stop_option == 6
+    assert _canopen({"quick_stop_option": 1}).drives[0].quick_stop_option == 1
+    with pytest.raises(ConfigError, match="quick_stop_option"):
+        _canopen({"quick_stop_option": 0})
