@@ -73,6 +73,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=logging.WARNING - 10 * min(args.verbose, 2),
         format="%(levelname)s %(name)s: %(message)s",
     )
+    if not args.verbose:
+        # canon's master reports a failed SDO itself (node, object, what it is for); the library's
+        # own line for an attempt that a retry then saved is noise on a loaded machine
+        logging.getLogger("canopen.sdo.client").setLevel(logging.CRITICAL)
     module = importlib.import_module(args._module)
     try:
         return int(module.run(args) or 0)

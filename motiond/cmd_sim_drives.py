@@ -18,6 +18,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="servo dynamics: 1 first-order lag, 2 second-order (default 1)")
     parser.add_argument("--boot-delay-ms", type=float, default=0.0, help="delay of the boot-up message")
     parser.add_argument("--seconds", type=float, default=0.0, help="stop after this long (default: never)")
+    parser.add_argument("--strict", action="store_true",
+                        help="take 'enable operation' in Quick stop active at once, during the stop ramp "
+                             "(CiA 402 transition 16, as strict drives do)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -32,6 +35,8 @@ def run(args: argparse.Namespace) -> int:
     config, bus = canopen_for_tool(args.config, args.interface, args.channel)
     drives = [SimDrive(d.node_id, d.eds_path, lag_s=args.lag_ms / 1000.0, order=args.order,
                        boot_delay_s=args.boot_delay_ms / 1000.0) for d in config.drives]
+    for d in drives:
+        d.reenable_during_quick_stop_ramp = args.strict
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

@@ -92,3 +92,44 @@ def test_a_holding_quick_stop_option_is_refused_in_the_standard_layout():
     assert _canopen({"quick_stop_option": 1}).drives[0].quick_stop_option == 1
     with pytest.raises(ConfigError, match="quick_stop_option"):
         _canopen({"quick_stop_option": 0})
+
+
+@pytest.mark.parametrize("layout", ["standard", "compact"])
+def test_shutdown_mid_move_leaves_the_drives_disabled_and_nothing_faults_afterwards(rig, layout):
+    r = rig(2, pdo_layout=layout, heartbeat_producer_ms=20, heartbeat_consumer_ms=100)
+    start = r.master.positions()
+    r.run(60, _move(start, speed=100.0))
+    r.master.shutdown()  # streaming: quick stop, ramp, disable, consumer heartbeat off, heartbeat off
+    for node in (1, 2):
+        assert r.sim(node).state == State.SWITCH_ON_DISABLED
+        assert r.sim(node)._value(0x1016, 1) == 0
+    time.sleep(0.5)  # five consumer times without the master's heartbeat
+    assert [r.sim(n).emcys for n in (1, 2)] == [[], []]
+    assert [r.sim(n).state for n in (1, 2)] == [State.SWITCH_ON_DISABLED] * 2
+
+
+def test_shutdown_of_enabled_drives_not_streamed_to(rig):
+    r = rig(1, heartbeat_producer_ms=20, heartbeat_consumer_ms=100)
+    r.run(30)
+    r.master.shutdown()
+    time.sleep(0.4)
+    assert r.sim(1).emcys == [] and r.sim(1).state == State.SWITCH_ON_DISABLED
+
+
+def test_the_simulated_drive_watches_the_masters_heartbeat(rig):
+    """What the shutdown test relies on: with 0x1016 armed, the drive faults when the heartbeat stops."""
+    r = rig(1, heartbeat_producer_ms=20, heartbeat_consumer_ms=100)
+    r.run(30)  # CiA 301: the consumer watch starts with the first heartbeat received
+    r.master._heartbeat_task.stop()
+    assert wait_for(lambda: r.sim(1).emcys == [0x8130], 2.0)
+
+
+def test_disable_while_streaming_ramps_down_before_dropping_torque(rig):
+    r = rig(1)
+    start = r.master.positions()
+    r.run(60, _move(start, speed=100.0))
+    r.master.disable()
+    sim = r.sim(1)
+    assert sim.state == State.SWITCH_ON_DISABLED
+    # the drive got the quick stop first: it travelled on its ramp (100 mm/s at 5000 mm/s^2: 1 mm)
+    assert sim.actual / 10000 - r.master.positions()[0] > 0.5

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from fieldbus.canopen.cia402 import State
+from fieldbus.canopen.cia402 import State, decode
 from fieldbus.canopen.clock import stream
 from fieldbus.canopen.master import CanopenMaster
 from motiond.config_canopen import canopen_from_file
@@ -98,10 +98,11 @@ def group() -> str:
 def setup(tmp_path):
     made: list[tuple[DriveProcess, CanopenMaster]] = []
 
-    def make(cycle_ms: float = 2.0, layout: str = "standard"):
+    def make(cycle_ms: float = 2.0, layout: str = "standard", *extra: str):
         path = machine_file(tmp_path, "udp_multicast", group(), cycle_ms, layout)
         config = canopen_from_file(load_toml(path), str(path))
-        drives = DriveProcess(path)
+        drives = DriveProcess(path, *extra)
+        drives.config = path
         master = CanopenMaster(config)
         made.append((drives, master))
         return drives, master
@@ -151,3 +152,52 @@ def test_the_drive_process_dying_is_a_fault(setup):
         time.sleep(0.004)
     assert master.fault is not None
     assert "no TPDO" in master.fault.reason or "heartbeat missed" in master.fault.reason
+
+
+def _emcys(report: str) -> dict[int, str]:
+    """``node n: ... emcy [...]`` lines of ``canon sim drives``' report: node -> its EMCY list."""
+    return {int(line.split(":")[0].split()[1]): line.split("emcy ")[1]
+            for line in report.splitlines() if line.startswith("node ")}
+
+
+def test_shutdown_leaves_the_drives_disabled_and_nothing_faults_after_exit(setup):
+    drives, master = setup(2.0)
+    master.boot()
+    master.enable()
+    start = master.positions()
+    runner = stream(master, lambda t: [start[0] + 20.0 * t, start[1], start[2]], 0.5, fault_on_late=False)
+    assert runner.join(30.0) and runner.error is None
+    master.shutdown()  # the drive at 20 mm/s: quick stop, disabled, consumer heartbeat off
+    time.sleep(0.8)  # four consumer times (200 ms) without the master's heartbeat
+    report = drives.stop()
+    assert _emcys(report) == {1: "[]", 2: "[]", 3: "[]"}, report
+
+
+def _sim_inject(config: Path, *args: str) -> None:
+    subprocess.run([sys.executable, "-m", "motiond.cli", "sim", "inject", "--config", str(config), *args],
+                   cwd=ROOT, check=True, capture_output=True, timeout=30)
+
+
+@pytest.mark.parametrize("layout", ["standard", "compact"])
+def test_a_drive_local_quick_stop_in_the_drive_process_stops_the_machine(setup, layout):
+    """The drives take transition 16 at once (``--strict``); the quick-stop input of y is tapped by
+    ``canon sim inject`` mid-move: the machine stops, y is named, and it stays stopped."""
+    drives, master = setup(4.0, layout, "--strict")
+    master.boot()
+    master.enable()
+    start = master.positions()
+    # slow enough that a burst of frames lost on a loaded machine is no setpoint jump
+    runner = stream(master, lambda t: [start[0] + 10.0 * t, start[1] + 10.0 * t, start[2]], 3.0,
+                    fault_on_late=False)
+    time.sleep(0.5)
+    _sim_inject(drives.config, "--axis", "y", "--quick-stop", "on")
+    _sim_inject(drives.config, "--axis", "y", "--quick-stop", "off")
+    assert runner.join(30.0) and runner.error is None
+    f = master.fault
+    assert f is not None and (f.node, f.axis) == (2, "y"), f
+    assert "quick stop" in f.reason and "not re-enabled" in f.reason
+    for _ in range(50):
+        master.cycle(None)
+        time.sleep(0.002)
+    states = [decode(master._statusword(d)) for d in master.drives]  # by SDO, from the drives
+    assert State.OPERATION_ENABLED not in states, states

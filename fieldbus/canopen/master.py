@@ -432,12 +432,18 @@ class CanopenMaster:
         d.feedback_at = d.enabled_at
 
     def disable(self) -> None:
-        """Stop streaming and take every drive to Switch on disabled (controlword 0, disable voltage,
-        by SDO): no torque. A drive in Fault stays there (:meth:`reset_faults`)."""
+        """Stop streaming and take every drive to Switch on disabled: a drive still streamed to gets
+        the quick stop first and is disabled (controlword 0, by SDO) once its ramp is over, never
+        dropped at speed. No torque afterwards. A drive in Fault stays there (:meth:`reset_faults`)."""
         with self._lock:
+            if self.streaming:
+                self.streaming = False
+                for d in self.drives:
+                    d.controlword = cia402.CW_QUICK_STOP
+                    self._send(*d.controlword_rpdo(cia402.CW_QUICK_STOP))
             self.streaming = False
         for d in self.drives:
-            self._sdo(d, "controlword (disable voltage)", 0x6040, 0, "H", cia402.CW_DISABLE_VOLTAGE)
+            self._park(d, consumer_off=False)
 
     def not_operational(self) -> list[str]:
         """The drives whose last heartbeat did not say NMT Operational (restarted, lost): boot again."""
@@ -689,12 +695,23 @@ class CanopenMaster:
 
     # ------------------------------------------------------------------ the end
     def shutdown(self) -> None:
-        """Quick-stop if streaming, stop the heartbeat, NMT pre-operational... and close the bus."""
+        """Leave the drives in a defined state, then let go of the bus.
+
+        Quick stop if streaming; every drive taken to Switch on disabled once its ramp is over (a
+        drive in Fault stays there) and its consumer heartbeat (0x1016) cleared, all while the
+        master's heartbeat still runs; then the heartbeat stops, NMT pre-operational, the bus closes.
+        Otherwise every drive would fault (heartbeat consumer, EMCY 0x8130) one consumer time after
+        canon exits."""
         if self.network is None:
             return
         with self._lock:
             if self.streaming:
                 self._quick_stop_locked()
+        for d in self.drives:
+            try:
+                self._park(d)
+            except (CanopenError, can.CanError, OSError) as exc:
+                log.error("at shutdown, %s not parked: %s", d.describe(), exc)
         if self._heartbeat_task is not None:
             self._heartbeat_task.stop()
             self._heartbeat_task = None
@@ -709,6 +726,34 @@ class CanopenMaster:
         else:
             if net.notifier is not None:
                 net.notifier.stop(2.0)
+
+    def _park(self, d: _Drive, consumer_off: bool = True) -> None:
+        """One drive to a defined state: its stop ramp waited for, Switch on disabled, and (at shutdown)
+        its consumer heartbeat off."""
+        for attempt in range(2):
+            deadline = time.monotonic() + self.config.state_timeout_s
+            while True:
+                sw = self._statusword(d)
+                state = cia402.decode(sw)
+                ramping = (state == State.FAULT_REACTION_ACTIVE
+                           or (state == State.QUICK_STOP_ACTIVE and not sw & cia402.SW_TARGET_REACHED))
+                if not ramping:
+                    break
+                if time.monotonic() > deadline:
+                    log.warning("%s still in '%s' %g s after the quick stop: disabled all the same",
+                                d.describe(), state, self.config.state_timeout_s)
+                    break
+                time.sleep(0.005)
+            if state != State.OPERATION_ENABLED or attempt:
+                break
+            # enabled with nothing streamed to it: its own quick stop first, never a drop of torque
+            self._sdo(d, "controlword (quick stop)", 0x6040, 0, "H", cia402.CW_QUICK_STOP)
+        if state not in (State.FAULT, State.FAULT_REACTION_ACTIVE, State.SWITCH_ON_DISABLED):
+            self._sdo(d, "controlword (disable voltage)", 0x6040, 0, "H", cia402.CW_DISABLE_VOLTAGE)
+        if consumer_off and self.config.heartbeat_producer_ms > 0:
+            self._sdo(d, "consumer heartbeat time (off)", 0x1016, 1, "I", 0, ok_aborts=_NO_SUCH_OBJECT)
+        with self._lock:
+            d.statusword = self._statusword(d)
 
     def __enter__(self) -> CanopenMaster:
         return self
