@@ -18,6 +18,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="servo dynamics: 1 first-order lag, 2 second-order (default 1)")
     parser.add_argument("--boot-delay-ms", type=float, default=0.0, help="delay of the boot-up message")
     parser.add_argument("--seconds", type=float, default=0.0, help="stop after this long (default: never)")
+    parser.add_argument("--rpdo-timeout-syncs", type=int, default=0, metavar="N",
+                        help="RPDO deadline monitoring: fault (EMCY 0x8250) after N SYNCs in Operation "
+                             "enabled without a target (default 0: off)")
     parser.add_argument("--strict", action="store_true",
                         help="take 'enable operation' in Quick stop active at once, during the stop ramp "
                              "(CiA 402 transition 16, as strict drives do)")
@@ -33,8 +36,13 @@ def run(args: argparse.Namespace) -> int:
     from motiond.config_canopen import canopen_for_tool
 
     config, bus = canopen_for_tool(args.config, args.interface, args.channel)
+    if args.rpdo_timeout_syncs < 0:
+        from motiond.cli import UserError
+
+        raise UserError(f"--rpdo-timeout-syncs {args.rpdo_timeout_syncs}: must not be negative")
     drives = [SimDrive(d.node_id, d.eds_path, lag_s=args.lag_ms / 1000.0, order=args.order,
-                       boot_delay_s=args.boot_delay_ms / 1000.0) for d in config.drives]
+                       boot_delay_s=args.boot_delay_ms / 1000.0, rpdo_timeout_syncs=args.rpdo_timeout_syncs)
+              for d in config.drives]
     for d in drives:
         d.reenable_during_quick_stop_ramp = args.strict
     stop = threading.Event()

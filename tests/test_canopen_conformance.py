@@ -133,3 +133,77 @@ def test_disable_while_streaming_ramps_down_before_dropping_torque(rig):
     assert sim.state == State.SWITCH_ON_DISABLED
     # the drive got the quick stop first: it travelled on its ramp (100 mm/s at 5000 mm/s^2: 1 mm)
     assert sim.actual / 10000 - r.master.positions()[0] > 0.5
+
+
+class _Cycling:
+    """The master's cycle on its own thread (SYNC only until drives are streamed to), as the daemon
+    runs it, while the test thread enables over SDO."""
+
+    def __init__(self, master) -> None:
+        from fieldbus.canopen.clock import PeriodicRunner
+
+        self.runner = PeriodicRunner(master.config.cycle_s, lambda k, t: master.cycle(None),
+                                     keep_lateness=False).start()
+
+    def stop(self) -> None:
+        self.runner.stop()
+        assert self.runner.join(5.0) and self.runner.error is None
+
+
+def _sims(n: int, **kw) -> list:
+    from fieldbus.canopen.drive_sim import SimDrive
+
+    return [SimDrive(i + 1, **(kw if i == 0 else {})) for i in range(n)]
+
+
+@pytest.mark.parametrize("layout", [{"pdo_layout": "compact", "following_error_every": 4},
+                                    {"pdo_layout": "standard", "cycle_s": 0.004}])
+def test_a_drive_with_rpdo_deadline_monitoring_enabled_first_among_six_does_not_fault(rig, layout):
+    """Drive 1 faults after 3 SYNCs without a target; it is enabled first, then five more over SDO
+    while the cycle runs: it gets its held position every SYNC from the enable on."""
+    r = rig(6, sims=_sims(6, rpdo_timeout_syncs=3), up=False, **layout)
+    r.master.boot()
+    cycling = _Cycling(r.master)
+    try:
+        r.master.enable()
+        time.sleep(0.1)
+    finally:
+        cycling.stop()
+    assert r.master.fault is None, r.master.fault
+    assert r.sim(1).emcys == []
+    start = r.master.positions()
+    r.run(50, _move(start, period=r.config.cycle_s))
+    assert r.master.fault is None and r.sim(1).emcys == []
+    # after a fault and its reset too
+    r.master.quick_stop("test")
+    r.master.reset_faults()
+    cycling = _Cycling(r.master)
+    try:
+        r.master.enable()
+        time.sleep(0.1)
+    finally:
+        cycling.stop()
+    assert r.master.fault is None and r.sim(1).emcys == []
+
+
+def test_the_simulated_rpdo_deadline_faults_with_0x8250_and_enable_names_that_emcy(rig, monkeypatch):
+    """Were the master to leave drive 1 without targets while it enables the others (as it did), the
+    drive's EMCY is the error, not the state the drive is then stuck in."""
+    r = rig(3, sims=_sims(3, rpdo_timeout_syncs=3), up=False)
+    r.master.boot()
+    real = r.master._activate
+
+    def without_targets(d):
+        real(d)
+        if d.cfg.node_id == 1:
+            d.active = False
+
+    monkeypatch.setattr(r.master, "_activate", without_targets)
+    cycling = _Cycling(r.master)
+    try:
+        with pytest.raises(Exception, match=r"node 1 \(axis x\): EMCY 0x8250"):
+            r.master.enable()
+    finally:
+        cycling.stop()
+    assert r.sim(1).emcys == [0x8250]
+    assert r.sim(2).state != State.OPERATION_ENABLED  # the ones enabled were quick-stopped

@@ -173,15 +173,30 @@ def test_shutdown_leaves_the_drives_disabled_and_nothing_faults_after_exit(setup
     assert _emcys(report) == {1: "[]", 2: "[]", 3: "[]"}, report
 
 
-def _sim_inject(config: Path, *args: str) -> None:
-    subprocess.run([sys.executable, "-m", "motiond.cli", "sim", "inject", "--config", str(config), *args],
-                   cwd=ROOT, check=True, capture_output=True, timeout=30)
+def _quick_stop_input(config: Path, node_id: int, *values: int) -> None:
+    """What ``canon sim inject --quick-stop on|off`` does (SDO to 0x2F00:03), from a CANopen client on
+    its own bus object in this process: starting the CLI twice would load this 2-core machine enough
+    to delay the drives' TPDOs beyond the master's limit."""
+    import canopen
+
+    from fieldbus.canopen.drive_sim import SIM_INJECT, SIM_QUICK_STOP_INPUT
+
+    bus = canopen_from_file(load_toml(config), str(config)).bus
+    network = canopen.Network()
+    network.connect(**bus.bus_kwargs())
+    try:
+        node = network.add_node(canopen.RemoteNode(node_id, canopen.ObjectDictionary()))
+        node.sdo.MAX_RETRIES = 3
+        for v in values:
+            node.sdo.download(SIM_INJECT, SIM_QUICK_STOP_INPUT, bytes([v]))
+    finally:
+        network.disconnect()
 
 
 @pytest.mark.parametrize("layout", ["standard", "compact"])
 def test_a_drive_local_quick_stop_in_the_drive_process_stops_the_machine(setup, layout):
-    """The drives take transition 16 at once (``--strict``); the quick-stop input of y is tapped by
-    ``canon sim inject`` mid-move: the machine stops, y is named, and it stays stopped."""
+    """The drives take transition 16 at once (``--strict``); the quick-stop input of y is tapped mid-move
+    by SDO from another client: the machine stops, y is named, and it stays stopped."""
     drives, master = setup(4.0, layout, "--strict")
     master.boot()
     master.enable()
@@ -190,8 +205,7 @@ def test_a_drive_local_quick_stop_in_the_drive_process_stops_the_machine(setup, 
     runner = stream(master, lambda t: [start[0] + 10.0 * t, start[1] + 10.0 * t, start[2]], 3.0,
                     fault_on_late=False)
     time.sleep(0.5)
-    _sim_inject(drives.config, "--axis", "y", "--quick-stop", "on")
-    _sim_inject(drives.config, "--axis", "y", "--quick-stop", "off")
+    _quick_stop_input(drives.config, 2, 1, 0)  # tapped: on, then off at once
     assert runner.join(30.0) and runner.error is None
     f = master.fault
     assert f is not None and (f.node, f.axis) == (2, "y"), f
@@ -201,3 +215,28 @@ def test_a_drive_local_quick_stop_in_the_drive_process_stops_the_machine(setup, 
         time.sleep(0.002)
     states = [decode(master._statusword(d)) for d in master.drives]  # by SDO, from the drives
     assert State.OPERATION_ENABLED not in states, states
+
+
+def test_drives_with_rpdo_deadline_monitoring_enable_without_fault(setup):
+    """Every drive of the other process faults after 3 SYNCs without a target (EMCY 0x8250); the
+    master enables them over SDO one by one while its cycle runs: none faults."""
+    from fieldbus.canopen.clock import PeriodicRunner
+
+    drives, master = setup(4.0, "standard", "--rpdo-timeout-syncs", "3")
+    master.boot()
+    runner = PeriodicRunner(master.config.cycle_s, lambda k, t: master.cycle(None),
+                            keep_lateness=False).start()
+    try:
+        master.enable()
+        time.sleep(0.2)
+    finally:
+        runner.stop()
+        assert runner.join(5.0)
+    assert master.fault is None, master.fault
+    start = master.positions()
+    run = stream(master, lambda t: [start[0] + 10.0 * t, start[1], start[2]], 0.5, fault_on_late=False)
+    assert run.join(30.0) and run.error is None
+    assert master.fault is None, master.fault
+    master.shutdown()
+    report = drives.stop()
+    assert _emcys(report) == {1: "[]", 2: "[]", 3: "[]"}, report

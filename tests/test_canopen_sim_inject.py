@@ -150,6 +150,17 @@ def test_cli_injects_by_axis(drives, capsys) -> None:
     assert sims[2].state == State.FAULT and sims[2].emcys == [0x7300]
 
 
+def test_cli_works_the_local_quick_stop_input(drives, capsys) -> None:
+    sims, bench = drives
+    rc = main(["sim", "inject", "--interface", "virtual", "--channel", bench.channel,
+               "--axis", "x", "--quick-stop", "on"])
+    assert rc == 0 and "node 1 (axis x): local quick-stop input on" in capsys.readouterr().out
+    assert sims[1].quick_stop_input and not sims[2].quick_stop_input
+    rc = main(["sim", "inject", "--interface", "virtual", "--channel", bench.channel,
+               "--axis", "x", "--quick-stop", "off"])
+    assert rc == 0 and not sims[1].quick_stop_input
+
+
 def test_cli_errors(drives, capsys) -> None:
     sims, bench = drives
     rc = main(["sim", "inject", "--interface", "virtual", "--channel", bench.channel,

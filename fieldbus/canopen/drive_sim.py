@@ -22,6 +22,8 @@ Behaviour a real drive has and the tests rely on:
   stop active holding the position, 1/2 ends in Switch on disabled.
 * Homing mode 6: methods 35/37 take the current position as home; others travel at 0x6099:1 to a
   simulated home switch; either way the position then reads 0x607C.
+* RPDO deadline monitoring (``rpdo_timeout_syncs``): in Operation enabled, that many SYNCs in a row
+  without a target fault the drive with EMCY 0x8250.
 * EMCY on every fault, and the reset EMCY (code 0) on fault reset.
 
 Faults are injected from tests: :meth:`inject_fault`, :meth:`drop_heartbeat`, :meth:`abort_sdo`,
@@ -58,6 +60,7 @@ EMCY_VELOCITY = 0x8400  # setpoint jump beyond the maximum velocity
 EMCY_FOLLOWING_ERROR = 0x8611
 EMCY_HEARTBEAT = 0x8130  # life guard / heartbeat consumer timeout
 EMCY_GENERIC = 0x1000
+EMCY_RPDO_TIMEOUT = 0x8250  # RPDO deadline monitoring (CiA 301: "RPDO timeout")
 
 # Manufacturer-specific, simulation only (not on a real drive): an SDO write of a non-zero code to
 # sub 1 faults the drive with that EMCY code, after the delay in ms held in sub 2 (write it first);
@@ -92,7 +95,8 @@ class SimDrive:
 
     def __init__(self, node_id: int, eds: str | Path = SHIPPED_EDS, *, lag_s: float = 0.002,
                  order: int = 1, damping: float = 0.8, boot_delay_s: float = 0.0,
-                 home_switch_counts: int = 0, clock: Callable[[], float] = time.monotonic) -> None:
+                 home_switch_counts: int = 0, rpdo_timeout_syncs: int = 0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         if order not in (1, 2):
             raise ValueError("order must be 1 (first-order lag) or 2 (second-order dynamics)")
         self.id = node_id
@@ -107,6 +111,10 @@ class SimDrive:
         self.damping = damping
         self.boot_delay_s = boot_delay_s
         self.home_switch_counts = home_switch_counts
+        # RPDO deadline monitoring, as EPOS4-style drives have: in Operation enabled (CSP), this many
+        # SYNCs in a row without a target fault the drive with EMCY 0x8250 (0: off)
+        self.rpdo_timeout_syncs = rpdo_timeout_syncs
+        self._syncs_without_target = 0
         self.clock = clock
         self.lock = threading.RLock()
         self.network: canopen.Network | None = None
@@ -522,6 +530,7 @@ class SimDrive:
         if self.quick_stop_input:
             return  # the input holds the drive in its stop
         self.enables += 1
+        self._syncs_without_target = 0
         self.state = State.OPERATION_ENABLED
         self.demand = self.actual
         self.target = round(self.actual)
@@ -593,7 +602,13 @@ class SimDrive:
         if s == State.OPERATION_ENABLED and self.mode == cia402.MODE_CSP:
             if new is None:
                 self.missed_setpoints += 1
+                self._syncs_without_target += 1
+                if self.rpdo_timeout_syncs and self._syncs_without_target >= self.rpdo_timeout_syncs:
+                    self._fault(EMCY_RPDO_TIMEOUT, f"{self._syncs_without_target} SYNCs without a target")
+                    self._decelerate(dt)
+                    return
             else:
+                self._syncs_without_target = 0
                 if abs(new - self.target) > self._max_velocity * dt * 1.0001 + 1:
                     self._fault(EMCY_VELOCITY, f"target jump {new - self.target} counts in {dt} s")
                     self._decelerate(dt)

@@ -134,6 +134,10 @@ class _Drive:
         self.heartbeat_at = 0.0
         self.nmt_state = -1
         self.enabled_at = math.inf  # TPDOs older than this predate the enable
+        self.active = False  # the cycle sends this drive its target every SYNC
+        self.active_at = 0.0
+        self.enable_started = 0.0  # EMCYs received since are its enable's
+        self.last_emcy_at = 0.0
         self.booted = threading.Event()
         self.homing = False
         self.qs_option = quick_stop_option(cfg, layout.name)
@@ -188,7 +192,8 @@ class CanopenMaster:
         self.streaming = False
         self._lock = threading.RLock()
         self._heartbeat_task: canopen.network.PeriodicMessageTask | None = None
-        self._stream_t0 = 0.0  # first streaming cycle: TPDO ages count from there
+        self._stream_t0 = 0.0  # first cycle with a drive streamed to: TPDO ages count from there
+        self._last_sync = 0.0  # the last SYNC sent while streaming to a drive (0: none yet)
         self._fault_listeners: list[Callable[[Fault], None]] = []
 
     # ------------------------------------------------------------------ set-up
@@ -234,7 +239,7 @@ class CanopenMaster:
     def _on_emcy(self, d: _Drive, entry: canopen.emcy.EmcyError) -> None:
         if entry.code & 0xFF00 == 0:
             return  # error reset
-        d.last_emcy = entry
+        d.last_emcy, d.last_emcy_at = entry, time.monotonic()
         self.raise_fault(d.cfg.node_id, f"EMCY 0x{entry.code:04X} {entry.get_desc() or 'error'}".rstrip())
 
     @staticmethod
@@ -289,6 +294,8 @@ class CanopenMaster:
         self.open()
         with self._lock:
             self.streaming = False
+            for d in self.drives:
+                d.active = False
         for d in self.drives:
             self._boot_drive(d)
 
@@ -356,34 +363,60 @@ class CanopenMaster:
 
     # ------------------------------------------------------------------ CiA 402 state machine
     def enable(self) -> None:
-        """Walk every drive to Operation enabled (by SDO), hold the actual position, start streaming."""
+        """Walk every drive to Operation enabled (by SDO), holding its actual position, then stream.
+
+        No drive is ever left without a setpoint: from the moment the enable command goes to a drive,
+        the cycle sends it its target (the position it holds) every SYNC, while the others come up; a
+        drive with RPDO deadline monitoring would fault otherwise. A failure part-way quick-stops the
+        drives already enabled. An error names the drive's EMCY when it sent one.
+        """
         with self._lock:
             if self.fault is not None:
                 raise CanopenError(f"cannot enable with a fault standing ({self.fault}); "
                                    "reset_faults() first")
             self.streaming = False
-        for d in self.drives:
-            self._enable_drive(d)
+            self._stream_t0 = self._last_sync = 0.0
+        try:
+            for d in self.drives:
+                self._enable_drive(d)
+                self._fault_during_enable()
+        except CanopenError:
+            with self._lock:
+                enabled = [d for d in self.drives if d.active]
+                for d in enabled:
+                    d.active = False
+                    d.controlword = cia402.CW_QUICK_STOP
+                    with contextlib.suppress(can.CanError, OSError):
+                        self._send(*d.controlword_rpdo(cia402.CW_QUICK_STOP))
+            raise
         with self._lock:
-            if self.fault is not None:
-                raise CanopenError(f"fault while enabling: {self.fault}")
             now = time.monotonic()
             for d in self.drives:
                 d.heartbeat_at = max(d.heartbeat_at, now)
-            self._stream_t0 = 0.0
             self.streaming = True
 
+    def _fault_during_enable(self, d: _Drive | None = None) -> None:
+        if self.fault is not None:
+            raise CanopenError(f"fault while enabling: {self.fault}")
+        if d is not None and d.last_emcy is not None and d.last_emcy_at >= d.enable_started:
+            e = d.last_emcy
+            raise CanopenError(f"{d.describe()}: EMCY 0x{e.code:04X} {e.get_desc() or ''}".rstrip()
+                               + " while enabling")
+
     def _wait_state(self, d: _Drive, want: State, timeout: float, doing: str,
-                    resend: int | None = None) -> None:
-        """Poll the statusword until ``want``. ``resend``: write this controlword again while waiting,
-        for a transition the drive takes only once it is ready (Quick stop active -> Operation enabled
-        needs the stop ramp finished; the command sent during the ramp is ignored)."""
+                    resend: int | None = None, enabling: bool = False) -> int:
+        """Poll the statusword until ``want``; returns it. ``resend``: write this controlword again while
+        waiting, for a transition the drive takes only once it is ready (Quick stop active -> Operation
+        enabled needs the stop ramp finished on many drives; the command sent during the ramp is
+        ignored). ``enabling``: an EMCY of the drive (or any fault) ends the wait, named as the cause."""
         deadline = time.monotonic() + timeout
         while True:
             sw = self._statusword(d)
             state = cia402.decode(sw)
             if state == want:
-                return
+                return sw
+            if enabling:
+                self._fault_during_enable(d)
             if time.monotonic() > deadline:
                 raise CanopenError(f"{d.describe()}: stuck in '{state}' (statusword 0x{sw:04X}) "
                                    f"{timeout:g} s after {doing}, waiting for '{want}'")
@@ -391,57 +424,77 @@ class CanopenMaster:
             if resend is not None:
                 self._sdo(d, "controlword", 0x6040, 0, "H", resend)
 
+    def _activate(self, d: _Drive) -> None:
+        """From now on the cycle sends ``d`` a target every SYNC: its actual position (read by SDO),
+        held until the machine streams. Called just before the enable command reaches the drive."""
+        actual = self._sdo(d, "position actual", 0x6064, 0, "i")
+        with self._lock:
+            d.target = d.actual = actual
+            d.controlword = cia402.CW_ENABLE_OPERATION
+            d.enabled_at = math.inf
+            d.active_at = d.feedback_at = time.monotonic()
+            d.active = True
+
     def _enable_drive(self, d: _Drive) -> None:
         timeout = self.config.state_timeout_s
+        d.enable_started = time.monotonic()
         if self._sdo(d, "modes of operation display", 0x6061, 0, "b") != cia402.MODE_CSP:
             self._back_to_csp(d)
         for _ in range(8):
+            self._fault_during_enable(d)
             sw = self._statusword(d)
             state = cia402.decode(sw)
             if state == State.OPERATION_ENABLED:
+                if not d.active:  # enabled already (by an earlier enable): hold where it stands
+                    self._activate(d)
                 break
             if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                 code = self._sdo(d, "error code", 0x603F, 0, "H")
                 raise CanopenError(f"{d.describe()}: in '{state}' (error code 0x{code:04X}): "
                                    "reset_faults() first")
-            if state == State.QUICK_STOP_ACTIVE and d.qs_option not in HOLDING_QUICK_STOP_OPTIONS:
-                # this quick stop option has no way back to Operation enabled: the ramp ends in
-                # Switch on disabled, from where the drive is enabled step by step
-                self._wait_state(d, State.SWITCH_ON_DISABLED, timeout, "its quick stop")
-                continue
+            if state == State.QUICK_STOP_ACTIVE:
+                if d.qs_option not in HOLDING_QUICK_STOP_OPTIONS:
+                    # this quick stop option has no way back to Operation enabled: the ramp ends in
+                    # Switch on disabled, from where the drive is enabled step by step
+                    self._wait_state(d, State.SWITCH_ON_DISABLED, timeout, "its quick stop", enabling=True)
+                    continue
+                # the ramp first (bit 10 once halted): the position it holds is then final
+                deadline = time.monotonic() + timeout
+                while not sw & cia402.SW_TARGET_REACHED and time.monotonic() < deadline:
+                    time.sleep(0.005)
+                    sw = self._statusword(d)
+                    if cia402.decode(sw) != State.QUICK_STOP_ACTIVE:
+                        break
+                if cia402.decode(sw) != State.QUICK_STOP_ACTIVE:
+                    continue
             step = cia402.next_step(state)
             if step is None:
                 raise CanopenError(f"{d.describe()}: stuck in '{state}' (statusword 0x{sw:04X}), "
                                    "which no controlword leads out of")
             controlword, want = step
             if want == State.OPERATION_ENABLED:
-                # hold the actual position before the drive starts following targets
-                actual = self._sdo(d, "position actual", 0x6064, 0, "i")
-                d.target = d.actual = actual
-                d.controlword = cia402.CW_ENABLE_OPERATION
+                self._activate(d)
             self._sdo(d, "controlword", 0x6040, 0, "H", controlword)
             self._wait_state(d, want, timeout, f"controlword 0x{controlword:04X}",
-                             resend=controlword if state == State.QUICK_STOP_ACTIVE else None)
-            if want == State.OPERATION_ENABLED and state == State.QUICK_STOP_ACTIVE:
-                # the drive finished its stop ramp before it enabled: hold where it stopped
-                d.target = d.actual = self._sdo(d, "position actual", 0x6064, 0, "i")
+                             resend=controlword if state == State.QUICK_STOP_ACTIVE else None, enabling=True)
         else:
             raise CanopenError(f"{d.describe()}: did not reach Operation enabled")
-        d.statusword = cia402.statusword_for(State.OPERATION_ENABLED)
-        d.enabled_at = time.monotonic()
-        d.feedback_at = d.enabled_at
+        with self._lock:
+            d.statusword = cia402.statusword_for(State.OPERATION_ENABLED)
+            d.enabled_at = d.feedback_at = time.monotonic()
 
     def disable(self) -> None:
         """Stop streaming and take every drive to Switch on disabled: a drive still streamed to gets
         the quick stop first and is disabled (controlword 0, by SDO) once its ramp is over, never
         dropped at speed. No torque afterwards. A drive in Fault stays there (:meth:`reset_faults`)."""
         with self._lock:
-            if self.streaming:
-                self.streaming = False
-                for d in self.drives:
+            self.streaming = False
+            self._stream_t0 = self._last_sync = 0.0
+            for d in self.drives:
+                if d.active:
+                    d.active = False
                     d.controlword = cia402.CW_QUICK_STOP
                     self._send(*d.controlword_rpdo(cia402.CW_QUICK_STOP))
-            self.streaming = False
         for d in self.drives:
             self._park(d, consumer_off=False)
 
@@ -490,7 +543,9 @@ class CanopenMaster:
 
     def _quick_stop_locked(self) -> None:
         self.streaming = False
+        self._stream_t0 = self._last_sync = 0.0
         for d in self.drives:
+            d.active = False
             d.controlword = cia402.CW_QUICK_STOP
             try:
                 self._send(*d.controlword_rpdo(cia402.CW_QUICK_STOP))
@@ -510,18 +565,20 @@ class CanopenMaster:
             if self.network is None:  # not open, or shut down: nothing to send
                 return self.feedback()
             self.cycles += 1
-            if self.streaming:
+            active = [d for d in self.drives if d.active]
+            if active:
                 if self._stream_t0 == 0.0:
                     self._stream_t0 = now
-                self._check(now)
+                self._check(now, active)
             try:
-                if self.streaming:
-                    if positions is not None:
-                        self._set_targets(positions)
-                    for d in self.drives:
-                        if not d.homing:
-                            self._send(d.rpdo_id, d.cyclic_rpdo())
+                if self.streaming and positions is not None:
+                    self._set_targets(positions)
+                for d in self.drives:
+                    if d.active and not d.homing:
+                        self._send(d.rpdo_id, d.cyclic_rpdo())
                 self.network.sync.transmit()  # type: ignore[union-attr]
+                if any(d.active for d in self.drives):
+                    self._last_sync = time.monotonic()
             except (can.CanError, OSError) as exc:
                 self.raise_fault(0, f"bus error: {exc}")
             return self.feedback()
@@ -542,17 +599,28 @@ class CanopenMaster:
                 return
             d.target = counts
 
-    def _check(self, now: float) -> None:
+    def _check(self, now: float, active: list[_Drive]) -> None:
+        """The feedback of the drives streamed to, before this cycle's RPDOs: the master's own SYNC
+        gap first (a stalled cycle is the master's fault, not a node's), then per drive its heartbeat,
+        its TPDOs since the last SYNC, its state, its following error."""
         conf = self.config
-        for d in self.drives:
+        if self._last_sync and now - self._last_sync > conf.feedback_timeout_s:
+            gap = now - self._last_sync
+            self.raise_fault(0, f"the master sent no SYNC for {1000 * gap:.0f} ms (limit "
+                                f"{1000 * conf.feedback_timeout_s:g} ms): its cycle stalled, the drives got "
+                                "no setpoint")
+            return
+        for d in active:
             hb_age = now - d.heartbeat_at
             if conf.heartbeat_producer_ms > 0 and hb_age > conf.heartbeat_consumer_ms / 1000.0:
                 self.raise_fault(d.cfg.node_id, f"heartbeat missed: none for {1000 * hb_age:.0f} ms "
                                                 f"(consumer time {conf.heartbeat_consumer_ms} ms)")
                 return
-            fb_age = now - max(d.feedback_at, self._stream_t0)
+            # how long before the latest SYNC the drive last answered one (SYNCs, not the clock: a
+            # pause of the master's own is not the drive's silence)
+            fb_age = self._last_sync - max(d.feedback_at, self._stream_t0, d.active_at)
             if fb_age > conf.feedback_timeout_s and not d.homing:
-                self.raise_fault(d.cfg.node_id, f"no TPDO for {1000 * fb_age:.0f} ms "
+                self.raise_fault(d.cfg.node_id, f"no TPDO for {1000 * fb_age:.0f} ms of SYNCs "
                                                 f"(limit {1000 * conf.feedback_timeout_s:g} ms): "
                                                 "frames lost?")
                 return
@@ -705,7 +773,7 @@ class CanopenMaster:
         if self.network is None:
             return
         with self._lock:
-            if self.streaming:
+            if any(d.active for d in self.drives):
                 self._quick_stop_locked()
         for d in self.drives:
             try:
