@@ -9,6 +9,17 @@ from __future__ import annotations
 import argparse
 
 
+def _indexes(text: str) -> tuple[int, ...]:
+    try:
+        values = tuple(int(v, 0) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a list of object indexes: {text!r} (e.g. 0x6085,0x60C2)") \
+            from None
+    if any(not 0x1000 <= v <= 0xFFFF for v in values):
+        raise argparse.ArgumentTypeError(f"object indexes are 0x1000 to 0xFFFF: {text!r}")
+    return values
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", metavar="machine.toml", help="machine configuration file (demo: x y z)")
     parser.add_argument("--interface", help="python-can interface, instead of the file's canopen.interface")
@@ -21,6 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rpdo-timeout-syncs", type=int, default=0, metavar="N",
                         help="RPDO deadline monitoring: fault (EMCY 0x8250) after N SYNCs in Operation "
                              "enabled without a target (default 0: off)")
+    parser.add_argument("--absent", type=_indexes, default=(), metavar="0xIIII,...",
+                        help="objects the drives do not have (SDO abort 0x06020000), e.g. 0x6085,0x60C2")
     parser.add_argument("--strict", action="store_true",
                         help="take 'enable operation' in Quick stop active at once, during the stop ramp "
                              "(CiA 402 transition 16, as strict drives do)")
@@ -41,7 +54,8 @@ def run(args: argparse.Namespace) -> int:
 
         raise UserError(f"--rpdo-timeout-syncs {args.rpdo_timeout_syncs}: must not be negative")
     drives = [SimDrive(d.node_id, d.eds_path, lag_s=args.lag_ms / 1000.0, order=args.order,
-                       boot_delay_s=args.boot_delay_ms / 1000.0, rpdo_timeout_syncs=args.rpdo_timeout_syncs)
+                       boot_delay_s=args.boot_delay_ms / 1000.0, rpdo_timeout_syncs=args.rpdo_timeout_syncs,
+                       absent_objects=args.absent)
               for d in config.drives]
     for d in drives:
         d.reenable_during_quick_stop_ramp = args.strict

@@ -478,6 +478,7 @@ class Machine:
             try:
                 self.master = CanopenMaster(self.canopen)
                 self.master.add_fault_listener(self._on_master_fault)
+                self.master.add_warning_listener(self._on_master_warning)
                 self.master.open()
                 self.master.boot()
             except CanopenError as exc:
@@ -810,6 +811,10 @@ class Machine:
         if self._estopping:
             return
         self._post_fault(str(fault), "canopen")
+
+    def _on_master_warning(self, warning: Any) -> None:
+        """A drive without an optional object, a warning EMCY: logged and published, motion goes on."""
+        self.event("WARNING", str(warning), kind="drive_warning", source="canopen")
 
     def _on_io_fault(self, fault: Any) -> None:
         self._post_fault(str(fault), "modbus")

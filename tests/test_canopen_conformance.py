@@ -207,3 +207,43 @@ def test_the_simulated_rpdo_deadline_faults_with_0x8250_and_enable_names_that_em
         cycling.stop()
     assert r.sim(1).emcys == [0x8250]
     assert r.sim(2).state != State.OPERATION_ENABLED  # the ones enabled were quick-stopped
+
+
+def test_a_drive_without_quick_stop_deceleration_boots_with_a_warning_and_stops_on_its_own_setting(rig):
+    from fieldbus.canopen.drive_sim import SimDrive
+
+    r = rig(2, sims=[SimDrive(1, absent_objects={0x6085}), SimDrive(2)], up=False)
+    seen = []
+    r.master.add_warning_listener(seen.append)
+    r.up()
+    assert [(w.node, w.axis) for w in seen] == [(1, "x")]
+    assert "no object 0x6085 (quick stop deceleration; SDO abort 0x06020000)" in str(seen[0])
+    assert "drive's own deceleration" in str(seen[0])
+    assert r.master.drives[0].missing == {0x6085: 0x06020000} and r.master.drives[1].missing == {}
+    start = r.master.positions()
+    r.run(40, _move(start))
+    assert r.master.fault is None
+    r.master.quick_stop("test")
+    assert wait_for(lambda: r.sim(1).velocity == 0.0 and r.sim(1).state != State.OPERATION_ENABLED, 2.0)
+
+
+@pytest.mark.parametrize("absent, code", [(0x6060, "0x06020000"), (0x1A00, "0x06020000")])
+def test_a_drive_without_a_mandatory_object_is_refused_naming_node_object_and_code(rig, absent, code):
+    from fieldbus.canopen.drive_sim import SimDrive
+    from fieldbus.canopen.master import CanopenError
+
+    r = rig(1, sims=[SimDrive(1, absent_objects={absent})], up=False)
+    with pytest.raises(CanopenError, match=rf"node 1 \(axis x\): SDO write of 0x{absent:04X}:.. .*{code}"):
+        r.master.boot()
+
+
+def test_quick_stop_option_is_mandatory_in_the_standard_layout_only(rig):
+    from fieldbus.canopen.drive_sim import SimDrive
+    from fieldbus.canopen.master import CanopenError
+
+    r = rig(1, sims=[SimDrive(1, absent_objects={0x605A})], up=False)
+    with pytest.raises(CanopenError, match=r"node 1 \(axis x\): SDO write of 0x605A:00 \(quick stop opt"):
+        r.master.boot()
+    c = rig(1, sims=[SimDrive(1, absent_objects={0x605A})], up=False, pdo_layout="compact")
+    c.up()
+    assert "0x605A" in str(c.master.warnings[0]) and c.master.fault is None

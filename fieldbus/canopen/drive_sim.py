@@ -22,6 +22,8 @@ Behaviour a real drive has and the tests rely on:
   stop active holding the position, 1/2 ends in Switch on disabled.
 * Homing mode 6: methods 35/37 take the current position as home; others travel at 0x6099:1 to a
   simulated home switch; either way the position then reads 0x607C.
+* Optional objects absent (``absent_objects``): SDO access aborts 0x06020000 and the drive keeps its
+  own defaults for them.
 * RPDO deadline monitoring (``rpdo_timeout_syncs``): in Operation enabled, that many SYNCs in a row
   without a target fault the drive with EMCY 0x8250.
 * EMCY on every fault, and the reset EMCY (code 0) on fault reset.
@@ -42,7 +44,7 @@ import math
 import struct
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -70,6 +72,8 @@ SIM_INJECT_CODE, SIM_INJECT_DELAY_MS = 1, 2
 #: sub 3: the drive's local quick-stop input (1 active, 0 released), as a wired button or limit switch
 SIM_QUICK_STOP_INPUT = 3
 
+NO_SUCH_OBJECT = 0x06020000  # SDO abort: object does not exist in the object dictionary
+
 _LIVE = {0x6041, 0x6061, 0x6062, 0x6064, 0x60F4, 0x603F, 0x1001}
 
 
@@ -96,6 +100,7 @@ class SimDrive:
     def __init__(self, node_id: int, eds: str | Path = SHIPPED_EDS, *, lag_s: float = 0.002,
                  order: int = 1, damping: float = 0.8, boot_delay_s: float = 0.0,
                  home_switch_counts: int = 0, rpdo_timeout_syncs: int = 0,
+                 absent_objects: Iterable[int] = (),
                  clock: Callable[[], float] = time.monotonic) -> None:
         if order not in (1, 2):
             raise ValueError("order must be 1 (first-order lag) or 2 (second-order dynamics)")
@@ -114,6 +119,9 @@ class SimDrive:
         # RPDO deadline monitoring, as EPOS4-style drives have: in Operation enabled (CSP), this many
         # SYNCs in a row without a target fault the drive with EMCY 0x8250 (0: off)
         self.rpdo_timeout_syncs = rpdo_timeout_syncs
+        # objects this drive does not have, though its EDS lists them: SDO access aborts 0x06020000
+        # (a drive without optional objects, as many are); it then uses its defaults for them
+        self.absent_objects = frozenset(absent_objects)
         self._syncs_without_target = 0
         self.clock = clock
         self.lock = threading.RLock()
@@ -389,6 +397,8 @@ class SimDrive:
 
     # ------------------------------------------------------------------ dictionary callbacks
     def _on_read(self, index: int, subindex: int, od: object) -> int | None:
+        if index in self.absent_objects and od is not None:
+            raise SdoAbortedError(NO_SUCH_OBJECT)
         abort = self._sdo_aborts.get((index, subindex))
         if abort:
             raise SdoAbortedError(abort)
@@ -410,6 +420,8 @@ class SimDrive:
             return 1 if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE) else 0
 
     def _on_write(self, index: int, subindex: int, od: object, data: bytes) -> None:
+        if index in self.absent_objects:
+            raise SdoAbortedError(NO_SUCH_OBJECT)
         abort = self._sdo_aborts.get((index, subindex))
         if abort:
             raise SdoAbortedError(abort)

@@ -61,8 +61,23 @@ from fieldbus.canopen.pdo import CONTROLWORD, TARGET_POSITION, Pdo, PdoLayout
 
 log = logging.getLogger(__name__)
 
-#: SDO abort codes a drive answers for a PDO it does not have: disabling it is then nothing to do
+#: SDO abort codes a drive answers for an object (or sub-index) it does not have
 _NO_SUCH_OBJECT = (0x06020000, 0x06090011)
+
+#: Objects boot writes that CiA 301/402 make optional, and what the master does without them: a
+#: drive that lacks one gets a warning naming node and object, and boots. Every other object boot
+#: writes is mandatory (modes of operation, the PDO mapping, heartbeat producer): a refusal.
+OPTIONAL_OBJECTS: dict[int, str] = {
+    0x6085: "its quick stop uses the drive's own deceleration setting",
+    0x60C2: "the drive takes the cycle time from 0x1006 (or its own setting)",
+    0x1006: "the drive takes the cycle time from 0x60C2 (or its own setting)",
+    0x6065: "the master checks the following error against the window itself",
+    0x607F: "the drive keeps its own velocity limit",
+    0x1016: "the drive does not watch the master's heartbeat",
+}
+#: 0x605A is optional in the compact layout only: in the standard layout the quick stop must end in
+#: Switch on disabled (:func:`~fieldbus.canopen.config.quick_stop_option`), which only 0x605A can ensure
+_QUICK_STOP_OPTION_NOTE = "the drive's own quick stop option applies"
 
 
 class CanopenError(Exception):
@@ -135,6 +150,7 @@ class _Drive:
         self.nmt_state = -1
         self.enabled_at = math.inf  # TPDOs older than this predate the enable
         self.active = False  # the cycle sends this drive its target every SYNC
+        self.missing: dict[int, int] = {}  # optional objects the drive lacks: their abort codes (boot)
         self.active_at = 0.0
         self.enable_started = 0.0  # EMCYs received since are its enable's
         self.last_emcy_at = 0.0
@@ -195,6 +211,8 @@ class CanopenMaster:
         self._stream_t0 = 0.0  # first cycle with a drive streamed to: TPDO ages count from there
         self._last_sync = 0.0  # the last SYNC sent while streaming to a drive (0: none yet)
         self._fault_listeners: list[Callable[[Fault], None]] = []
+        self._warning_listeners: list[Callable[[Fault], None]] = []
+        self.warnings: list[Fault] = []
 
     # ------------------------------------------------------------------ set-up
     def open(self) -> None:
@@ -222,6 +240,20 @@ class CanopenMaster:
         if self.config.heartbeat_producer_ms > 0:
             self._heartbeat_task = net.send_periodic(
                 0x700 + self.config.master_node_id, [0x05], self.config.heartbeat_producer_ms / 1000.0)
+
+    def add_warning_listener(self, callback: Callable[[Fault], None]) -> None:
+        """Called with each warning (a drive without an optional object, a warning EMCY): something to
+        log and show, which does not stop the machine. Any thread; keep it short."""
+        self._warning_listeners.append(callback)
+
+    def warn(self, node: int, text: str) -> None:
+        """Log and publish a warning about ``node`` (0: the master)."""
+        axis = next((d.cfg.axis for d in self.drives if d.cfg.node_id == node), "")
+        w = Fault(node, axis, text)
+        self.warnings.append(w)
+        log.warning("CANopen: %s", w)
+        for cb in self._warning_listeners:
+            cb(w)
 
     def add_fault_listener(self, callback: Callable[[Fault], None]) -> None:
         """Called with the first fault after each reset, on the thread that found it (the reader
@@ -264,9 +296,12 @@ class CanopenMaster:
 
     # ------------------------------------------------------------------ SDO helpers
     def _sdo(self, d: _Drive, what: str, index: int, sub: int, fmt: str | None = None,
-             value: int | None = None, ok_aborts: tuple[int, ...] = ()) -> int:
+             value: int | None = None, ok_aborts: tuple[int, ...] = (),
+             absent: dict[int, int] | None = None) -> int:
         """One SDO read (``value`` None) or write; an abort or timeout is a :class:`CanopenError`
-        naming the node, the object and ``what`` it is, except aborts in ``ok_aborts`` (then 0)."""
+        naming the node, the object and ``what`` it is, except aborts in ``ok_aborts`` (then 0).
+        ``absent``: an optional object, whose "does not exist" abort is recorded there (index: abort
+        code; then 0)."""
         where = f"0x{index:04X}:{sub:02X} ({what})"
         try:
             if fmt is not None and value is not None:
@@ -275,6 +310,9 @@ class CanopenMaster:
             raw = d.node.sdo.upload(index, sub)
         except SdoAbortedError as exc:
             if exc.code in ok_aborts:
+                return 0
+            if absent is not None and exc.code in _NO_SUCH_OBJECT:
+                absent.setdefault(index, exc.code)
                 return 0
             raise CanopenError(f"{d.describe()}: SDO {'write' if value is not None else 'read'} of {where} "
                                f"aborted by the drive: 0x{exc.code:08X} {exc}") from None
@@ -344,8 +382,16 @@ class CanopenMaster:
             # COB-ID bit 31; a drive without that PDO has nothing to disable
             self._sdo(d, f"{p.name} COB-ID (disable)", p.comm_index, 1, "I",
                       0x80000000 | p.cob_id(cfg.node_id), ok_aborts=_NO_SUCH_OBJECT)
+        optional = dict(OPTIONAL_OBJECTS)
+        if self.layout.name != "standard":
+            optional[0x605A] = _QUICK_STOP_OPTION_NOTE
+        d.missing = {}
         for what, index, sub, fmt, value in steps:
-            self._sdo(d, what, index, sub, fmt, value)
+            before = len(d.missing)
+            self._sdo(d, what, index, sub, fmt, value, absent=d.missing if index in optional else None)
+            if len(d.missing) > before:
+                self.warn(cfg.node_id, f"has no object 0x{index:04X} ({what}; SDO abort "
+                                       f"0x{d.missing[index]:08X}): {optional[index]}")
         mode = self._sdo(d, "modes of operation display", 0x6061, 0, "b")
         if mode != cia402.MODE_CSP:
             raise CanopenError(f"{d.describe()}: modes of operation display is {mode}, not 8 (cyclic "
