@@ -13,7 +13,14 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from fieldbus.canopen.config import HOLDING_QUICK_STOP_OPTIONS, CanBusConfig, CanopenConfig, DriveConfig
+from fieldbus.canopen.config import (
+    HOLDING_QUICK_STOP_OPTIONS,
+    CanBusConfig,
+    CanopenConfig,
+    DriveConfig,
+    EmcyPolicy,
+    emcy_pattern_problem,
+)
 from fieldbus.canopen.pdo import LAYOUTS
 from motiond.configkit import Table, in_range, non_negative, one_of, positive
 
@@ -71,6 +78,16 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
     rt_priority = t.get("realtime_priority", int, 0, check=in_range(0, 99))
     cpu_latency = t.get("cpu_latency_us", int, 0, check=in_range(-1, 100_000))
     options = dict(t.table("options").data)
+    emcy_t = t.table("emcy")
+    emcy_lists = {}
+    for key in ("warn", "stop"):
+        patterns = emcy_t.get(key, list, [])
+        for p in patterns:
+            problem = emcy_pattern_problem(p)
+            if problem:
+                raise emcy_t.error(key, problem)
+        emcy_lists[key] = tuple(patterns)
+    emcy_t.check_unknown()
 
     base = Path(root.file).parent if root.file else Path.cwd()
     axes = t.table("axes", required=True)
@@ -125,7 +142,8 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
         master_node_id=master_id, boot_timeout_s=boot_timeout, sdo_timeout_s=sdo_timeout,
         state_timeout_s=state_timeout, homing_timeout_s=homing_timeout, max_bus_load=max_load / 100.0,
         pdo_layout=layout, following_error_every=fe_every, status_refresh_ms=refresh,
-        realtime_priority=rt_priority, cpu_latency_us=None if cpu_latency < 0 else cpu_latency)
+        realtime_priority=rt_priority, cpu_latency_us=None if cpu_latency < 0 else cpu_latency,
+        emcy=EmcyPolicy(**emcy_lists))
 
 
 def canopen_from_file(data: dict[str, Any], file: str = "") -> CanopenConfig:

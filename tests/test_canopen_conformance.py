@@ -247,3 +247,79 @@ def test_quick_stop_option_is_mandatory_in_the_standard_layout_only(rig):
     c = rig(1, sims=[SimDrive(1, absent_objects={0x605A})], up=False, pdo_layout="compact")
     c.up()
     assert "0x605A" in str(c.master.warnings[0]) and c.master.fault is None
+
+
+def test_a_warning_emcy_is_logged_and_published_and_motion_goes_on(rig):
+    r = rig(2)
+    seen = []
+    r.master.add_warning_listener(seen.append)
+    start = r.master.positions()
+    r.run(20, _move(start))
+    r.sim(2).send_warning(0x4210)  # temperature warning, error register 0: the drive goes on
+    r.run(40, _move(start, 20))
+    assert r.master.fault is None
+    assert wait_for(lambda: len(seen) == 1, 1.0)
+    assert (seen[0].node, seen[0].axis) == (2, "y") and "EMCY 0x4210" in seen[0].reason
+    assert "error register 0x00" in seen[0].reason and "goes on" in seen[0].reason
+    assert r.master.positions()[1] == pytest.approx(start[1] + 0.1 * 59)
+    # an error register set: it stops, as every other EMCY
+    r.sim(2).send_warning(0x4210, register=0x09)
+    r.run(5, _move(start, 60))
+    assert wait_for(lambda: r.master.fault is not None, 1.0)
+    assert r.master.fault.node == 2 and "EMCY 0x4210" in r.master.fault.reason
+
+
+def test_the_machine_file_classes_emcy_codes(rig):
+    from fieldbus.canopen.config import EmcyPolicy
+
+    r = rig(1, emcy=EmcyPolicy(warn=("0xFFxx",), stop=("0x42xx",)))
+    seen = []
+    r.master.add_warning_listener(seen.append)
+    r.sim(1).send_warning(0xFF01, register=0x80)  # manufacturer specific: a warning here
+    r.run(10)
+    assert r.master.fault is None and wait_for(lambda: len(seen) == 1, 1.0)
+    r.sim(1).send_warning(0x4210)  # error register 0, but the file says stop
+    r.run(5)
+    assert wait_for(lambda: r.master.fault is not None, 1.0) and "EMCY 0x4210" in r.master.fault.reason
+
+
+def test_emcy_policy_in_the_machine_file():
+    root = Table({"canopen": {"emcy": {"warn": ["0xFFxx", "0x4210"], "stop": ["0xff01"]},
+                              "axes": {"x": {"node_id": 1}}}}, "m.toml")
+    policy = read_canopen(root, ["x"], 0.002).emcy
+    assert policy.is_warning(0xFF02, 0x80) and not policy.is_warning(0xFF01, 0)
+    assert policy.is_warning(0x4210, 0x01) and policy.is_warning(0x3000, 0)
+    assert not policy.is_warning(0x3000, 1)
+    bad = Table({"canopen": {"emcy": {"warn": ["0xFFx"]}, "axes": {"x": {"node_id": 1}}}}, "m.toml")
+    with pytest.raises(ConfigError, match=r"m.toml: canopen\.emcy\.warn: '0xFFx' is not four hex digits"):
+        read_canopen(bad, ["x"], 0.002)
+
+
+def test_a_sync_the_master_did_not_send_is_the_masters_fault(rig):
+    r = rig(2)
+    r.run(20)
+    time.sleep(r.config.feedback_timeout_s + 0.2)  # the master's cycle stalls: no SYNC, no setpoint
+    r.run(2)
+    f = r.master.fault
+    assert f is not None and f.node == 0, f
+    assert str(f).startswith("master: the master sent no SYNC for") and "its cycle stalled" in f.reason
+
+
+def test_reset_is_refused_while_a_drive_heartbeat_is_missing(rig):
+    from fieldbus.canopen.master import CanopenError
+
+    r = rig(2, heartbeat_producer_ms=20, heartbeat_consumer_ms=100)
+    r.run(20)
+    r.sim(2).drop_heartbeat(1.5)
+    for _ in range(100):
+        r.run(5)
+        if r.master.fault is not None:
+            break
+    assert r.master.fault is not None and r.master.fault.node == 2
+    with pytest.raises(CanopenError, match=r"node 2 \(axis y\): no heartbeat for \d+ ms"):
+        r.master.reset_faults()
+    assert r.master.fault is not None
+    assert wait_for(lambda: time.monotonic() - r.master.drives[1].heartbeat_at < 0.05, 3.0)  # it is back
+    r.master.reset_faults()
+    r.master.enable()
+    assert r.master.fault is None

@@ -69,6 +69,42 @@ class DriveConfig:
 
 
 @dataclass(frozen=True)
+class EmcyPolicy:
+    """Which EMCY messages stop the machine. Patterns are four hex digits with ``x`` for any digit
+    (``"0xFFxx"``: every manufacturer-specific code, ``"0x4210"``: one code).
+
+    A ``stop`` pattern always stops; else a ``warn`` pattern is a warning; else the drive's error
+    register (byte 2 of the EMCY) decides: 0, no error set, is a warning (logged and published, motion
+    goes on), anything else stops. A drive that does leave Operation enabled is seen by its statusword
+    all the same, whatever its EMCY was classed as."""
+
+    warn: tuple[str, ...] = ()
+    stop: tuple[str, ...] = ()
+
+    @staticmethod
+    def matches(pattern: str, code: int) -> bool:
+        digits = pattern.lower().removeprefix("0x")
+        return all(p in ("x", c) for p, c in zip(digits, f"{code:04x}", strict=True))
+
+    def is_warning(self, code: int, register: int) -> bool:
+        if any(self.matches(p, code) for p in self.stop):
+            return False
+        if any(self.matches(p, code) for p in self.warn):
+            return True
+        return register == 0
+
+
+def emcy_pattern_problem(pattern: object) -> str | None:
+    """Why ``pattern`` is not an EMCY code pattern (None when it is one)."""
+    if not isinstance(pattern, str):
+        return f"must be a string such as \"0xFFxx\", got {pattern!r}"
+    digits = pattern.lower().removeprefix("0x")
+    if len(digits) != 4 or any(c not in "0123456789abcdefx" for c in digits):
+        return f"{pattern!r} is not four hex digits with x for any digit (e.g. \"0xFFxx\", \"0x4210\")"
+    return None
+
+
+@dataclass(frozen=True)
 class CanopenConfig:
     """The whole CANopen side: bus, drives in axis order, cycle and heartbeat times, timeouts."""
 
@@ -97,6 +133,8 @@ class CanopenConfig:
     #: CPU wake-up latency asked of the kernel while the cycle runs (/dev/cpu_dma_latency, us);
     #: None leaves the CPUs' idle states alone
     cpu_latency_us: int | None = 0
+    #: which EMCYs are warnings and which stop the machine
+    emcy: EmcyPolicy = field(default_factory=EmcyPolicy)
 
     @property
     def layout(self) -> PdoLayout:

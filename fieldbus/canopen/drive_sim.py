@@ -721,6 +721,13 @@ class SimDrive:
         else:
             self._fault(code, "injected by SDO")
 
+    def send_warning(self, code: int, register: int = 0) -> None:
+        """Send an EMCY that is a warning (error register 0 by default): the drive stays as it is."""
+        with self.lock:
+            self.emcys.append(code)
+            if self.network is not None:
+                self.node.emcy.send(code, register)
+
     def drop_heartbeat(self, seconds: float) -> None:
         """Send no heartbeat for ``seconds``."""
         self._hb_dropped_until = self.clock() + seconds

@@ -271,8 +271,13 @@ class CanopenMaster:
     def _on_emcy(self, d: _Drive, entry: canopen.emcy.EmcyError) -> None:
         if entry.code & 0xFF00 == 0:
             return  # error reset
+        text = f"EMCY 0x{entry.code:04X} {entry.get_desc() or 'error'}".rstrip()
+        if self.config.emcy.is_warning(entry.code, entry.register):
+            self.warn(d.cfg.node_id, f"{text} (error register 0x{entry.register:02X}): a warning, the "
+                                     "machine goes on")
+            return
         d.last_emcy, d.last_emcy_at = entry, time.monotonic()
-        self.raise_fault(d.cfg.node_id, f"EMCY 0x{entry.code:04X} {entry.get_desc() or 'error'}".rstrip())
+        self.raise_fault(d.cfg.node_id, text)
 
     @staticmethod
     def _tpdo_reader(d: _Drive, p: Pdo) -> Callable[[int, bytearray, float], None]:
@@ -549,7 +554,17 @@ class CanopenMaster:
         return [d.describe() for d in self.drives if d.nmt_state != 5]
 
     def reset_faults(self) -> None:
-        """Fault-reset every drive in Fault and clear the master's fault; then :meth:`enable` again."""
+        """Fault-reset every drive in Fault and clear the master's fault; then :meth:`enable` again.
+        Refused while a drive's heartbeat is missing (naming it): a drive not heard from is not reset."""
+        conf = self.config
+        if conf.heartbeat_producer_ms > 0:
+            now = time.monotonic()
+            for d in self.drives:
+                age = now - d.heartbeat_at
+                if age > conf.heartbeat_consumer_ms / 1000.0:
+                    raise CanopenError(f"{d.describe()}: no heartbeat for {1000 * age:.0f} ms (consumer time "
+                                       f"{conf.heartbeat_consumer_ms} ms): not reset while it is missing "
+                                       "(drive off, cable, node id?)")
         with self._lock:
             self.streaming = False
         for d in self.drives:
