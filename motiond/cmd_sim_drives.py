@@ -20,6 +20,15 @@ def _indexes(text: str) -> tuple[int, ...]:
     return values
 
 
+def _param(text: str) -> tuple[tuple[int, int], int]:
+    try:
+        where, value = text.split("=")
+        index, _, sub = where.partition(":")
+        return (int(index, 0), int(sub, 0) if sub else 0), int(value, 0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not INDEX[:SUB]=VALUE: {text!r} (e.g. 0x6080=1500)") from None
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", metavar="machine.toml", help="machine configuration file (demo: x y z)")
     parser.add_argument("--interface", help="python-can interface, instead of the file's canopen.interface")
@@ -34,6 +43,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "enabled without a target (default 0: off)")
     parser.add_argument("--absent", type=_indexes, default=(), metavar="0xIIII,...",
                         help="objects the drives do not have (SDO abort 0x06020000), e.g. 0x6085,0x60C2")
+    parser.add_argument("--param", type=_param, action="append", default=[], metavar="0xIIII[:S]=VALUE",
+                        help="a value the drives have instead of their EDS default, e.g. 0x6080=1500 "
+                             "(max motor speed, rpm) or 0x608F:1=10000 (encoder counts); repeatable")
     parser.add_argument("--strict", action="store_true",
                         help="take 'enable operation' in Quick stop active at once, during the stop ramp "
                              "(CiA 402 transition 16, as strict drives do)")
@@ -55,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--rpdo-timeout-syncs {args.rpdo_timeout_syncs}: must not be negative")
     drives = [SimDrive(d.node_id, d.eds_path, lag_s=args.lag_ms / 1000.0, order=args.order,
                        boot_delay_s=args.boot_delay_ms / 1000.0, rpdo_timeout_syncs=args.rpdo_timeout_syncs,
-                       absent_objects=args.absent)
+                       absent_objects=args.absent, parameters=dict(args.param))
               for d in config.drives]
     for d in drives:
         d.reenable_during_quick_stop_ramp = args.strict

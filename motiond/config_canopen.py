@@ -34,8 +34,8 @@ def demo_canopen(axis_names: Sequence[str], cycle_s: float,
 
 def _limits(name: str, axis_limits: Mapping[str, Mapping[str, Any]] | None) -> dict[str, Any]:
     lim = (axis_limits or {}).get(name, {})
-    out = {k: float(lim[k]) for k in ("max_velocity", "quick_stop_deceleration", "min_position",
-                                       "max_position") if isinstance(lim.get(k), int | float)}
+    out = {k: float(lim[k]) for k in ("max_velocity", "max_acceleration", "quick_stop_deceleration",
+                                       "min_position", "max_position") if isinstance(lim.get(k), int | float)}
     return out
 
 
@@ -131,6 +131,7 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
             vendor_id=a.get("vendor_id", int, None, check=non_negative),
             product_code=a.get("product_code", int, None, check=non_negative),
             quick_stop_option=qs_option,
+            counts_per_revolution=a.get("counts_per_revolution", int, None, check=positive),
             **lim,
         ))
         a.check_unknown()
@@ -181,7 +182,8 @@ def canopen_for_machine(machine: Any) -> CanopenConfig:
     limits: dict[str, dict[str, Any]] = {}
     for a in machine.limits.axes:
         qsd = a.quick_stop_deceleration if a.quick_stop_deceleration is not None else 2 * a.max_acceleration
-        limits[a.name] = {"max_velocity": a.max_velocity, "quick_stop_deceleration": qsd,
+        limits[a.name] = {"max_velocity": a.max_velocity, "max_acceleration": a.max_acceleration,
+                          "quick_stop_deceleration": qsd,
                           "min_position": a.min_position, "max_position": a.max_position}
     root = machine.root if machine.root is not None else Table({}, machine.path or "")
     return read_canopen(root, [a.name for a in machine.limits.axes], machine.limits.cycle_s, limits)

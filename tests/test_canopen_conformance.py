@@ -323,3 +323,65 @@ def test_reset_is_refused_while_a_drive_heartbeat_is_missing(rig):
     r.master.reset_faults()
     r.master.enable()
     assert r.master.fault is None
+
+
+def test_a_configuration_faster_than_the_motor_is_refused_naming_key_object_and_both_values(rig):
+    from fieldbus.canopen.master import CanopenError
+
+    # the simulated motor: 3000 rpm, 50000 counts/rev: 2,500,000 counts/s, 250 mm/s at 10000 counts/mm
+    r = rig(1, max_velocity=300.0, up=False)
+    message = (r"node 1 \(axis x\): axes\.x\.max_velocity 300 is 3,000,000 counts/s, more than the motor "
+               r"allows: 0x6080 max motor speed 3000 rpm = 2,500,000 counts/s \(50000 counts/rev\), i\.e\. "
+               r"max_velocity 250 at most")
+    with pytest.raises(CanopenError, match=message):
+        r.master.boot()
+    ok = rig(1, max_velocity=250.0, up=False)
+    ok.master.boot()
+    assert ok.master.drives[0].limits[0x6080] == 3000
+
+
+def test_counts_per_revolution_from_the_machine_file_and_a_smaller_motor(rig):
+    from fieldbus.canopen.drive_sim import SimDrive
+    from fieldbus.canopen.master import CanopenError
+
+    r = rig(1, counts_per_revolution=10000, up=False)  # 3000 rpm x 10000 counts: 50 mm/s
+    with pytest.raises(CanopenError, match=r"0x6080 max motor speed 3000 rpm = 500,000 counts/s"):
+        r.master.boot()
+    small = rig(1, sims=[SimDrive(1, parameters={(0x6080, 0): 1500})], up=False)  # 125 mm/s
+    with pytest.raises(CanopenError, match=r"max_velocity 200 .* 0x6080 max motor speed 1500 rpm"):
+        small.master.boot()
+
+
+def test_acceleration_and_position_range_beyond_the_drive_are_refused(rig):
+    from fieldbus.canopen.drive_sim import SimDrive
+    from fieldbus.canopen.master import CanopenError
+
+    r = rig(1, max_acceleration=60000.0, up=False)  # 6e8 counts/s^2 > 5e8
+    with pytest.raises(CanopenError, match=r"axes\.x\.max_acceleration 60000 is 600,000,000 counts/s², more "
+                                           r"than 0x60C5 max acceleration 500,000,000"):
+        r.master.boot()
+    lim = {(0x607D, 1): -100000, (0x607D, 2): 100000}
+    p = rig(1, sims=[SimDrive(1, parameters=lim)], min_position=-1.0, max_position=300.0, up=False)
+    with pytest.raises(CanopenError, match=r"axes\.x\.min_position\.\.max_position \(-1 to 300\) spans "
+                                           r"3,010,000 counts, more than .* 0x607D \(-100,000 to 100,000"):
+        p.master.boot()
+
+
+def test_a_drive_without_csp_is_refused_by_name(rig):
+    from fieldbus.canopen.drive_sim import SimDrive
+    from fieldbus.canopen.master import CanopenError
+
+    r = rig(1, sims=[SimDrive(1, parameters={(0x6502, 0): 0x25})], up=False)  # pp, pv, homing
+    with pytest.raises(CanopenError, match=r"node 1 \(axis x\): the drive does not support cyclic "
+                                           r"synchronous position \(CSP\): 0x6502 supported drive modes is "
+                                           r"0x00000025"):
+        r.master.boot()
+
+
+def test_without_0x608f_the_speed_check_asks_for_counts_per_revolution(rig):
+    from fieldbus.canopen.drive_sim import SimDrive
+
+    r = rig(1, sims=[SimDrive(1, absent_objects={0x608F})], up=False)
+    r.master.boot()
+    assert any("counts_per_revolution" in str(w) and "0x6080" in str(w) for w in r.master.warnings)
+    assert 0x608F in r.master.drives[0].missing

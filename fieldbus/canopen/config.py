@@ -57,7 +57,11 @@ class DriveConfig:
     homing: str = "set"
     homing_method: int = 35
     max_velocity: float = 200.0
+    max_acceleration: float | None = None
     quick_stop_deceleration: float = 5000.0
+    #: encoder counts per motor revolution, to compare ``max_velocity`` with the drive's max motor speed
+    #: (0x6080, rpm); None: read from 0x608F (position encoder resolution) where the drive has it
+    counts_per_revolution: int | None = None
     vendor_id: int | None = None
     product_code: int | None = None
     #: 0x605A written at boot; None: the layout's safe default (:func:`quick_stop_option`)

@@ -24,6 +24,8 @@ Behaviour a real drive has and the tests rely on:
   simulated home switch; either way the position then reads 0x607C.
 * Optional objects absent (``absent_objects``): SDO access aborts 0x06020000 and the drive keeps its
   own defaults for them.
+* A small motor's limits, from the EDS (0x6080 3000 rpm, 0x608F 50000 counts/rev, 0x60C5/0x60C6,
+  0x607D, 0x6502 with CSP) or ``parameters``.
 * RPDO deadline monitoring (``rpdo_timeout_syncs``): in Operation enabled, that many SYNCs in a row
   without a target fault the drive with EMCY 0x8250.
 * EMCY on every fault, and the reset EMCY (code 0) on fault reset.
@@ -44,7 +46,7 @@ import math
 import struct
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -100,7 +102,7 @@ class SimDrive:
     def __init__(self, node_id: int, eds: str | Path = SHIPPED_EDS, *, lag_s: float = 0.002,
                  order: int = 1, damping: float = 0.8, boot_delay_s: float = 0.0,
                  home_switch_counts: int = 0, rpdo_timeout_syncs: int = 0,
-                 absent_objects: Iterable[int] = (),
+                 absent_objects: Iterable[int] = (), parameters: Mapping[tuple[int, int], int] | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
         if order not in (1, 2):
             raise ValueError("order must be 1 (first-order lag) or 2 (second-order dynamics)")
@@ -122,6 +124,9 @@ class SimDrive:
         # objects this drive does not have, though its EDS lists them: SDO access aborts 0x06020000
         # (a drive without optional objects, as many are); it then uses its defaults for them
         self.absent_objects = frozenset(absent_objects)
+        # (index, subindex): value the drive has instead of its EDS default, after every power-on (a
+        # motor of its own: 0x6080 max motor speed, 0x608F encoder, 0x60C5/0x60C6, 0x607D, 0x6502)
+        self.parameters = dict(parameters or {})
         self._syncs_without_target = 0
         self.clock = clock
         self.lock = threading.RLock()
@@ -249,6 +254,10 @@ class SimDrive:
         for index in list(store):
             if application or index < 0x2000:
                 del store[index]
+        for (index, sub), value in self.parameters.items():
+            if application or index < 0x2000:
+                obj = self.node._find_object(index, sub)
+                store.setdefault(index, {})[sub] = obj.encode_raw(value)
         if application:
             self.state = State.NOT_READY_TO_SWITCH_ON
             self.mode = 0

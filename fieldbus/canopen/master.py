@@ -151,6 +151,7 @@ class _Drive:
         self.enabled_at = math.inf  # TPDOs older than this predate the enable
         self.active = False  # the cycle sends this drive its target every SYNC
         self.missing: dict[int, int] = {}  # optional objects the drive lacks: their abort codes (boot)
+        self.limits: dict[int, object] = {}  # what the drive said at boot: 0x6502, 0x6080, 0x60C5 ...
         self.active_at = 0.0
         self.enable_started = 0.0  # EMCYs received since are its enable's
         self.last_emcy_at = 0.0
@@ -362,6 +363,7 @@ class CanopenMaster:
             if want is not None and got != want:
                 raise CanopenError(f"{d.describe()}: identity 0x1018:{sub:02X} {name} is 0x{got:08X}, "
                                    f"the configuration expects 0x{want:08X} (wrong drive on this node id?)")
+        self._check_limits(d)
         cycle_us = round(conf.cycle_s * 1e6)
         if cycle_us % 1000 == 0 and cycle_us // 1000 <= 255:
             ip_value, ip_index = cycle_us // 1000, -3
@@ -390,7 +392,6 @@ class CanopenMaster:
         optional = dict(OPTIONAL_OBJECTS)
         if self.layout.name != "standard":
             optional[0x605A] = _QUICK_STOP_OPTION_NOTE
-        d.missing = {}
         for what, index, sub, fmt, value in steps:
             before = len(d.missing)
             self._sdo(d, what, index, sub, fmt, value, absent=d.missing if index in optional else None)
@@ -411,6 +412,73 @@ class CanopenMaster:
             time.sleep(0.002)
         d.heartbeat_at = time.monotonic()
         log.info("%s booted", d.describe())
+
+    def _read_optional(self, d: _Drive, what: str, index: int, sub: int, fmt: str) -> int | None:
+        """An optional object's value, or None (remembered in ``d.missing``) when the drive lacks it."""
+        before = len(d.missing)
+        value = self._sdo(d, what, index, sub, fmt, absent=d.missing)
+        return None if len(d.missing) > before or index in d.missing else value
+
+    def _check_limits(self, d: _Drive) -> None:
+        """The drive's capabilities and limits against the configuration, before anything is written:
+        CSP among its supported modes (0x6502); max_velocity within the max motor speed (0x6080, rpm,
+        with the counts per revolution from the configuration or 0x608F); max_acceleration within
+        0x60C5 and 0x60C6; the soft-limit range within the software position limits (0x607D). Each
+        object only where the drive has it. A configuration asking more is refused, naming the key,
+        the object and both values."""
+        cfg = d.cfg
+        d.missing = {}
+        d.limits = {}
+        who = d.describe()
+        modes = self._read_optional(d, "supported drive modes", 0x6502, 0, "I")
+        if modes is not None:
+            d.limits[0x6502] = modes
+            if not modes & (1 << (cia402.MODE_CSP - 1)):
+                raise CanopenError(f"{who}: the drive does not support cyclic synchronous position (CSP): "
+                                   f"0x6502 supported drive modes is 0x{modes:08X}, bit 7 (CSP) clear")
+        per_unit = abs(d.scale.scale)
+        rpm = self._read_optional(d, "max motor speed", 0x6080, 0, "I")
+        cpr = cfg.counts_per_revolution
+        if cpr is None:
+            inc = self._read_optional(d, "position encoder increments", 0x608F, 1, "I")
+            revs = self._read_optional(d, "position encoder motor revolutions", 0x608F, 2, "I")
+            if inc and revs:
+                cpr = inc / revs
+        if rpm is not None:
+            d.limits[0x6080] = rpm
+            if not cpr:
+                self.warn(cfg.node_id, f"max motor speed 0x6080 is {rpm} rpm, but the counts per revolution "
+                                       "are unknown (no 0x608F): set canopen.axes."
+                                       f"{cfg.axis}.counts_per_revolution to have max_velocity checked")
+            else:
+                want = cfg.max_velocity * per_unit
+                allowed = rpm * cpr / 60.0
+                if rpm and want > allowed * (1 + 1e-9):
+                    raise CanopenError(
+                        f"{who}: axes.{cfg.axis}.max_velocity {cfg.max_velocity:g} is {want:,.0f} counts/s, "
+                        f"more than the motor allows: 0x6080 max motor speed {rpm} rpm = {allowed:,.0f} "
+                        f"counts/s ({cpr:g} counts/rev), i.e. max_velocity {allowed / per_unit:g} at most")
+        for index, name in ((0x60C5, "max acceleration"), (0x60C6, "max deceleration")):
+            value = self._read_optional(d, name, index, 0, "I")
+            if value is None:
+                continue
+            d.limits[index] = value
+            if cfg.max_acceleration is not None and value and cfg.max_acceleration * per_unit > value:
+                raise CanopenError(
+                    f"{who}: axes.{cfg.axis}.max_acceleration {cfg.max_acceleration:g} is "
+                    f"{cfg.max_acceleration * per_unit:,.0f} counts/s², more than 0x{index:04X} {name} "
+                    f"{value:,} counts/s² allows (max_acceleration {value / per_unit:g} at most)")
+        lo = self._read_optional(d, "min position limit", 0x607D, 1, "i")
+        hi = self._read_optional(d, "max position limit", 0x607D, 2, "i")
+        if lo is not None and hi is not None:
+            d.limits[0x607D] = (lo, hi)
+            if (lo, hi) != (0, 0) and cfg.min_position is not None and cfg.max_position is not None:
+                span = (cfg.max_position - cfg.min_position) * per_unit
+                if span > hi - lo:
+                    raise CanopenError(
+                        f"{who}: axes.{cfg.axis}.min_position..max_position ({cfg.min_position:g} to "
+                        f"{cfg.max_position:g}) spans {span:,.0f} counts, more than the drive's software "
+                        f"position limits 0x607D ({lo:,} to {hi:,}: {hi - lo:,} counts)")
 
     # ------------------------------------------------------------------ CiA 402 state machine
     def enable(self) -> None:
