@@ -9,12 +9,15 @@ from __future__ import annotations
 
 import dataclasses
 import ipaddress
+import struct
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from fieldbus.canopen.config import (
+    CANON_OWNED,
     HOLDING_QUICK_STOP_OPTIONS,
+    SDO_TYPES,
     CanBusConfig,
     CanopenConfig,
     DriveConfig,
@@ -132,6 +135,7 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
             product_code=a.get("product_code", int, None, check=non_negative),
             quick_stop_option=qs_option,
             counts_per_revolution=a.get("counts_per_revolution", int, None, check=positive),
+            sdo=_extra_sdo(a),
             **lim,
         ))
         a.check_unknown()
@@ -145,6 +149,25 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
         pdo_layout=layout, following_error_every=fe_every, status_refresh_ms=refresh,
         realtime_priority=rt_priority, cpu_latency_us=None if cpu_latency < 0 else cpu_latency,
         emcy=EmcyPolicy(**emcy_lists))
+
+
+def _extra_sdo(axis: Table) -> tuple[tuple[int, int, str, int, str], ...]:
+    """``[[canopen.axes.<a>.sdo]]``: index, subindex, type (u8 i8 u16 i16 u32 i32), value."""
+    out = []
+    for t in axis.array_of_tables("sdo"):
+        index = t.get("index", int, check=in_range(0x1000, 0xFFFF))
+        if index in CANON_OWNED or 0x1400 <= index <= 0x1BFF:
+            raise t.error("index", f"0x{index:04X} is written by canon itself at boot (the cycle, heartbeat, "
+                                   "quick stop, limits or the PDO layout): set it through canon's own keys")
+        sub = t.get("subindex", int, 0, check=in_range(0, 255))
+        kind = t.get("type", str, check=one_of(*SDO_TYPES))
+        code = SDO_TYPES[kind]
+        bits = 8 * struct.calcsize(code)
+        lo, hi = (-(2 ** (bits - 1)), 2 ** (bits - 1) - 1) if kind.startswith("i") else (0, 2**bits - 1)
+        value = t.get("value", int, check=in_range(lo, hi))
+        t.check_unknown()
+        out.append((index, sub, code, value, t.path))
+    return tuple(out)
 
 
 def canopen_from_file(data: dict[str, Any], file: str = "") -> CanopenConfig:

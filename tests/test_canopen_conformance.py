@@ -385,3 +385,64 @@ def test_without_0x608f_the_speed_check_asks_for_counts_per_revolution(rig):
     r.master.boot()
     assert any("counts_per_revolution" in str(w) and "0x6080" in str(w) for w in r.master.warnings)
     assert 0x608F in r.master.drives[0].missing
+
+
+def _dcf(tmp_path, values: dict[str, int]):
+    """The shipped EDS made a DCF: ``ParameterValue`` added to the named sections."""
+    from fieldbus.canopen import SHIPPED_EDS
+
+    text = SHIPPED_EDS.read_text()  # newlines made \n
+    for section, value in values.items():
+        assert f"[{section}]\n" in text, section
+        text = text.replace(f"[{section}]\n", f"[{section}]\nParameterValue={value}\n")
+    path = tmp_path / "drive.dcf"
+    path.write_text(text)
+    return str(path)
+
+
+def test_the_dcf_values_are_written_at_boot_by_the_library_loader_then_canons_own(rig, tmp_path):
+    dcf = _dcf(tmp_path, {"6099sub1": 12345, "6099sub2": 678, "6085": 1})  # 0x6085: canon's wins
+    r = rig(1, eds=dcf)
+    assert r.sim(1)._value(0x6099, 1) == 12345 and r.sim(1)._value(0x6099, 2) == 678
+    assert r.sim(1)._value(0x6085) == 5000 * 10000  # quick_stop_deceleration, written after the DCF
+    r.run(10)
+    assert r.master.fault is None
+
+
+def test_a_dcf_value_the_drive_refuses_stops_the_boot_naming_the_file(rig, tmp_path):
+    from fieldbus.canopen.master import CanopenError
+
+    dcf = _dcf(tmp_path, {"6099sub1": 12345})
+    r = rig(1, eds=dcf, up=False)
+    r.sim(1).abort_sdo(0x6099, 1, 0x06090030)
+    with pytest.raises(CanopenError, match=r"node 1 \(axis x\): writing the values of .*drive\.dcf: SDO "
+                                           r"abort 0x06090030"):
+        r.master.boot()
+
+
+def test_extra_sdo_writes_from_the_machine_file(rig):
+    from fieldbus.canopen.master import CanopenError
+
+    root = Table({"canopen": {"axes": {"x": {"node_id": 1, "sdo": [
+        {"index": 0x6099, "subindex": 2, "type": "u32", "value": 777}]}}}}, "m.toml")
+    drive = read_canopen(root, ["x"], 0.002).drives[0]
+    assert drive.sdo == ((0x6099, 2, "I", 777, "canopen.axes.x.sdo[0]"),)
+    r = rig(1, sdo=drive.sdo)
+    assert r.sim(1)._value(0x6099, 2) == 777
+    bad = rig(1, sdo=((0x2F01, 0, "I", 1, "canopen.axes.x.sdo[0]"),), up=False)
+    with pytest.raises(CanopenError, match=r"node 1 \(axis x\): SDO write of 0x2F01:00 \(canopen\.axes\.x"
+                                           r"\.sdo\[0\] in the machine file\) aborted by the drive: 0x0602"):
+        bad.master.boot()
+
+
+@pytest.mark.parametrize("entry, message", [
+    ({"index": 0x605A, "type": "i16", "value": 6}, r"sdo\[0\]\.index: 0x605A is written by canon itself"),
+    ({"index": 0x1600, "type": "u32", "value": 6}, r"sdo\[0\]\.index: 0x1600 is written by canon itself"),
+    ({"index": 0x6099, "type": "f32", "value": 6}, r"sdo\[0\]\.type"),
+    ({"index": 0x6099, "type": "u8", "value": 300}, r"sdo\[0\]\.value: must be between 0 and 255"),
+    ({"index": 0x6099, "type": "u8", "value": 1, "sub": 1}, r"sdo\[0\]"),
+])
+def test_extra_sdo_mistakes_name_the_key(entry, message):
+    root = Table({"canopen": {"axes": {"x": {"node_id": 1, "sdo": [entry]}}}}, "m.toml")
+    with pytest.raises(ConfigError, match="m.toml: canopen.axes.x." + message):
+        read_canopen(root, ["x"], 0.002)

@@ -62,6 +62,9 @@ class DriveConfig:
     #: encoder counts per motor revolution, to compare ``max_velocity`` with the drive's max motor speed
     #: (0x6080, rpm); None: read from 0x608F (position encoder resolution) where the drive has it
     counts_per_revolution: int | None = None
+    #: extra SDO writes at boot, after the DCF's values and before canon's own: (index, subindex,
+    #: struct code, value, where in the machine file)
+    sdo: tuple[tuple[int, int, str, int, str], ...] = ()
     vendor_id: int | None = None
     product_code: int | None = None
     #: 0x605A written at boot; None: the layout's safe default (:func:`quick_stop_option`)
@@ -169,6 +172,12 @@ def quick_stop_option(drive: DriveConfig, layout: str) -> int:
     if drive.quick_stop_option is not None:
         return drive.quick_stop_option
     return 2 if layout == "standard" else 6
+
+
+#: objects canon writes at boot itself: extra SDO writes to them are refused (canon's would win)
+CANON_OWNED = frozenset({0x1006, 0x1016, 0x1017, 0x6040, 0x605A, 0x6060, 0x6065, 0x607F, 0x6085, 0x60C2})
+#: SDO value types for extra writes: name -> struct code
+SDO_TYPES = {"u8": "B", "i8": "b", "u16": "H", "i16": "h", "u32": "I", "i32": "i"}
 
 
 class AxisScale:

@@ -364,6 +364,9 @@ class CanopenMaster:
                 raise CanopenError(f"{d.describe()}: identity 0x1018:{sub:02X} {name} is 0x{got:08X}, "
                                    f"the configuration expects 0x{want:08X} (wrong drive on this node id?)")
         self._check_limits(d)
+        self._load_dcf(d)
+        for index, sub, code, value, where in cfg.sdo:
+            self._sdo(d, f"{where} in the machine file", index, sub, code, value)
         cycle_us = round(conf.cycle_s * 1e6)
         if cycle_us % 1000 == 0 and cycle_us // 1000 <= 255:
             ip_value, ip_index = cycle_us // 1000, -3
@@ -412,6 +415,27 @@ class CanopenMaster:
             time.sleep(0.002)
         d.heartbeat_at = time.monotonic()
         log.info("%s booted", d.describe())
+
+    def _load_dcf(self, d: _Drive) -> None:
+        """The values of the axis's DCF (its ParameterValue entries) written to the drive by canopen's
+        own configuration loader (``RemoteNode.load_configuration``: PDO records first, then every
+        writable object with a value). An EDS has no values: nothing is written. canon's own objects
+        (the cycle, the quick stop, the PDO layout, heartbeats) are written afterwards and win."""
+        od = d.node.object_dictionary
+        values = [v for obj in od.values() for v in (obj.values() if hasattr(obj, "values") else [obj])
+                  if getattr(v, "value", None) is not None]
+        if not values:
+            return
+        log.info("%s: writing %d values of %s", d.describe(), len(values), d.cfg.eds_path)
+        try:
+            d.node.load_configuration()
+        except SdoAbortedError as exc:
+            raise CanopenError(f"{d.describe()}: writing the values of {d.cfg.eds_path}: SDO abort "
+                               f"0x{exc.code:08X} ({exc}); the drive refused one of the file's values "
+                               "(the object is in the log)") from None
+        except SdoCommunicationError as exc:
+            raise CanopenError(f"{d.describe()}: writing the values of {d.cfg.eds_path}: no SDO answer "
+                               f"({exc})") from None
 
     def _read_optional(self, d: _Drive, what: str, index: int, sub: int, fmt: str) -> int | None:
         """An optional object's value, or None (remembered in ``d.missing``) when the drive lacks it."""
