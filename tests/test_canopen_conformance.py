@@ -337,7 +337,7 @@ def test_a_configuration_faster_than_the_motor_is_refused_naming_key_object_and_
         r.master.boot()
     ok = rig(1, max_velocity=250.0, up=False)
     ok.master.boot()
-    assert ok.master.drives[0].limits[0x6080] == 3000
+    assert ok.master.drives[0].limits[(0x6080, 0)] == 3000
 
 
 def test_counts_per_revolution_from_the_machine_file_and_a_smaller_motor(rig):

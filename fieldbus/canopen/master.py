@@ -50,6 +50,7 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError
 from fieldbus.canopen import cia402
 from fieldbus.canopen.busload import BusLoad, alternatives, bus_load
 from fieldbus.canopen.cia402 import State
+from fieldbus.canopen.commissioning import LIMIT_OBJECTS, boot_writes, limit_problems, optional_objects
 from fieldbus.canopen.config import (
     HOLDING_QUICK_STOP_OPTIONS,
     AxisScale,
@@ -63,22 +64,6 @@ log = logging.getLogger(__name__)
 
 #: SDO abort codes a drive answers for an object (or sub-index) it does not have
 _NO_SUCH_OBJECT = (0x06020000, 0x06090011)
-
-#: Objects boot writes that CiA 301/402 make optional, and what the master does without them: a
-#: drive that lacks one gets a warning naming node and object, and boots. Every other object boot
-#: writes is mandatory (modes of operation, the PDO mapping, heartbeat producer): a refusal.
-OPTIONAL_OBJECTS: dict[int, str] = {
-    0x6085: "its quick stop uses the drive's own deceleration setting",
-    0x60C2: "the drive takes the cycle time from 0x1006 (or its own setting)",
-    0x1006: "the drive takes the cycle time from 0x60C2 (or its own setting)",
-    0x6065: "the master checks the following error against the window itself",
-    0x607F: "the drive keeps its own velocity limit",
-    0x1016: "the drive does not watch the master's heartbeat",
-}
-#: 0x605A is optional in the compact layout only: in the standard layout the quick stop must end in
-#: Switch on disabled (:func:`~fieldbus.canopen.config.quick_stop_option`), which only 0x605A can ensure
-_QUICK_STOP_OPTION_NOTE = "the drive's own quick stop option applies"
-
 
 class CanopenError(Exception):
     """Boot, enable or homing failed; the message names the node, the axis and what went wrong."""
@@ -151,7 +136,8 @@ class _Drive:
         self.enabled_at = math.inf  # TPDOs older than this predate the enable
         self.active = False  # the cycle sends this drive its target every SYNC
         self.missing: dict[int, int] = {}  # optional objects the drive lacks: their abort codes (boot)
-        self.limits: dict[int, object] = {}  # what the drive said at boot: 0x6502, 0x6080, 0x60C5 ...
+        # what the drive said at boot: (index, sub) -> value, None where it lacks the object
+        self.limits: dict[tuple[int, int], int | None] = {}
         self.active_at = 0.0
         self.enable_started = 0.0  # EMCYs received since are its enable's
         self.last_emcy_at = 0.0
@@ -367,34 +353,12 @@ class CanopenMaster:
         self._load_dcf(d)
         for index, sub, code, value, where in cfg.sdo:
             self._sdo(d, f"{where} in the machine file", index, sub, code, value)
-        cycle_us = round(conf.cycle_s * 1e6)
-        if cycle_us % 1000 == 0 and cycle_us // 1000 <= 255:
-            ip_value, ip_index = cycle_us // 1000, -3
-        else:
-            ip_value, ip_index = round(conf.cycle_s * 1e4), -4
-        vmax = math.ceil(cfg.max_velocity * abs(d.scale.scale) * conf.velocity_margin)
-        qsd = math.ceil(cfg.quick_stop_deceleration * abs(d.scale.scale))
-        steps: list[tuple[str, int, int, str, int]] = [
-            ("modes of operation", 0x6060, 0, "b", cia402.MODE_CSP),
-            ("interpolation period", 0x60C2, 1, "B", ip_value),
-            ("interpolation index", 0x60C2, 2, "b", ip_index),
-            ("communication cycle period", 0x1006, 0, "I", cycle_us),
-            ("following error window", 0x6065, 0, "I", d.window),
-            ("max profile velocity", 0x607F, 0, "I", vmax),
-            ("quick stop deceleration", 0x6085, 0, "I", qsd),
-            ("quick stop option", 0x605A, 0, "h", d.qs_option),
-            *self.layout.sdo_steps(cfg.node_id),
-            ("producer heartbeat time", 0x1017, 0, "H", conf.heartbeat_producer_ms),
-            ("consumer heartbeat time", 0x1016, 1, "I",
-             (conf.master_node_id << 16) | (conf.heartbeat_consumer_ms if conf.heartbeat_producer_ms else 0)),
-        ]
+        steps = boot_writes(conf, cfg)
         for p in self.layout.unused_pdos():
             # COB-ID bit 31; a drive without that PDO has nothing to disable
             self._sdo(d, f"{p.name} COB-ID (disable)", p.comm_index, 1, "I",
                       0x80000000 | p.cob_id(cfg.node_id), ok_aborts=_NO_SUCH_OBJECT)
-        optional = dict(OPTIONAL_OBJECTS)
-        if self.layout.name != "standard":
-            optional[0x605A] = _QUICK_STOP_OPTION_NOTE
+        optional = optional_objects(self.layout.name)
         for what, index, sub, fmt, value in steps:
             before = len(d.missing)
             self._sdo(d, what, index, sub, fmt, value, absent=d.missing if index in optional else None)
@@ -453,56 +417,13 @@ class CanopenMaster:
         cfg = d.cfg
         d.missing = {}
         d.limits = {}
-        who = d.describe()
-        modes = self._read_optional(d, "supported drive modes", 0x6502, 0, "I")
-        if modes is not None:
-            d.limits[0x6502] = modes
-            if not modes & (1 << (cia402.MODE_CSP - 1)):
-                raise CanopenError(f"{who}: the drive does not support cyclic synchronous position (CSP): "
-                                   f"0x6502 supported drive modes is 0x{modes:08X}, bit 7 (CSP) clear")
-        per_unit = abs(d.scale.scale)
-        rpm = self._read_optional(d, "max motor speed", 0x6080, 0, "I")
-        cpr = cfg.counts_per_revolution
-        if cpr is None:
-            inc = self._read_optional(d, "position encoder increments", 0x608F, 1, "I")
-            revs = self._read_optional(d, "position encoder motor revolutions", 0x608F, 2, "I")
-            if inc and revs:
-                cpr = inc / revs
-        if rpm is not None:
-            d.limits[0x6080] = rpm
-            if not cpr:
-                self.warn(cfg.node_id, f"max motor speed 0x6080 is {rpm} rpm, but the counts per revolution "
-                                       "are unknown (no 0x608F): set canopen.axes."
-                                       f"{cfg.axis}.counts_per_revolution to have max_velocity checked")
-            else:
-                want = cfg.max_velocity * per_unit
-                allowed = rpm * cpr / 60.0
-                if rpm and want > allowed * (1 + 1e-9):
-                    raise CanopenError(
-                        f"{who}: axes.{cfg.axis}.max_velocity {cfg.max_velocity:g} is {want:,.0f} counts/s, "
-                        f"more than the motor allows: 0x6080 max motor speed {rpm} rpm = {allowed:,.0f} "
-                        f"counts/s ({cpr:g} counts/rev), i.e. max_velocity {allowed / per_unit:g} at most")
-        for index, name in ((0x60C5, "max acceleration"), (0x60C6, "max deceleration")):
-            value = self._read_optional(d, name, index, 0, "I")
-            if value is None:
-                continue
-            d.limits[index] = value
-            if cfg.max_acceleration is not None and value and cfg.max_acceleration * per_unit > value:
-                raise CanopenError(
-                    f"{who}: axes.{cfg.axis}.max_acceleration {cfg.max_acceleration:g} is "
-                    f"{cfg.max_acceleration * per_unit:,.0f} counts/s², more than 0x{index:04X} {name} "
-                    f"{value:,} counts/s² allows (max_acceleration {value / per_unit:g} at most)")
-        lo = self._read_optional(d, "min position limit", 0x607D, 1, "i")
-        hi = self._read_optional(d, "max position limit", 0x607D, 2, "i")
-        if lo is not None and hi is not None:
-            d.limits[0x607D] = (lo, hi)
-            if (lo, hi) != (0, 0) and cfg.min_position is not None and cfg.max_position is not None:
-                span = (cfg.max_position - cfg.min_position) * per_unit
-                if span > hi - lo:
-                    raise CanopenError(
-                        f"{who}: axes.{cfg.axis}.min_position..max_position ({cfg.min_position:g} to "
-                        f"{cfg.max_position:g}) spans {span:,.0f} counts, more than the drive's software "
-                        f"position limits 0x607D ({lo:,} to {hi:,}: {hi - lo:,} counts)")
+        for index, sub, fmt, what in LIMIT_OBJECTS:
+            d.limits[(index, sub)] = self._read_optional(d, what, index, sub, fmt)
+        problems, notes = limit_problems(cfg, d.limits)
+        if problems:
+            raise CanopenError(f"{d.describe()}: {problems[0]}")
+        for note in notes:
+            self.warn(cfg.node_id, note)
 
     # ------------------------------------------------------------------ CiA 402 state machine
     def enable(self) -> None:
