@@ -52,11 +52,12 @@ def _scan(args: argparse.Namespace) -> int:
         logging.getLogger("canopen.sdo.client").setLevel(logging.CRITICAL)
     sims = None
     if config.simulate:
-        from fieldbus.canopen.drive_sim import SimDrive
+        from fieldbus.canopen.drive_sim import SimDrive, motor_for
         from fieldbus.canopen.sim_process import SimBus
 
         try:
-            sims = SimBus([SimDrive(d.node_id, d.eds_path) for d in config.drives], bus)
+            sims = SimBus([SimDrive(d.node_id, d.eds_path, parameters=motor_for(d, d.eds_path))
+                           for d in config.drives], bus)
         except Exception as exc:  # python-can: no such interface or channel
             raise UserError(f"cannot open {bus.interface} bus {bus.channel!r}: {exc}") from None
         _wait_booted(sims)

@@ -45,7 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="objects the drives do not have (SDO abort 0x06020000), e.g. 0x6085,0x60C2")
     parser.add_argument("--param", type=_param, action="append", default=[], metavar="0xIIII[:S]=VALUE",
                         help="a value the drives have instead of their EDS default, e.g. 0x6080=1500 "
-                             "(max motor speed, rpm) or 0x608F:1=10000 (encoder counts); repeatable")
+                             "(max motor speed, rpm) or 0x608F:1=10000 (encoder counts); repeatable. "
+                             "Without it the motor is sized to fit the file's axes")
     parser.add_argument("--strict", action="store_true",
                         help="take 'enable operation' in Quick stop active at once, during the stop ramp "
                              "(CiA 402 transition 16, as strict drives do)")
@@ -56,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     import sys
     import threading
 
-    from fieldbus.canopen.drive_sim import SimDrive
+    from fieldbus.canopen.drive_sim import SimDrive, motor_for
     from fieldbus.canopen.sim_process import SimBus
     from motiond.config_canopen import canopen_for_tool
 
@@ -67,7 +68,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--rpdo-timeout-syncs {args.rpdo_timeout_syncs}: must not be negative")
     drives = [SimDrive(d.node_id, d.eds_path, lag_s=args.lag_ms / 1000.0, order=args.order,
                        boot_delay_s=args.boot_delay_ms / 1000.0, rpdo_timeout_syncs=args.rpdo_timeout_syncs,
-                       absent_objects=args.absent, parameters=dict(args.param))
+                       absent_objects=args.absent,
+                       parameters={**motor_for(d, d.eds_path), **dict(args.param)})
               for d in config.drives]
     for d in drives:
         d.reenable_during_quick_stop_ramp = args.strict

@@ -446,3 +446,15 @@ def test_extra_sdo_mistakes_name_the_key(entry, message):
     root = Table({"canopen": {"axes": {"x": {"node_id": 1, "sdo": [entry]}}}}, "m.toml")
     with pytest.raises(ConfigError, match="m.toml: canopen.axes.x." + message):
         read_canopen(root, ["x"], 0.002)
+
+
+def test_the_simulated_machine_gets_a_motor_sized_for_its_axes(rig):
+    from fieldbus.canopen.config import DriveConfig
+    from fieldbus.canopen.drive_sim import SimDrive, motor_for
+
+    assert motor_for(DriveConfig("x", 1, max_velocity=200.0)) == {}  # the small motor fits
+    fast = DriveConfig("x", 1, max_velocity=400.0, max_acceleration=60000.0)
+    params = motor_for(fast)
+    assert params[(0x6080, 0)] == 6000  # 400 mm/s x 1.25 x 10000 counts/mm at 50000 counts/rev
+    r = rig(1, sims=[SimDrive(1, parameters=params)], max_velocity=400.0, max_acceleration=60000.0)
+    assert r.master.fault is None and r.master.drives[0].limits[(0x6080, 0)] == 6000

@@ -240,3 +240,24 @@ def test_drives_with_rpdo_deadline_monitoring_enable_without_fault(setup):
     master.shutdown()
     report = drives.stop()
     assert _emcys(report) == {1: "[]", 2: "[]", 3: "[]"}, report
+
+
+def test_a_drive_process_without_0x6085_boots_with_a_warning_and_moves(setup):
+    _drives, master = setup(4.0, "standard", "--absent", "0x6085")
+    master.boot()
+    assert {w.node for w in master.warnings if "0x6085" in w.reason} == {1, 2, 3}
+    master.enable()
+    start = master.positions()
+    run = stream(master, lambda t: [start[0] + 10.0 * t, start[1], start[2]], 0.3, fault_on_late=False)
+    assert run.join(30.0) and run.error is None
+    assert master.fault is None, master.fault
+
+
+def test_a_motor_slower_than_the_configuration_is_refused_naming_both(setup):
+    from fieldbus.canopen.master import CanopenError
+
+    _drives, master = setup(4.0, "standard", "--param", "0x6080=1000")  # 1000 rpm: 83.3 mm/s
+    with pytest.raises(CanopenError, match=r"node 1 \(axis x\): axes\.x\.max_velocity 200 is 2,000,000 "
+                                           r"counts/s, more than the motor allows: 0x6080 max motor speed "
+                                           r"1000 rpm"):
+        master.boot()

@@ -55,6 +55,7 @@ from canopen.sdo import SdoAbortedError
 
 from fieldbus.canopen import SHIPPED_EDS, cia402
 from fieldbus.canopen.cia402 import Command, State
+from fieldbus.canopen.config import DriveConfig
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +95,31 @@ class PdoMap:
 
 
 _FMT = {(1, True): "b", (1, False): "B", (2, True): "h", (2, False): "H", (4, True): "i", (4, False): "I"}
+
+
+def motor_for(cfg: DriveConfig, eds: str | Path = SHIPPED_EDS) -> dict[tuple[int, int], int]:
+    """``parameters`` for a simulated motor big enough for the axis ``cfg``: the EDS's small motor where
+    it fits, else 0x6080 (rpm, at the EDS's 0x608F counts per revolution) and 0x60C5/0x60C6 raised to
+    what the configuration asks (velocity with the 0x607F margin). The simulated machine (``canon run``,
+    the daemon, ``canon sim drives``) stands in for drives sized for it; tests that want a motor too
+    small for the configuration build their SimDrive without it."""
+    od = canopen.import_od(str(eds), cfg.node_id)
+    out: dict[tuple[int, int], int] = {}
+    try:
+        cpr = od[0x608F][1].default / max(1, od[0x608F][2].default)
+        rpm = od[0x6080].default
+    except KeyError:
+        return out
+    per_unit = abs(cfg.counts_per_unit)
+    need_rpm = math.ceil(cfg.max_velocity * 1.25 * per_unit * 60.0 / cpr)
+    if need_rpm > rpm:
+        out[(0x6080, 0)] = need_rpm
+    if cfg.max_acceleration is not None:
+        need = math.ceil(max(cfg.max_acceleration, cfg.quick_stop_deceleration) * per_unit)
+        for index in (0x60C5, 0x60C6):
+            if index in od and need > od[index].default:
+                out[(index, 0)] = need
+    return out
 
 
 class SimDrive:
