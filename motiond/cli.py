@@ -28,6 +28,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("motiond.cmd_run", "run a program on the machine (the built-in simulated demo by default)"),
     "daemon": ("motiond.cmd_daemon", "run the machine as a daemon, commanded and watched over LCM"),
     "sim": ("motiond.cmd_sim", "run simulated drives or I/O as a separate process, or inject a drive fault"),
+    "drives": ("motiond.cmd_drives", "scan the CANopen drives against the configuration, or write DCFs"),
     "can-dump": ("motiond.cmd_can_dump", "watch a CAN bus with CANopen frames named and decoded"),
     "spy": ("motiond.cmd_spy", "watch the machine's LCM traffic in lcm-spy, canon's types decoded"),
     "log": ("motiond.cmd_log", "record the machine's LCM traffic into a log file (lcm-logger)"),

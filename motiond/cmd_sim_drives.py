@@ -9,6 +9,26 @@ from __future__ import annotations
 import argparse
 
 
+def _indexes(text: str) -> tuple[int, ...]:
+    try:
+        values = tuple(int(v, 0) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a list of object indexes: {text!r} (e.g. 0x6085,0x60C2)") \
+            from None
+    if any(not 0x1000 <= v <= 0xFFFF for v in values):
+        raise argparse.ArgumentTypeError(f"object indexes are 0x1000 to 0xFFFF: {text!r}")
+    return values
+
+
+def _param(text: str) -> tuple[tuple[int, int], int]:
+    try:
+        where, value = text.split("=")
+        index, _, sub = where.partition(":")
+        return (int(index, 0), int(sub, 0) if sub else 0), int(value, 0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not INDEX[:SUB]=VALUE: {text!r} (e.g. 0x6080=1500)") from None
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", metavar="machine.toml", help="machine configuration file (demo: x y z)")
     parser.add_argument("--interface", help="python-can interface, instead of the file's canopen.interface")
@@ -18,6 +38,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="servo dynamics: 1 first-order lag, 2 second-order (default 1)")
     parser.add_argument("--boot-delay-ms", type=float, default=0.0, help="delay of the boot-up message")
     parser.add_argument("--seconds", type=float, default=0.0, help="stop after this long (default: never)")
+    parser.add_argument("--rpdo-timeout-syncs", type=int, default=0, metavar="N",
+                        help="RPDO deadline monitoring: fault (EMCY 0x8250) after N SYNCs in Operation "
+                             "enabled without a target (default 0: off)")
+    parser.add_argument("--absent", type=_indexes, default=(), metavar="0xIIII,...",
+                        help="objects the drives do not have (SDO abort 0x06020000), e.g. 0x6085,0x60C2")
+    parser.add_argument("--param", type=_param, action="append", default=[], metavar="0xIIII[:S]=VALUE",
+                        help="a value the drives have instead of their EDS default, e.g. 0x6080=1500 "
+                             "(max motor speed, rpm) or 0x608F:1=10000 (encoder counts); repeatable. "
+                             "Without it the motor is sized to fit the file's axes")
+    parser.add_argument("--strict", action="store_true",
+                        help="take 'enable operation' in Quick stop active at once, during the stop ramp "
+                             "(CiA 402 transition 16, as strict drives do)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -25,13 +57,22 @@ def run(args: argparse.Namespace) -> int:
     import sys
     import threading
 
-    from fieldbus.canopen.drive_sim import SimDrive
+    from fieldbus.canopen.drive_sim import SimDrive, motor_for
     from fieldbus.canopen.sim_process import SimBus
     from motiond.config_canopen import canopen_for_tool
 
     config, bus = canopen_for_tool(args.config, args.interface, args.channel)
+    if args.rpdo_timeout_syncs < 0:
+        from motiond.cli import UserError
+
+        raise UserError(f"--rpdo-timeout-syncs {args.rpdo_timeout_syncs}: must not be negative")
     drives = [SimDrive(d.node_id, d.eds_path, lag_s=args.lag_ms / 1000.0, order=args.order,
-                       boot_delay_s=args.boot_delay_ms / 1000.0) for d in config.drives]
+                       boot_delay_s=args.boot_delay_ms / 1000.0, rpdo_timeout_syncs=args.rpdo_timeout_syncs,
+                       absent_objects=args.absent,
+                       parameters={**motor_for(d, d.eds_path), **dict(args.param)})
+              for d in config.drives]
+    for d in drives:
+        d.reenable_during_quick_stop_ramp = args.strict
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

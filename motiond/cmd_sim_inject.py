@@ -1,4 +1,5 @@
-"""``canon sim inject``: make a simulated drive (``canon sim drives``, another process) fault with an EMCY.
+"""``canon sim inject``: make a simulated drive (``canon sim drives``, another process) fault with an EMCY,
+or work its local quick-stop input (``--quick-stop on|off``, sub 3 of the same object).
 
 What a test bench does on a real bus: an SDO write from a separate CANopen client, here to the
 simulated drive's simulation-only object 0x2F00 (sub 2 the delay in ms, then sub 1 the EMCY code;
@@ -30,8 +31,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     who = parser.add_mutually_exclusive_group(required=True)
     who.add_argument("--axis", help="the axis whose drive faults (its node id from the configuration)")
     who.add_argument("--node", type=int, help="the drive's node id")
-    parser.add_argument("--emcy", type=_code, required=True, metavar="CODE",
-                        help="EMCY error code, e.g. 0x7300; 0 cancels faults still waiting for --delay-ms")
+    what = parser.add_mutually_exclusive_group(required=True)
+    what.add_argument("--emcy", type=_code, metavar="CODE",
+                      help="EMCY error code, e.g. 0x7300; 0 cancels faults still waiting for --delay-ms")
+    what.add_argument("--quick-stop", choices=("on", "off"),
+                      help="the drive's local quick-stop input: on (the drive stops itself), off (released)")
     parser.add_argument("--delay-ms", type=int, default=0, help="the drive faults this long after the write")
     parser.add_argument("--timeout", type=float, default=1.0, help="seconds to wait for each SDO answer")
 
@@ -44,7 +48,12 @@ def run(args: argparse.Namespace) -> int:
     import canopen
     from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
-    from fieldbus.canopen.drive_sim import SIM_INJECT, SIM_INJECT_CODE, SIM_INJECT_DELAY_MS
+    from fieldbus.canopen.drive_sim import (
+        SIM_INJECT,
+        SIM_INJECT_CODE,
+        SIM_INJECT_DELAY_MS,
+        SIM_QUICK_STOP_INPUT,
+    )
     from motiond.cli import UserError
     from motiond.config_canopen import canopen_for_tool
 
@@ -76,14 +85,20 @@ def run(args: argparse.Namespace) -> int:
         node.sdo.RESPONSE_TIMEOUT = args.timeout
         node.sdo.MAX_RETRIES = 3  # udp_multicast may lose a frame; a repeated write only faults again
         try:
-            node.sdo.download(SIM_INJECT, SIM_INJECT_DELAY_MS, struct.pack("<I", args.delay_ms))
-            node.sdo.download(SIM_INJECT, SIM_INJECT_CODE, struct.pack("<H", args.emcy))
+            if args.quick_stop is not None:
+                node.sdo.download(SIM_INJECT, SIM_QUICK_STOP_INPUT, bytes([args.quick_stop == "on"]))
+            else:
+                node.sdo.download(SIM_INJECT, SIM_INJECT_DELAY_MS, struct.pack("<I", args.delay_ms))
+                node.sdo.download(SIM_INJECT, SIM_INJECT_CODE, struct.pack("<H", args.emcy))
         except SdoAbortedError as exc:
             raise UserError(f"{name}: SDO abort 0x{exc.code:08X} writing 0x{SIM_INJECT:04X} ({exc}); "
                             "only canon's simulated drives have this object") from None
         except SdoCommunicationError as exc:
             raise UserError(f"{name}: no SDO answer on {bus.interface} {bus.channel!r} ({exc}); "
                             "is 'canon sim drives' running on this bus?") from None
+        if args.quick_stop is not None:
+            print(f"{name}: local quick-stop input {args.quick_stop}", flush=True)
+            return 0
         if args.emcy == 0:
             print(f"{name}: pending injected faults cancelled", flush=True)
             return 0

@@ -10,11 +10,21 @@ from __future__ import annotations
 import dataclasses
 import ipaddress
 import math
+import struct
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from fieldbus.canopen.config import CanBusConfig, CanopenConfig, DriveConfig
+from fieldbus.canopen.config import (
+    CANON_OWNED,
+    HOLDING_QUICK_STOP_OPTIONS,
+    SDO_TYPES,
+    CanBusConfig,
+    CanopenConfig,
+    DriveConfig,
+    EmcyPolicy,
+    emcy_pattern_problem,
+)
 from fieldbus.canopen.pdo import LAYOUTS
 from motiond.configkit import Table, in_range, one_of, positive
 
@@ -30,8 +40,8 @@ def demo_canopen(axis_names: Sequence[str], cycle_s: float,
 
 def _limits(name: str, axis_limits: Mapping[str, Mapping[str, Any]] | None) -> dict[str, Any]:
     lim = (axis_limits or {}).get(name, {})
-    out = {k: float(lim[k]) for k in ("max_velocity", "quick_stop_deceleration", "min_position",
-                                       "max_position") if isinstance(lim.get(k), int | float)}
+    out = {k: float(lim[k]) for k in ("max_velocity", "max_acceleration", "quick_stop_deceleration",
+                                       "min_position", "max_position") if isinstance(lim.get(k), int | float)}
     return out
 
 
@@ -74,6 +84,16 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
     rt_priority = t.get("realtime_priority", int, 0, check=in_range(0, 99))
     cpu_latency = t.get("cpu_latency_us", int, 0, check=in_range(-1, 100_000))
     options = dict(t.table("options").data)
+    emcy_t = t.table("emcy")
+    emcy_lists = {}
+    for key in ("warn", "stop"):
+        patterns = emcy_t.get(key, list, [])
+        for p in patterns:
+            problem = emcy_pattern_problem(p)
+            if problem:
+                raise emcy_t.error(key, problem)
+        emcy_lists[key] = tuple(patterns)
+    emcy_t.check_unknown()
 
     base = Path(root.file).parent if root.file else Path.cwd()
     axes = t.table("axes", required=True)
@@ -100,6 +120,12 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
                 raise a.error("eds", f"no such file: {path}")
             eds = str(path)
         lim = _limits(name, axis_limits)
+        qs_option = a.get("quick_stop_option", int, None, check=one_of(1, 2, 3, 4, 5, 6, 7, 8))
+        if layout == "standard" and qs_option in HOLDING_QUICK_STOP_OPTIONS:
+            raise a.error("quick_stop_option",
+                          f"{qs_option} ends a quick stop in Quick stop active, which the standard layout's "
+                          "cyclic controlword (enable operation, 0x0F) would undo: use 1-4 here, or "
+                          "pdo_layout = \"compact\" to hold the position after a quick stop")
         drive = DriveConfig(
             axis=name, node_id=node_id, eds=eds,
             counts_per_unit=a.get("counts_per_unit", float, 10000.0, check=positive),
@@ -110,6 +136,9 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
             homing_method=a.get("homing_method", int, 35, check=in_range(-128, 127)),
             vendor_id=a.get("vendor_id", int, None, check=in_range(0, U32)),
             product_code=a.get("product_code", int, None, check=in_range(0, U32)),
+            quick_stop_option=qs_option,
+            counts_per_revolution=a.get("counts_per_revolution", int, None, check=positive),
+            sdo=_extra_sdo(a),
             **lim,
         )
         check_drive_ranges(a, drive)
@@ -123,7 +152,27 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
         master_node_id=master_id, boot_timeout_s=boot_timeout, sdo_timeout_s=sdo_timeout,
         state_timeout_s=state_timeout, homing_timeout_s=homing_timeout, max_bus_load=max_load / 100.0,
         pdo_layout=layout, following_error_every=fe_every, status_refresh_ms=refresh,
-        realtime_priority=rt_priority, cpu_latency_us=None if cpu_latency < 0 else cpu_latency)
+        realtime_priority=rt_priority, cpu_latency_us=None if cpu_latency < 0 else cpu_latency,
+        emcy=EmcyPolicy(**emcy_lists))
+
+
+def _extra_sdo(axis: Table) -> tuple[tuple[int, int, str, int, str], ...]:
+    """``[[canopen.axes.<a>.sdo]]``: index, subindex, type (u8 i8 u16 i16 u32 i32), value."""
+    out = []
+    for t in axis.array_of_tables("sdo"):
+        index = t.get("index", int, check=in_range(0x1000, 0xFFFF))
+        if index in CANON_OWNED or 0x1400 <= index <= 0x1BFF:
+            raise t.error("index", f"0x{index:04X} is written by canon itself at boot (the cycle, heartbeat, "
+                                   "quick stop, limits or the PDO layout): set it through canon's own keys")
+        sub = t.get("subindex", int, 0, check=in_range(0, 255))
+        kind = t.get("type", str, check=one_of(*SDO_TYPES))
+        code = SDO_TYPES[kind]
+        bits = 8 * struct.calcsize(code)
+        lo, hi = (-(2 ** (bits - 1)), 2 ** (bits - 1) - 1) if kind.startswith("i") else (0, 2**bits - 1)
+        value = t.get("value", int, check=in_range(lo, hi))
+        t.check_unknown()
+        out.append((index, sub, code, value, t.path))
+    return tuple(out)
 
 
 U32 = 2**32 - 1
@@ -197,7 +246,8 @@ def canopen_for_machine(machine: Any) -> CanopenConfig:
     limits: dict[str, dict[str, Any]] = {}
     for a in machine.limits.axes:
         qsd = a.quick_stop_deceleration if a.quick_stop_deceleration is not None else 2 * a.max_acceleration
-        limits[a.name] = {"max_velocity": a.max_velocity, "quick_stop_deceleration": qsd,
+        limits[a.name] = {"max_velocity": a.max_velocity, "max_acceleration": a.max_acceleration,
+                          "quick_stop_deceleration": qsd,
                           "min_position": a.min_position, "max_position": a.max_position}
     root = machine.root if machine.root is not None else Table({}, machine.path or "")
     return read_canopen(root, [a.name for a in machine.limits.axes], machine.limits.cycle_s, limits)

@@ -71,3 +71,6 @@ def setup_logging(verbose: int) -> None:
         logging.getLogger(name).setLevel(logging.DEBUG if verbose >= 1 else logging.INFO)
     for name in LIBRARIES:
         logging.getLogger(name).setLevel(logging.DEBUG if verbose >= 2 else logging.WARNING)
+    # canon's master reports a failed SDO itself (node, object, what it is for); the library's own line
+    # for an attempt that a retry then saved is noise on a loaded machine
+    logging.getLogger("canopen.sdo.client").setLevel(logging.NOTSET if verbose else logging.CRITICAL)

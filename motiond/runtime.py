@@ -486,15 +486,17 @@ class Machine:
         self.events.start()
         try:
             if self.simulated:
-                from fieldbus.canopen.drive_sim import SimDrive
+                from fieldbus.canopen.drive_sim import SimDrive, motor_for
                 from fieldbus.canopen.sim_process import SimBus
 
-                self.sim_drives = [SimDrive(d.node_id, d.eds_path, lag_s=self.sim_lag_s)
+                self.sim_drives = [SimDrive(d.node_id, d.eds_path, lag_s=self.sim_lag_s,
+                                            parameters=motor_for(d, d.eds_path))
                                    for d in self.canopen.drives]
                 self.sim_bus = SimBus(self.sim_drives, self.canopen.bus)
             try:
                 self.master = CanopenMaster(self.canopen)
                 self.master.add_fault_listener(self._on_master_fault)
+                self.master.add_warning_listener(self._on_master_warning)
                 self.master.open()
                 self.master.boot()
             except CanopenError as exc:
@@ -829,6 +831,10 @@ class Machine:
         if self._estopping:
             return
         self._post_fault(str(fault), "canopen")
+
+    def _on_master_warning(self, warning: Any) -> None:
+        """A drive without an optional object, a warning EMCY: logged and published, motion goes on."""
+        self.event("WARNING", str(warning), kind="drive_warning", source="canopen")
 
     def _on_io_fault(self, fault: Any) -> None:
         self._post_fault(str(fault), "modbus")

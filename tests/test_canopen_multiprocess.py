@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from fieldbus.canopen.cia402 import State
+from fieldbus.canopen.cia402 import State, decode
 from fieldbus.canopen.clock import stream
 from fieldbus.canopen.master import CanopenMaster
 from motiond.config_canopen import canopen_from_file
@@ -98,10 +98,11 @@ def group() -> str:
 def setup(tmp_path):
     made: list[tuple[DriveProcess, CanopenMaster]] = []
 
-    def make(cycle_ms: float = 2.0, layout: str = "standard"):
+    def make(cycle_ms: float = 2.0, layout: str = "standard", *extra: str):
         path = machine_file(tmp_path, "udp_multicast", group(), cycle_ms, layout)
         config = canopen_from_file(load_toml(path), str(path))
-        drives = DriveProcess(path)
+        drives = DriveProcess(path, *extra)
+        drives.config = path
         master = CanopenMaster(config)
         made.append((drives, master))
         return drives, master
@@ -151,3 +152,112 @@ def test_the_drive_process_dying_is_a_fault(setup):
         time.sleep(0.004)
     assert master.fault is not None
     assert "no TPDO" in master.fault.reason or "heartbeat missed" in master.fault.reason
+
+
+def _emcys(report: str) -> dict[int, str]:
+    """``node n: ... emcy [...]`` lines of ``canon sim drives``' report: node -> its EMCY list."""
+    return {int(line.split(":")[0].split()[1]): line.split("emcy ")[1]
+            for line in report.splitlines() if line.startswith("node ")}
+
+
+def test_shutdown_leaves_the_drives_disabled_and_nothing_faults_after_exit(setup):
+    drives, master = setup(2.0)
+    master.boot()
+    master.enable()
+    start = master.positions()
+    runner = stream(master, lambda t: [start[0] + 20.0 * t, start[1], start[2]], 0.5, fault_on_late=False)
+    assert runner.join(30.0) and runner.error is None
+    master.shutdown()  # the drive at 20 mm/s: quick stop, disabled, consumer heartbeat off
+    time.sleep(0.8)  # four consumer times (200 ms) without the master's heartbeat
+    report = drives.stop()
+    assert _emcys(report) == {1: "[]", 2: "[]", 3: "[]"}, report
+
+
+def _quick_stop_input(config: Path, node_id: int, *values: int) -> None:
+    """What ``canon sim inject --quick-stop on|off`` does (SDO to 0x2F00:03), from a CANopen client on
+    its own bus object in this process: starting the CLI twice would load this 2-core machine enough
+    to delay the drives' TPDOs beyond the master's limit."""
+    import canopen
+
+    from fieldbus.canopen.drive_sim import SIM_INJECT, SIM_QUICK_STOP_INPUT
+
+    bus = canopen_from_file(load_toml(config), str(config)).bus
+    network = canopen.Network()
+    network.connect(**bus.bus_kwargs())
+    try:
+        node = network.add_node(canopen.RemoteNode(node_id, canopen.ObjectDictionary()))
+        node.sdo.MAX_RETRIES = 3
+        for v in values:
+            node.sdo.download(SIM_INJECT, SIM_QUICK_STOP_INPUT, bytes([v]))
+    finally:
+        network.disconnect()
+
+
+@pytest.mark.parametrize("layout", ["standard", "compact"])
+def test_a_drive_local_quick_stop_in_the_drive_process_stops_the_machine(setup, layout):
+    """The drives take transition 16 at once (``--strict``); the quick-stop input of y is tapped mid-move
+    by SDO from another client: the machine stops, y is named, and it stays stopped."""
+    drives, master = setup(4.0, layout, "--strict")
+    master.boot()
+    master.enable()
+    start = master.positions()
+    # slow enough that a burst of frames lost on a loaded machine is no setpoint jump
+    runner = stream(master, lambda t: [start[0] + 10.0 * t, start[1] + 10.0 * t, start[2]], 3.0,
+                    fault_on_late=False)
+    time.sleep(0.5)
+    _quick_stop_input(drives.config, 2, 1, 0)  # tapped: on, then off at once
+    assert runner.join(30.0) and runner.error is None
+    f = master.fault
+    assert f is not None and (f.node, f.axis) == (2, "y"), f
+    assert "quick stop" in f.reason and "not re-enabled" in f.reason
+    for _ in range(50):
+        master.cycle(None)
+        time.sleep(0.002)
+    states = [decode(master._statusword(d)) for d in master.drives]  # by SDO, from the drives
+    assert State.OPERATION_ENABLED not in states, states
+
+
+def test_drives_with_rpdo_deadline_monitoring_enable_without_fault(setup):
+    """Every drive of the other process faults after 3 SYNCs without a target (EMCY 0x8250); the
+    master enables them over SDO one by one while its cycle runs: none faults."""
+    from fieldbus.canopen.clock import PeriodicRunner
+
+    drives, master = setup(4.0, "standard", "--rpdo-timeout-syncs", "3")
+    master.boot()
+    runner = PeriodicRunner(master.config.cycle_s, lambda k, t: master.cycle(None),
+                            keep_lateness=False).start()
+    try:
+        master.enable()
+        time.sleep(0.2)
+    finally:
+        runner.stop()
+        assert runner.join(5.0)
+    assert master.fault is None, master.fault
+    start = master.positions()
+    run = stream(master, lambda t: [start[0] + 10.0 * t, start[1], start[2]], 0.5, fault_on_late=False)
+    assert run.join(30.0) and run.error is None
+    assert master.fault is None, master.fault
+    master.shutdown()
+    report = drives.stop()
+    assert _emcys(report) == {1: "[]", 2: "[]", 3: "[]"}, report
+
+
+def test_a_drive_process_without_0x6085_boots_with_a_warning_and_moves(setup):
+    _drives, master = setup(4.0, "standard", "--absent", "0x6085")
+    master.boot()
+    assert {w.node for w in master.warnings if "0x6085" in w.reason} == {1, 2, 3}
+    master.enable()
+    start = master.positions()
+    run = stream(master, lambda t: [start[0] + 10.0 * t, start[1], start[2]], 0.3, fault_on_late=False)
+    assert run.join(30.0) and run.error is None
+    assert master.fault is None, master.fault
+
+
+def test_a_motor_slower_than_the_configuration_is_refused_naming_both(setup):
+    from fieldbus.canopen.master import CanopenError
+
+    _drives, master = setup(4.0, "standard", "--param", "0x6080=1000")  # 1000 rpm: 83.3 mm/s
+    with pytest.raises(CanopenError, match=r"node 1 \(axis x\): axes\.x\.max_velocity 200 is 2,000,000 "
+                                           r"counts/s, more than the motor allows: 0x6080 max motor speed "
+                                           r"1000 rpm"):
+        master.boot()

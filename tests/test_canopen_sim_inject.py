@@ -129,7 +129,8 @@ def test_injected_by_sdo_mid_move_the_master_stops_everything() -> None:
         assert r.master.positions() == held
         assert wait_for(lambda: r.sim(2).state == State.FAULT, 2.0)
         assert wait_for(lambda: all(r.sim(n).velocity == 0.0 for n in (1, 2, 3)), 2.0)  # stopped
-        assert r.sim(1).state == State.QUICK_STOP_ACTIVE and r.sim(3).state == State.QUICK_STOP_ACTIVE
+        # standard layout: quick stop option 2 ends in Switch on disabled
+        assert r.sim(1).state == State.SWITCH_ON_DISABLED and r.sim(3).state == State.SWITCH_ON_DISABLED
         r.master.reset_faults()
         r.master.enable()
         assert r.master.fault is None
@@ -147,6 +148,17 @@ def test_cli_injects_by_axis(drives, capsys) -> None:
     assert rc == 0, out.err
     assert "node 2 (axis y): EMCY 0x7300 injected; the drive sent it" in out.out
     assert sims[2].state == State.FAULT and sims[2].emcys == [0x7300]
+
+
+def test_cli_works_the_local_quick_stop_input(drives, capsys) -> None:
+    sims, bench = drives
+    rc = main(["sim", "inject", "--interface", "virtual", "--channel", bench.channel,
+               "--axis", "x", "--quick-stop", "on"])
+    assert rc == 0 and "node 1 (axis x): local quick-stop input on" in capsys.readouterr().out
+    assert sims[1].quick_stop_input and not sims[2].quick_stop_input
+    rc = main(["sim", "inject", "--interface", "virtual", "--channel", bench.channel,
+               "--axis", "x", "--quick-stop", "off"])
+    assert rc == 0 and not sims[1].quick_stop_input
 
 
 def test_cli_errors(drives, capsys) -> None:

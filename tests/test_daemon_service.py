@@ -301,7 +301,8 @@ def test_estop_during_enabling_leaves_no_drive_enabled(rig: Rig, monkeypatch: py
     s = m.status()
     assert s.state == "estop" and not s.enabled and not m.master.streaming
     # the quick stop went out before the result; the simulated drives take it on their bus thread
-    wait_for(lambda: [sim.state for sim in m.sim_drives] == [DriveState.QUICK_STOP_ACTIVE] * 3, 1.0,
+    wait_for(lambda: [sim.controlword for sim in m.sim_drives] == [0x0002] * 3
+             and DriveState.OPERATION_ENABLED not in [sim.state for sim in m.sim_drives], 1.0,
              "every drive quick-stopped")
     wait_for(lambda: m.planner is None, 1.0, "no planner")
 

@@ -369,10 +369,11 @@ def test_emcy_injected_by_sdo_mid_move_then_reset(rig: Rig) -> None:
     s = hmi.wait(lambda s: s.state == "fault", what="fault")
     assert "node 2 (axis y)" in s.last_error and "EMCY 0x7300" in s.last_error, s.last_error
     assert any(e.kind == "drive_fault" and "EMCY 0x7300" in e.text for e in hmi.events)
-    # the faulted drive in Fault with the code; the others in quick stop, holding
-    s = hmi.wait(lambda s: [d.cia402_state for d in s.drives] == ["quick_stop_active", "fault",
-                                                                  "quick_stop_active"],
-                 what="drive y in fault, x and z in quick stop")
+    # the faulted drive in Fault with the code; the others quick-stopped: in the standard layout
+    # (quick stop option 2) their ramp ends in Switch on disabled
+    s = hmi.wait(lambda s: [d.cia402_state for d in s.drives] == ["switch_on_disabled", "fault",
+                                                                  "switch_on_disabled"],
+                 what="drive y in fault, x and z stopped and disabled")
     assert s.drives[1].emcy_code == 0x7300
     assert 5 < s.commanded[0] < 60  # stopped mid-move
     # every drive stopped: the positions they report stop changing

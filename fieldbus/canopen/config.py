@@ -57,13 +57,58 @@ class DriveConfig:
     homing: str = "set"
     homing_method: int = 35
     max_velocity: float = 200.0
+    max_acceleration: float | None = None
     quick_stop_deceleration: float = 5000.0
+    #: encoder counts per motor revolution, to compare ``max_velocity`` with the drive's max motor speed
+    #: (0x6080, rpm); None: read from 0x608F (position encoder resolution) where the drive has it
+    counts_per_revolution: int | None = None
+    #: extra SDO writes at boot, after the DCF's values and before canon's own: (index, subindex,
+    #: struct code, value, where in the machine file)
+    sdo: tuple[tuple[int, int, str, int, str], ...] = ()
     vendor_id: int | None = None
     product_code: int | None = None
+    #: 0x605A written at boot; None: the layout's safe default (:func:`quick_stop_option`)
+    quick_stop_option: int | None = None
 
     @property
     def eds_path(self) -> str:
         return self.eds or str(SHIPPED_EDS)
+
+
+@dataclass(frozen=True)
+class EmcyPolicy:
+    """Which EMCY messages stop the machine. Patterns are four hex digits with ``x`` for any digit
+    (``"0xFFxx"``: every manufacturer-specific code, ``"0x4210"``: one code).
+
+    A ``stop`` pattern always stops; else a ``warn`` pattern is a warning; else the drive's error
+    register (byte 2 of the EMCY) decides: 0, no error set, is a warning (logged and published, motion
+    goes on), anything else stops. A drive that does leave Operation enabled is seen by its statusword
+    all the same, whatever its EMCY was classed as."""
+
+    warn: tuple[str, ...] = ()
+    stop: tuple[str, ...] = ()
+
+    @staticmethod
+    def matches(pattern: str, code: int) -> bool:
+        digits = pattern.lower().removeprefix("0x")
+        return all(p in ("x", c) for p, c in zip(digits, f"{code:04x}", strict=True))
+
+    def is_warning(self, code: int, register: int) -> bool:
+        if any(self.matches(p, code) for p in self.stop):
+            return False
+        if any(self.matches(p, code) for p in self.warn):
+            return True
+        return register == 0
+
+
+def emcy_pattern_problem(pattern: object) -> str | None:
+    """Why ``pattern`` is not an EMCY code pattern (None when it is one)."""
+    if not isinstance(pattern, str):
+        return f"must be a string such as \"0xFFxx\", got {pattern!r}"
+    digits = pattern.lower().removeprefix("0x")
+    if len(digits) != 4 or any(c not in "0123456789abcdefx" for c in digits):
+        return f"{pattern!r} is not four hex digits with x for any digit (e.g. \"0xFFxx\", \"0x4210\")"
+    return None
 
 
 @dataclass(frozen=True)
@@ -95,6 +140,8 @@ class CanopenConfig:
     #: CPU wake-up latency asked of the kernel while the cycle runs (/dev/cpu_dma_latency, us);
     #: None leaves the CPUs' idle states alone
     cpu_latency_us: int | None = 0
+    #: which EMCYs are warnings and which stop the machine
+    emcy: EmcyPolicy = field(default_factory=EmcyPolicy)
 
     @property
     def layout(self) -> PdoLayout:
@@ -105,6 +152,32 @@ class CanopenConfig:
             if d.axis == axis:
                 return d
         raise KeyError(f"no drive for axis {axis!r}")
+
+
+#: quick stop options (0x605A) that end in Quick stop active, where "enable operation" (0x0F) is CiA 402's
+#: transition 16 back to Operation enabled
+HOLDING_QUICK_STOP_OPTIONS = (5, 6, 7, 8)
+
+
+def quick_stop_option(drive: DriveConfig, layout: str) -> int:
+    """The quick stop option written to ``drive`` at boot.
+
+    In the ``standard`` layout the master sends "enable operation" (0x0F) in every cyclic RPDO. A
+    drive that stopped itself (its quick-stop input, a limit switch) between the master's last look at
+    its statusword and the next RPDO would take that 0x0F as transition 16 and move on, when its quick
+    stop option ends in Quick stop active (5-8). Option 2 (ramp down, then Switch on disabled) has no
+    transition 16: the cyclic 0x0F cannot undo the stop. The ``compact`` layout sends the controlword
+    only on a change, so there option 6 (ramp down and hold the position) is safe and the default.
+    """
+    if drive.quick_stop_option is not None:
+        return drive.quick_stop_option
+    return 2 if layout == "standard" else 6
+
+
+#: objects canon writes at boot itself: extra SDO writes to them are refused (canon's would win)
+CANON_OWNED = frozenset({0x1006, 0x1016, 0x1017, 0x6040, 0x605A, 0x6060, 0x6065, 0x607F, 0x6085, 0x60C2})
+#: SDO value types for extra writes: name -> struct code
+SDO_TYPES = {"u8": "B", "i8": "b", "u16": "H", "i16": "h", "u32": "I", "i32": "i"}
 
 
 class AxisScale:

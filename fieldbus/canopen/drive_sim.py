@@ -22,12 +22,20 @@ Behaviour a real drive has and the tests rely on:
   stop active holding the position, 1/2 ends in Switch on disabled.
 * Homing mode 6: methods 35/37 take the current position as home; others travel at 0x6099:1 to a
   simulated home switch; either way the position then reads 0x607C.
+* Optional objects absent (``absent_objects``): SDO access aborts 0x06020000 and the drive keeps its
+  own defaults for them.
+* A small motor's limits, from the EDS (0x6080 3000 rpm, 0x608F 50000 counts/rev, 0x60C5/0x60C6,
+  0x607D, 0x6502 with CSP) or ``parameters``.
+* RPDO deadline monitoring (``rpdo_timeout_syncs``): in Operation enabled, that many SYNCs in a row
+  without a target fault the drive with EMCY 0x8250.
 * EMCY on every fault, and the reset EMCY (code 0) on fault reset.
 
 Faults are injected from tests: :meth:`inject_fault`, :meth:`drop_heartbeat`, :meth:`abort_sdo`,
-``boot_delay_s``, :meth:`stall`. From another process, as a test bench does on a real bus, by SDO to
-the simulation-only object 0x2F00 (:data:`SIM_INJECT`): sub 2 a delay in ms, then sub 1 an EMCY code;
-the drive faults with that code exactly as :meth:`inject_fault` does (``canon sim inject``).
+``boot_delay_s``, :meth:`stall`, the local quick-stop input :meth:`set_quick_stop_input` (also by SDO:
+0x2F00:03 = 1/0, ``canon sim inject --quick-stop on|off``). From another process, as a test bench
+does on a real bus, by SDO to the simulation-only object 0x2F00 (:data:`SIM_INJECT`): sub 2 a delay in
+ms, then sub 1 an EMCY code; the drive faults with that code exactly as :meth:`inject_fault` does
+(``canon sim inject``).
 """
 
 from __future__ import annotations
@@ -38,7 +46,7 @@ import math
 import struct
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -47,6 +55,7 @@ from canopen.sdo import SdoAbortedError
 
 from fieldbus.canopen import SHIPPED_EDS, cia402
 from fieldbus.canopen.cia402 import Command, State
+from fieldbus.canopen.config import DriveConfig
 
 log = logging.getLogger(__name__)
 
@@ -56,12 +65,17 @@ EMCY_VELOCITY = 0x8400  # setpoint jump beyond the maximum velocity
 EMCY_FOLLOWING_ERROR = 0x8611
 EMCY_HEARTBEAT = 0x8130  # life guard / heartbeat consumer timeout
 EMCY_GENERIC = 0x1000
+EMCY_RPDO_TIMEOUT = 0x8250  # RPDO deadline monitoring (CiA 301: "RPDO timeout")
 
 # Manufacturer-specific, simulation only (not on a real drive): an SDO write of a non-zero code to
 # sub 1 faults the drive with that EMCY code, after the delay in ms held in sub 2 (write it first);
 # writing 0 to sub 1 cancels faults still waiting for their delay.
 SIM_INJECT = 0x2F00
 SIM_INJECT_CODE, SIM_INJECT_DELAY_MS = 1, 2
+#: sub 3: the drive's local quick-stop input (1 active, 0 released), as a wired button or limit switch
+SIM_QUICK_STOP_INPUT = 3
+
+NO_SUCH_OBJECT = 0x06020000  # SDO abort: object does not exist in the object dictionary
 
 _LIVE = {0x6041, 0x6061, 0x6062, 0x6064, 0x60F4, 0x603F, 0x1001}
 
@@ -83,12 +97,39 @@ class PdoMap:
 _FMT = {(1, True): "b", (1, False): "B", (2, True): "h", (2, False): "H", (4, True): "i", (4, False): "I"}
 
 
+def motor_for(cfg: DriveConfig, eds: str | Path = SHIPPED_EDS) -> dict[tuple[int, int], int]:
+    """``parameters`` for a simulated motor big enough for the axis ``cfg``: the EDS's small motor where
+    it fits, else 0x6080 (rpm, at the EDS's 0x608F counts per revolution) and 0x60C5/0x60C6 raised to
+    what the configuration asks (velocity with the 0x607F margin). The simulated machine (``canon run``,
+    the daemon, ``canon sim drives``) stands in for drives sized for it; tests that want a motor too
+    small for the configuration build their SimDrive without it."""
+    od = canopen.import_od(str(eds), cfg.node_id)
+    out: dict[tuple[int, int], int] = {}
+    try:
+        cpr = od[0x608F][1].default / max(1, od[0x608F][2].default)
+        rpm = od[0x6080].default
+    except KeyError:
+        return out
+    per_unit = abs(cfg.counts_per_unit)
+    need_rpm = math.ceil(cfg.max_velocity * 1.25 * per_unit * 60.0 / cpr)
+    if need_rpm > rpm:
+        out[(0x6080, 0)] = need_rpm
+    if cfg.max_acceleration is not None:
+        need = math.ceil(max(cfg.max_acceleration, cfg.quick_stop_deceleration) * per_unit)
+        for index in (0x60C5, 0x60C6):
+            if index in od and need > od[index].default:
+                out[(index, 0)] = need
+    return out
+
+
 class SimDrive:
     """One simulated drive. Attach it to a ``canopen.Network``; call :meth:`tick` every few ms."""
 
     def __init__(self, node_id: int, eds: str | Path = SHIPPED_EDS, *, lag_s: float = 0.002,
                  order: int = 1, damping: float = 0.8, boot_delay_s: float = 0.0,
-                 home_switch_counts: int = 0, clock: Callable[[], float] = time.monotonic) -> None:
+                 home_switch_counts: int = 0, rpdo_timeout_syncs: int = 0,
+                 absent_objects: Iterable[int] = (), parameters: Mapping[tuple[int, int], int] | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         if order not in (1, 2):
             raise ValueError("order must be 1 (first-order lag) or 2 (second-order dynamics)")
         self.id = node_id
@@ -103,6 +144,16 @@ class SimDrive:
         self.damping = damping
         self.boot_delay_s = boot_delay_s
         self.home_switch_counts = home_switch_counts
+        # RPDO deadline monitoring, as EPOS4-style drives have: in Operation enabled (CSP), this many
+        # SYNCs in a row without a target fault the drive with EMCY 0x8250 (0: off)
+        self.rpdo_timeout_syncs = rpdo_timeout_syncs
+        # objects this drive does not have, though its EDS lists them: SDO access aborts 0x06020000
+        # (a drive without optional objects, as many are); it then uses its defaults for them
+        self.absent_objects = frozenset(absent_objects)
+        # (index, subindex): value the drive has instead of its EDS default, after every power-on (a
+        # motor of its own: 0x6080 max motor speed, 0x608F encoder, 0x60C5/0x60C6, 0x607D, 0x6502)
+        self.parameters = dict(parameters or {})
+        self._syncs_without_target = 0
         self.clock = clock
         self.lock = threading.RLock()
         self.network: canopen.Network | None = None
@@ -128,6 +179,7 @@ class SimDrive:
         self.missed_setpoints = 0
         self.late_syncs = 0
         self.heartbeats_sent = 0
+        self.enables = 0  # times the drive entered Operation enabled
         self.emcys: list[int] = []
         self.latched: list[tuple[int, int]] = []  # (sync number, target) when record_targets is on
         self.record_targets = False
@@ -138,6 +190,12 @@ class SimDrive:
         self._stalled = False
         self.sdo_silent: set[int] = set()  # SDO requests to these indexes get no answer
         self.ignore_controlword = False  # a drive stuck in its state
+        # the drive's local quick-stop input (:meth:`set_quick_stop_input`): while it is active the
+        # drive does not enable
+        self.quick_stop_input = False
+        # CiA 402 allows transition 16 (Quick stop active -> Operation enabled, options 5-8) at any
+        # time; many drives take it only once the ramp has ended (False), strict ones at once (True)
+        self.reenable_during_quick_stop_ramp = False
         # beyond 0x6065 the drive faults (EMCY 0x8611); False: it only sets statusword bit 13, as
         # drives whose following-error reaction is "report" do
         self.fault_on_following_error = True
@@ -222,6 +280,10 @@ class SimDrive:
         for index in list(store):
             if application or index < 0x2000:
                 del store[index]
+        for (index, sub), value in self.parameters.items():
+            if application or index < 0x2000:
+                obj = self.node._find_object(index, sub)
+                store.setdefault(index, {})[sub] = obj.encode_raw(value)
         if application:
             self.state = State.NOT_READY_TO_SWITCH_ON
             self.mode = 0
@@ -370,6 +432,8 @@ class SimDrive:
 
     # ------------------------------------------------------------------ dictionary callbacks
     def _on_read(self, index: int, subindex: int, od: object) -> int | None:
+        if index in self.absent_objects and od is not None:
+            raise SdoAbortedError(NO_SUCH_OBJECT)
         abort = self._sdo_aborts.get((index, subindex))
         if abort:
             raise SdoAbortedError(abort)
@@ -391,6 +455,8 @@ class SimDrive:
             return 1 if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE) else 0
 
     def _on_write(self, index: int, subindex: int, od: object, data: bytes) -> None:
+        if index in self.absent_objects:
+            raise SdoAbortedError(NO_SUCH_OBJECT)
         abort = self._sdo_aborts.get((index, subindex))
         if abort:
             raise SdoAbortedError(abort)
@@ -414,6 +480,8 @@ class SimDrive:
                 self._homing = False
             elif index == SIM_INJECT and subindex == SIM_INJECT_CODE:
                 self._injected_by_sdo(struct.unpack_from("<H", data)[0])
+            elif index == SIM_INJECT and subindex == SIM_QUICK_STOP_INPUT:
+                self.set_quick_stop_input(bool(data[0]))
             else:
                 self._params_dirty = True
             self._event_tpdos()
@@ -450,6 +518,8 @@ class SimDrive:
                     extra |= cia402.SW_BIT12 | cia402.SW_TARGET_REACHED
                 if self._homing_error:
                     extra |= cia402.SW_BIT13
+        elif self.state == State.QUICK_STOP_ACTIVE and self.velocity == 0:
+            extra |= cia402.SW_TARGET_REACHED  # halted at the end of the quick stop ramp
         return cia402.statusword_for(self.state, extra)
 
     _window = 0xFFFFFFFF
@@ -497,12 +567,17 @@ class SimDrive:
             elif self.mode == cia402.MODE_HOMING and cw & cia402.CW_HOMING_START \
                     and not previous & cia402.CW_HOMING_START:
                 self._start_homing()
-        elif (s == State.QUICK_STOP_ACTIVE and cmd == Command.ENABLE_OPERATION and self.velocity == 0
+        elif (s == State.QUICK_STOP_ACTIVE and cmd == Command.ENABLE_OPERATION
+              and (self.velocity == 0 or self.reenable_during_quick_stop_ramp)
               and self._qs_option in (5, 6, 7, 8)):
             self._enable()
 
     def _enable(self) -> None:
         # As drives do: the demand starts where the motor is, so enabling never jumps.
+        if self.quick_stop_input:
+            return  # the input holds the drive in its stop
+        self.enables += 1
+        self._syncs_without_target = 0
         self.state = State.OPERATION_ENABLED
         self.demand = self.actual
         self.target = round(self.actual)
@@ -574,7 +649,13 @@ class SimDrive:
         if s == State.OPERATION_ENABLED and self.mode == cia402.MODE_CSP:
             if new is None:
                 self.missed_setpoints += 1
+                self._syncs_without_target += 1
+                if self.rpdo_timeout_syncs and self._syncs_without_target >= self.rpdo_timeout_syncs:
+                    self._fault(EMCY_RPDO_TIMEOUT, f"{self._syncs_without_target} SYNCs without a target")
+                    self._decelerate(dt)
+                    return
             else:
+                self._syncs_without_target = 0
                 if abs(new - self.target) > self._max_velocity * dt * 1.0001 + 1:
                     self._fault(EMCY_VELOCITY, f"target jump {new - self.target} counts in {dt} s")
                     self._decelerate(dt)
@@ -675,6 +756,13 @@ class SimDrive:
         else:
             self._fault(code, "injected by SDO")
 
+    def send_warning(self, code: int, register: int = 0) -> None:
+        """Send an EMCY that is a warning (error register 0 by default): the drive stays as it is."""
+        with self.lock:
+            self.emcys.append(code)
+            if self.network is not None:
+                self.node.emcy.send(code, register)
+
     def drop_heartbeat(self, seconds: float) -> None:
         """Send no heartbeat for ``seconds``."""
         self._hb_dropped_until = self.clock() + seconds
@@ -685,6 +773,18 @@ class SimDrive:
             self._sdo_aborts[(index, subindex)] = code
         else:
             self._sdo_aborts.pop((index, subindex), None)
+
+    def set_quick_stop_input(self, active: bool) -> None:
+        """The drive's local quick-stop input (a wired stop button, a limit switch on the drive): on
+        activation in Operation enabled the drive goes to Quick stop active and ramps down at 0x6085,
+        ending as its quick stop option (0x605A) says; while it is active the drive does not enable."""
+        with self.lock:
+            self.quick_stop_input = active
+            if active and self.state == State.OPERATION_ENABLED:
+                log.info("drive %d: local quick stop input", self.id)
+                self._homing = False
+                self.state = State.QUICK_STOP_ACTIVE
+            self._event_tpdos()
 
     def inject_disable(self) -> None:
         """Drop to Switch on disabled, as a drive does when its safe-torque-off input opens."""

@@ -19,10 +19,15 @@ Design choices:
   period (the drive latches on SYNC).
 * Counts are converted from absolute positions each cycle (``AxisScale``): no drift.
 * Quick stop (on any fault, or asked for): every drive gets the CiA 402 quick-stop controlword at once
-  and no new target is streamed; the drives decelerate on their own 0x6085 ramp and, with quick-stop
-  option 6 that boot writes to 0x605A, stay in Quick stop active holding position (a vertical axis
-  does not drop). The master keeps the last commanded positions; the planner restarts from
-  :meth:`positions` after :meth:`reset_faults` and :meth:`enable`.
+  and no new target is streamed; the drives decelerate on their own 0x6085 ramp. The quick stop option
+  boot writes to 0x605A depends on the layout (:func:`~fieldbus.canopen.config.quick_stop_option`):
+  ``compact`` 6, the drives stay in Quick stop active holding position (a vertical axis does not drop);
+  ``standard`` 2, the drives end in Switch on disabled, because its cyclic controlword 0x0F would
+  otherwise re-enable a drive that stopped itself (transition 16). The master keeps the last commanded
+  positions; the planner restarts from :meth:`positions` after :meth:`reset_faults` and :meth:`enable`.
+* A drive that leaves Operation enabled by itself (its own quick stop, disabled, fault) is seen in the
+  first statusword after it (every SYNC in ``standard``, on the change in ``compact``): the machine
+  stops, the fault names node, state and reason, and the master never re-enables it.
 * Faults are reported once (the first, which caused the stop) in :attr:`fault`; later ones go to
   :attr:`fault_log`.
 """
@@ -45,14 +50,20 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError
 from fieldbus.canopen import cia402
 from fieldbus.canopen.busload import BusLoad, alternatives, bus_load
 from fieldbus.canopen.cia402 import State
-from fieldbus.canopen.config import AxisScale, CanopenConfig, DriveConfig
+from fieldbus.canopen.commissioning import LIMIT_OBJECTS, boot_writes, limit_problems, optional_objects
+from fieldbus.canopen.config import (
+    HOLDING_QUICK_STOP_OPTIONS,
+    AxisScale,
+    CanopenConfig,
+    DriveConfig,
+    quick_stop_option,
+)
 from fieldbus.canopen.pdo import CONTROLWORD, TARGET_POSITION, Pdo, PdoLayout
 
 log = logging.getLogger(__name__)
 
-#: SDO abort codes a drive answers for a PDO it does not have: disabling it is then nothing to do
+#: SDO abort codes a drive answers for an object (or sub-index) it does not have
 _NO_SUCH_OBJECT = (0x06020000, 0x06090011)
-
 
 class CanopenError(Exception):
     """Boot, enable or homing failed; the message names the node, the axis and what went wrong."""
@@ -123,8 +134,17 @@ class _Drive:
         self.heartbeat_at = 0.0
         self.nmt_state = -1
         self.enabled_at = math.inf  # TPDOs older than this predate the enable
+        self.active = False  # the cycle sends this drive its target every SYNC
+        self.missing: dict[int, int] = {}  # optional objects the drive lacks: their abort codes (boot)
+        # what the drive said at boot: (index, sub) -> value, None where it lacks the object
+        self.limits: dict[tuple[int, int], int | None] = {}
+        self.active_at = 0.0
+        self.enable_started = 0.0  # EMCYs received since are its enable's
+        self.last_emcy_at = 0.0
         self.booted = threading.Event()
         self.homing = False
+        self.qs_option = quick_stop_option(cfg, layout.name)
+        self.last_emcy: canopen.emcy.EmcyError | None = None
 
     def describe(self) -> str:
         return f"node {self.cfg.node_id} (axis {self.cfg.axis})"
@@ -175,8 +195,11 @@ class CanopenMaster:
         self.streaming = False
         self._lock = threading.RLock()
         self._heartbeat_task: canopen.network.PeriodicMessageTask | None = None
-        self._stream_t0 = 0.0  # first streaming cycle: TPDO ages count from there
+        self._stream_t0 = 0.0  # first cycle with a drive streamed to: TPDO ages count from there
+        self._last_sync = 0.0  # the last SYNC sent while streaming to a drive (0: none yet)
         self._fault_listeners: list[Callable[[Fault], None]] = []
+        self._warning_listeners: list[Callable[[Fault], None]] = []
+        self.warnings: list[Fault] = []
 
     # ------------------------------------------------------------------ set-up
     def open(self) -> None:
@@ -205,6 +228,20 @@ class CanopenMaster:
             self._heartbeat_task = net.send_periodic(
                 0x700 + self.config.master_node_id, [0x05], self.config.heartbeat_producer_ms / 1000.0)
 
+    def add_warning_listener(self, callback: Callable[[Fault], None]) -> None:
+        """Called with each warning (a drive without an optional object, a warning EMCY): something to
+        log and show, which does not stop the machine. Any thread; keep it short."""
+        self._warning_listeners.append(callback)
+
+    def warn(self, node: int, text: str) -> None:
+        """Log and publish a warning about ``node`` (0: the master)."""
+        axis = next((d.cfg.axis for d in self.drives if d.cfg.node_id == node), "")
+        w = Fault(node, axis, text)
+        self.warnings.append(w)
+        log.warning("CANopen: %s", w)
+        for cb in self._warning_listeners:
+            cb(w)
+
     def add_fault_listener(self, callback: Callable[[Fault], None]) -> None:
         """Called with the first fault after each reset, on the thread that found it (the reader
         thread, the cycle thread inside :meth:`cycle`, with the master's lock held): keep it short,
@@ -221,7 +258,13 @@ class CanopenMaster:
     def _on_emcy(self, d: _Drive, entry: canopen.emcy.EmcyError) -> None:
         if entry.code & 0xFF00 == 0:
             return  # error reset
-        self.raise_fault(d.cfg.node_id, f"EMCY 0x{entry.code:04X} {entry.get_desc() or 'error'}".rstrip())
+        text = f"EMCY 0x{entry.code:04X} {entry.get_desc() or 'error'}".rstrip()
+        if self.config.emcy.is_warning(entry.code, entry.register):
+            self.warn(d.cfg.node_id, f"{text} (error register 0x{entry.register:02X}): a warning, the "
+                                     "machine goes on")
+            return
+        d.last_emcy, d.last_emcy_at = entry, time.monotonic()
+        self.raise_fault(d.cfg.node_id, text)
 
     @staticmethod
     def _tpdo_reader(d: _Drive, p: Pdo) -> Callable[[int, bytearray, float], None]:
@@ -245,9 +288,12 @@ class CanopenMaster:
 
     # ------------------------------------------------------------------ SDO helpers
     def _sdo(self, d: _Drive, what: str, index: int, sub: int, fmt: str | None = None,
-             value: int | None = None, ok_aborts: tuple[int, ...] = ()) -> int:
+             value: int | None = None, ok_aborts: tuple[int, ...] = (),
+             absent: dict[int, int] | None = None) -> int:
         """One SDO read (``value`` None) or write; an abort or timeout is a :class:`CanopenError`
-        naming the node, the object and ``what`` it is, except aborts in ``ok_aborts`` (then 0)."""
+        naming the node, the object and ``what`` it is, except aborts in ``ok_aborts`` (then 0).
+        ``absent``: an optional object, whose "does not exist" abort is recorded there (index: abort
+        code; then 0)."""
         where = f"0x{index:04X}:{sub:02X} ({what})"
         try:
             if fmt is not None and value is not None:
@@ -256,6 +302,9 @@ class CanopenMaster:
             raw = d.node.sdo.upload(index, sub)
         except SdoAbortedError as exc:
             if exc.code in ok_aborts:
+                return 0
+            if absent is not None and exc.code in _NO_SUCH_OBJECT:
+                absent.setdefault(index, exc.code)
                 return 0
             raise CanopenError(f"{d.describe()}: SDO {'write' if value is not None else 'read'} of {where} "
                                f"aborted by the drive: 0x{exc.code:08X} {exc}") from None
@@ -275,6 +324,8 @@ class CanopenMaster:
         self.open()
         with self._lock:
             self.streaming = False
+            for d in self.drives:
+                d.active = False
         for d in self.drives:
             self._boot_drive(d)
 
@@ -298,33 +349,22 @@ class CanopenMaster:
             if want is not None and got != want:
                 raise CanopenError(f"{d.describe()}: identity 0x1018:{sub:02X} {name} is 0x{got:08X}, "
                                    f"the configuration expects 0x{want:08X} (wrong drive on this node id?)")
-        cycle_us = round(conf.cycle_s * 1e6)
-        if cycle_us % 1000 == 0 and cycle_us // 1000 <= 255:
-            ip_value, ip_index = cycle_us // 1000, -3
-        else:
-            ip_value, ip_index = round(conf.cycle_s * 1e4), -4
-        vmax = math.ceil(cfg.max_velocity * abs(d.scale.scale) * conf.velocity_margin)
-        qsd = math.ceil(cfg.quick_stop_deceleration * abs(d.scale.scale))
-        steps: list[tuple[str, int, int, str, int]] = [
-            ("modes of operation", 0x6060, 0, "b", cia402.MODE_CSP),
-            ("interpolation period", 0x60C2, 1, "B", ip_value),
-            ("interpolation index", 0x60C2, 2, "b", ip_index),
-            ("communication cycle period", 0x1006, 0, "I", cycle_us),
-            ("following error window", 0x6065, 0, "I", d.window),
-            ("max profile velocity", 0x607F, 0, "I", vmax),
-            ("quick stop deceleration", 0x6085, 0, "I", qsd),
-            ("quick stop option", 0x605A, 0, "h", 6),
-            *self.layout.sdo_steps(cfg.node_id),
-            ("producer heartbeat time", 0x1017, 0, "H", conf.heartbeat_producer_ms),
-            ("consumer heartbeat time", 0x1016, 1, "I",
-             (conf.master_node_id << 16) | (conf.heartbeat_consumer_ms if conf.heartbeat_producer_ms else 0)),
-        ]
+        self._check_limits(d)
+        self._load_dcf(d)
+        for index, sub, code, value, where in cfg.sdo:
+            self._sdo(d, f"{where} in the machine file", index, sub, code, value)
+        steps = boot_writes(conf, cfg)
         for p in self.layout.unused_pdos():
             # COB-ID bit 31; a drive without that PDO has nothing to disable
             self._sdo(d, f"{p.name} COB-ID (disable)", p.comm_index, 1, "I",
                       0x80000000 | p.cob_id(cfg.node_id), ok_aborts=_NO_SUCH_OBJECT)
+        optional = optional_objects(self.layout.name)
         for what, index, sub, fmt, value in steps:
-            self._sdo(d, what, index, sub, fmt, value)
+            before = len(d.missing)
+            self._sdo(d, what, index, sub, fmt, value, absent=d.missing if index in optional else None)
+            if len(d.missing) > before:
+                self.warn(cfg.node_id, f"has no object 0x{index:04X} ({what}; SDO abort "
+                                       f"0x{d.missing[index]:08X}): {optional[index]}")
         mode = self._sdo(d, "modes of operation display", 0x6061, 0, "b")
         if mode != cia402.MODE_CSP:
             raise CanopenError(f"{d.describe()}: modes of operation display is {mode}, not 8 (cyclic "
@@ -340,36 +380,107 @@ class CanopenMaster:
         d.heartbeat_at = time.monotonic()
         log.info("%s booted", d.describe())
 
+    def _load_dcf(self, d: _Drive) -> None:
+        """The values of the axis's DCF (its ParameterValue entries) written to the drive by canopen's
+        own configuration loader (``RemoteNode.load_configuration``: PDO records first, then every
+        writable object with a value). An EDS has no values: nothing is written. canon's own objects
+        (the cycle, the quick stop, the PDO layout, heartbeats) are written afterwards and win."""
+        od = d.node.object_dictionary
+        values = [v for obj in od.values() for v in (obj.values() if hasattr(obj, "values") else [obj])
+                  if getattr(v, "value", None) is not None]
+        if not values:
+            return
+        log.info("%s: writing %d values of %s", d.describe(), len(values), d.cfg.eds_path)
+        try:
+            d.node.load_configuration()
+        except SdoAbortedError as exc:
+            raise CanopenError(f"{d.describe()}: writing the values of {d.cfg.eds_path}: SDO abort "
+                               f"0x{exc.code:08X} ({exc}); the drive refused one of the file's values "
+                               "(the object is in the log)") from None
+        except SdoCommunicationError as exc:
+            raise CanopenError(f"{d.describe()}: writing the values of {d.cfg.eds_path}: no SDO answer "
+                               f"({exc})") from None
+
+    def _read_optional(self, d: _Drive, what: str, index: int, sub: int, fmt: str) -> int | None:
+        """An optional object's value, or None (remembered in ``d.missing``) when the drive lacks it."""
+        before = len(d.missing)
+        value = self._sdo(d, what, index, sub, fmt, absent=d.missing)
+        return None if len(d.missing) > before or index in d.missing else value
+
+    def _check_limits(self, d: _Drive) -> None:
+        """The drive's capabilities and limits against the configuration, before anything is written:
+        CSP among its supported modes (0x6502); max_velocity within the max motor speed (0x6080, rpm,
+        with the counts per revolution from the configuration or 0x608F); max_acceleration within
+        0x60C5 and 0x60C6; the soft-limit range within the software position limits (0x607D). Each
+        object only where the drive has it. A configuration asking more is refused, naming the key,
+        the object and both values."""
+        cfg = d.cfg
+        d.missing = {}
+        d.limits = {}
+        for index, sub, fmt, what in LIMIT_OBJECTS:
+            d.limits[(index, sub)] = self._read_optional(d, what, index, sub, fmt)
+        problems, notes = limit_problems(cfg, d.limits)
+        if problems:
+            raise CanopenError(f"{d.describe()}: {problems[0]}")
+        for note in notes:
+            self.warn(cfg.node_id, note)
+
     # ------------------------------------------------------------------ CiA 402 state machine
     def enable(self) -> None:
-        """Walk every drive to Operation enabled (by SDO), hold the actual position, start streaming."""
+        """Walk every drive to Operation enabled (by SDO), holding its actual position, then stream.
+
+        No drive is ever left without a setpoint: from the moment the enable command goes to a drive,
+        the cycle sends it its target (the position it holds) every SYNC, while the others come up; a
+        drive with RPDO deadline monitoring would fault otherwise. A failure part-way quick-stops the
+        drives already enabled. An error names the drive's EMCY when it sent one.
+        """
         with self._lock:
             if self.fault is not None:
                 raise CanopenError(f"cannot enable with a fault standing ({self.fault}); "
                                    "reset_faults() first")
             self.streaming = False
-        for d in self.drives:
-            self._enable_drive(d)
+            self._stream_t0 = self._last_sync = 0.0
+        try:
+            for d in self.drives:
+                self._enable_drive(d)
+                self._fault_during_enable()
+        except CanopenError:
+            with self._lock:
+                enabled = [d for d in self.drives if d.active]
+                for d in enabled:
+                    d.active = False
+                    d.controlword = cia402.CW_QUICK_STOP
+                    with contextlib.suppress(can.CanError, OSError):
+                        self._send(*d.controlword_rpdo(cia402.CW_QUICK_STOP))
+            raise
         with self._lock:
-            if self.fault is not None:
-                raise CanopenError(f"fault while enabling: {self.fault}")
             now = time.monotonic()
             for d in self.drives:
                 d.heartbeat_at = max(d.heartbeat_at, now)
-            self._stream_t0 = 0.0
             self.streaming = True
 
+    def _fault_during_enable(self, d: _Drive | None = None) -> None:
+        if self.fault is not None:
+            raise CanopenError(f"fault while enabling: {self.fault}")
+        if d is not None and d.last_emcy is not None and d.last_emcy_at >= d.enable_started:
+            e = d.last_emcy
+            raise CanopenError(f"{d.describe()}: EMCY 0x{e.code:04X} {e.get_desc() or ''}".rstrip()
+                               + " while enabling")
+
     def _wait_state(self, d: _Drive, want: State, timeout: float, doing: str,
-                    resend: int | None = None) -> None:
-        """Poll the statusword until ``want``. ``resend``: write this controlword again while waiting,
-        for a transition the drive takes only once it is ready (Quick stop active -> Operation enabled
-        needs the stop ramp finished; the command sent during the ramp is ignored)."""
+                    resend: int | None = None, enabling: bool = False) -> int:
+        """Poll the statusword until ``want``; returns it. ``resend``: write this controlword again while
+        waiting, for a transition the drive takes only once it is ready (Quick stop active -> Operation
+        enabled needs the stop ramp finished on many drives; the command sent during the ramp is
+        ignored). ``enabling``: an EMCY of the drive (or any fault) ends the wait, named as the cause."""
         deadline = time.monotonic() + timeout
         while True:
             sw = self._statusword(d)
             state = cia402.decode(sw)
             if state == want:
-                return
+                return sw
+            if enabling:
+                self._fault_during_enable(d)
             if time.monotonic() > deadline:
                 raise CanopenError(f"{d.describe()}: stuck in '{state}' (statusword 0x{sw:04X}) "
                                    f"{timeout:g} s after {doing}, waiting for '{want}'")
@@ -377,55 +488,96 @@ class CanopenMaster:
             if resend is not None:
                 self._sdo(d, "controlword", 0x6040, 0, "H", resend)
 
+    def _activate(self, d: _Drive) -> None:
+        """From now on the cycle sends ``d`` a target every SYNC: its actual position (read by SDO),
+        held until the machine streams. Called just before the enable command reaches the drive."""
+        actual = self._sdo(d, "position actual", 0x6064, 0, "i")
+        with self._lock:
+            d.target = d.actual = actual
+            d.controlword = cia402.CW_ENABLE_OPERATION
+            d.enabled_at = math.inf
+            d.active_at = d.feedback_at = time.monotonic()
+            d.active = True
+
     def _enable_drive(self, d: _Drive) -> None:
         timeout = self.config.state_timeout_s
+        d.enable_started = time.monotonic()
         if self._sdo(d, "modes of operation display", 0x6061, 0, "b") != cia402.MODE_CSP:
             self._back_to_csp(d)
         for _ in range(8):
+            self._fault_during_enable(d)
             sw = self._statusword(d)
             state = cia402.decode(sw)
             if state == State.OPERATION_ENABLED:
+                if not d.active:  # enabled already (by an earlier enable): hold where it stands
+                    self._activate(d)
                 break
             if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                 code = self._sdo(d, "error code", 0x603F, 0, "H")
                 raise CanopenError(f"{d.describe()}: in '{state}' (error code 0x{code:04X}): "
                                    "reset_faults() first")
+            if state == State.QUICK_STOP_ACTIVE:
+                if d.qs_option not in HOLDING_QUICK_STOP_OPTIONS:
+                    # this quick stop option has no way back to Operation enabled: the ramp ends in
+                    # Switch on disabled, from where the drive is enabled step by step
+                    self._wait_state(d, State.SWITCH_ON_DISABLED, timeout, "its quick stop", enabling=True)
+                    continue
+                # the ramp first (bit 10 once halted): the position it holds is then final
+                deadline = time.monotonic() + timeout
+                while not sw & cia402.SW_TARGET_REACHED and time.monotonic() < deadline:
+                    time.sleep(0.005)
+                    sw = self._statusword(d)
+                    if cia402.decode(sw) != State.QUICK_STOP_ACTIVE:
+                        break
+                if cia402.decode(sw) != State.QUICK_STOP_ACTIVE:
+                    continue
             step = cia402.next_step(state)
             if step is None:
                 raise CanopenError(f"{d.describe()}: stuck in '{state}' (statusword 0x{sw:04X}), "
                                    "which no controlword leads out of")
             controlword, want = step
             if want == State.OPERATION_ENABLED:
-                # hold the actual position before the drive starts following targets
-                actual = self._sdo(d, "position actual", 0x6064, 0, "i")
-                d.target = d.actual = actual
-                d.controlword = cia402.CW_ENABLE_OPERATION
+                self._activate(d)
             self._sdo(d, "controlword", 0x6040, 0, "H", controlword)
             self._wait_state(d, want, timeout, f"controlword 0x{controlword:04X}",
-                             resend=controlword if state == State.QUICK_STOP_ACTIVE else None)
-            if want == State.OPERATION_ENABLED and state == State.QUICK_STOP_ACTIVE:
-                # the drive finished its stop ramp before it enabled: hold where it stopped
-                d.target = d.actual = self._sdo(d, "position actual", 0x6064, 0, "i")
+                             resend=controlword if state == State.QUICK_STOP_ACTIVE else None, enabling=True)
         else:
             raise CanopenError(f"{d.describe()}: did not reach Operation enabled")
-        d.statusword = cia402.statusword_for(State.OPERATION_ENABLED)
-        d.enabled_at = time.monotonic()
-        d.feedback_at = d.enabled_at
+        with self._lock:
+            d.statusword = cia402.statusword_for(State.OPERATION_ENABLED)
+            d.enabled_at = d.feedback_at = time.monotonic()
 
     def disable(self) -> None:
-        """Stop streaming and take every drive to Switch on disabled (controlword 0, disable voltage,
-        by SDO): no torque. A drive in Fault stays there (:meth:`reset_faults`)."""
+        """Stop streaming and take every drive to Switch on disabled: a drive still streamed to gets
+        the quick stop first and is disabled (controlword 0, by SDO) once its ramp is over, never
+        dropped at speed. No torque afterwards. A drive in Fault stays there (:meth:`reset_faults`)."""
         with self._lock:
             self.streaming = False
+            self._stream_t0 = self._last_sync = 0.0
+            for d in self.drives:
+                if d.active:
+                    d.active = False
+                    d.controlword = cia402.CW_QUICK_STOP
+                    self._send(*d.controlword_rpdo(cia402.CW_QUICK_STOP))
         for d in self.drives:
-            self._sdo(d, "controlword (disable voltage)", 0x6040, 0, "H", cia402.CW_DISABLE_VOLTAGE)
+            self._park(d, consumer_off=False)
 
     def not_operational(self) -> list[str]:
         """The drives whose last heartbeat did not say NMT Operational (restarted, lost): boot again."""
         return [d.describe() for d in self.drives if d.nmt_state != 5]
 
     def reset_faults(self) -> None:
-        """Fault-reset every drive in Fault and clear the master's fault; then :meth:`enable` again."""
+        """Fault-reset every drive in Fault and clear the master's fault; then :meth:`enable` again.
+        Refused while a drive's heartbeat is missing (naming it): a drive not heard from is not reset."""
+        conf = self.config
+        if conf.heartbeat_producer_ms > 0:
+            now = time.monotonic()
+            for d in self.drives:
+                age = now - d.heartbeat_at
+                if age > conf.heartbeat_consumer_ms / 1000.0:
+                    raise CanopenError(f"{d.describe()}: no heartbeat for {1000 * age:.0f} ms (consumer time "
+                                       f"{conf.heartbeat_consumer_ms} ms): not reset while it is missing "
+                                       "(drive off, cable, node id?)")
         with self._lock:
             self.streaming = False
         for d in self.drives:
@@ -465,7 +617,9 @@ class CanopenMaster:
 
     def _quick_stop_locked(self) -> None:
         self.streaming = False
+        self._stream_t0 = self._last_sync = 0.0
         for d in self.drives:
+            d.active = False
             d.controlword = cia402.CW_QUICK_STOP
             try:
                 self._send(*d.controlword_rpdo(cia402.CW_QUICK_STOP))
@@ -485,18 +639,20 @@ class CanopenMaster:
             if self.network is None:  # not open, or shut down: nothing to send
                 return self.feedback()
             self.cycles += 1
-            if self.streaming:
+            active = [d for d in self.drives if d.active]
+            if active:
                 if self._stream_t0 == 0.0:
                     self._stream_t0 = now
-                self._check(now)
+                self._check(now, active)
             try:
-                if self.streaming:
-                    if positions is not None:
-                        self._set_targets(positions)
-                    for d in self.drives:
-                        if not d.homing:
-                            self._send(d.rpdo_id, d.cyclic_rpdo())
+                if self.streaming and positions is not None:
+                    self._set_targets(positions)
+                for d in self.drives:
+                    if d.active and not d.homing:
+                        self._send(d.rpdo_id, d.cyclic_rpdo())
                 self.network.sync.transmit()  # type: ignore[union-attr]
+                if any(d.active for d in self.drives):
+                    self._last_sync = time.monotonic()
             except (can.CanError, OSError) as exc:
                 self.raise_fault(0, f"bus error: {exc}")
             return self.feedback()
@@ -517,17 +673,28 @@ class CanopenMaster:
                 return
             d.target = counts
 
-    def _check(self, now: float) -> None:
+    def _check(self, now: float, active: list[_Drive]) -> None:
+        """The feedback of the drives streamed to, before this cycle's RPDOs: the master's own SYNC
+        gap first (a stalled cycle is the master's fault, not a node's), then per drive its heartbeat,
+        its TPDOs since the last SYNC, its state, its following error."""
         conf = self.config
-        for d in self.drives:
+        if self._last_sync and now - self._last_sync > conf.feedback_timeout_s:
+            gap = now - self._last_sync
+            self.raise_fault(0, f"the master sent no SYNC for {1000 * gap:.0f} ms (limit "
+                                f"{1000 * conf.feedback_timeout_s:g} ms): its cycle stalled, the drives got "
+                                "no setpoint")
+            return
+        for d in active:
             hb_age = now - d.heartbeat_at
             if conf.heartbeat_producer_ms > 0 and hb_age > conf.heartbeat_consumer_ms / 1000.0:
                 self.raise_fault(d.cfg.node_id, f"heartbeat missed: none for {1000 * hb_age:.0f} ms "
                                                 f"(consumer time {conf.heartbeat_consumer_ms} ms)")
                 return
-            fb_age = now - max(d.feedback_at, self._stream_t0)
+            # how long before the latest SYNC the drive last answered one (SYNCs, not the clock: a
+            # pause of the master's own is not the drive's silence)
+            fb_age = self._last_sync - max(d.feedback_at, self._stream_t0, d.active_at)
             if fb_age > conf.feedback_timeout_s and not d.homing:
-                self.raise_fault(d.cfg.node_id, f"no TPDO for {1000 * fb_age:.0f} ms "
+                self.raise_fault(d.cfg.node_id, f"no TPDO for {1000 * fb_age:.0f} ms of SYNCs "
                                                 f"(limit {1000 * conf.feedback_timeout_s:g} ms): "
                                                 "frames lost?")
                 return
@@ -535,8 +702,7 @@ class CanopenMaster:
                 continue  # no TPDO yet since enabling
             state = cia402.decode(d.statusword)
             if state != State.OPERATION_ENABLED:
-                self.raise_fault(d.cfg.node_id, f"left Operation enabled: now '{state}' "
-                                                f"(statusword 0x{d.statusword:04X})")
+                self.raise_fault(d.cfg.node_id, self._stopped_itself(d, state))
                 return
             if abs(d.following_error) > d.window:
                 fe = d.following_error / d.scale.scale
@@ -550,6 +716,24 @@ class CanopenMaster:
                                                 f"{d.cfg.following_error_window:g} (the drive reports it: "
                                                 f"statusword 0x{d.statusword:04X}, bit 13)")
                 return
+
+    def _stopped_itself(self, d: _Drive, state: State) -> str:
+        """The fault text of a drive seen out of Operation enabled while streaming: the state and why a
+        drive goes there by itself. The master never re-enables it (only reset + enable do)."""
+        if state == State.QUICK_STOP_ACTIVE:
+            why = ("the drive's own quick stop (its quick-stop input, a limit switch or a stop it decided "
+                   "itself); it ramps down on its own quick stop deceleration")
+        elif state == State.SWITCH_ON_DISABLED:
+            why = ("the drive disabled itself (its enable or safe-torque-off input, or a quick stop that "
+                   "ends in Switch on disabled)")
+        elif state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+            e = d.last_emcy
+            why = (f"a drive fault, EMCY 0x{e.code:04X} {e.get_desc() or ''}".rstrip() if e is not None
+                   else "a drive fault (no EMCY received)")
+        else:
+            why = "the drive changed state by itself"
+        return (f"left Operation enabled: now '{state}' (statusword 0x{d.statusword:04X}): {why}; "
+                "not re-enabled")
 
     def feedback(self) -> DriveFeedback:
         return DriveFeedback(
@@ -653,12 +837,23 @@ class CanopenMaster:
 
     # ------------------------------------------------------------------ the end
     def shutdown(self) -> None:
-        """Quick-stop if streaming, stop the heartbeat, NMT pre-operational... and close the bus."""
+        """Leave the drives in a defined state, then let go of the bus.
+
+        Quick stop if streaming; every drive taken to Switch on disabled once its ramp is over (a
+        drive in Fault stays there) and its consumer heartbeat (0x1016) cleared, all while the
+        master's heartbeat still runs; then the heartbeat stops, NMT pre-operational, the bus closes.
+        Otherwise every drive would fault (heartbeat consumer, EMCY 0x8130) one consumer time after
+        canon exits."""
         if self.network is None:
             return
         with self._lock:
-            if self.streaming:
+            if any(d.active for d in self.drives):
                 self._quick_stop_locked()
+        for d in self.drives:
+            try:
+                self._park(d)
+            except (CanopenError, can.CanError, OSError) as exc:
+                log.error("at shutdown, %s not parked: %s", d.describe(), exc)
         if self._heartbeat_task is not None:
             self._heartbeat_task.stop()
             self._heartbeat_task = None
@@ -673,6 +868,34 @@ class CanopenMaster:
         else:
             if net.notifier is not None:
                 net.notifier.stop(2.0)
+
+    def _park(self, d: _Drive, consumer_off: bool = True) -> None:
+        """One drive to a defined state: its stop ramp waited for, Switch on disabled, and (at shutdown)
+        its consumer heartbeat off."""
+        for attempt in range(2):
+            deadline = time.monotonic() + self.config.state_timeout_s
+            while True:
+                sw = self._statusword(d)
+                state = cia402.decode(sw)
+                ramping = (state == State.FAULT_REACTION_ACTIVE
+                           or (state == State.QUICK_STOP_ACTIVE and not sw & cia402.SW_TARGET_REACHED))
+                if not ramping:
+                    break
+                if time.monotonic() > deadline:
+                    log.warning("%s still in '%s' %g s after the quick stop: disabled all the same",
+                                d.describe(), state, self.config.state_timeout_s)
+                    break
+                time.sleep(0.005)
+            if state != State.OPERATION_ENABLED or attempt:
+                break
+            # enabled with nothing streamed to it: its own quick stop first, never a drop of torque
+            self._sdo(d, "controlword (quick stop)", 0x6040, 0, "H", cia402.CW_QUICK_STOP)
+        if state not in (State.FAULT, State.FAULT_REACTION_ACTIVE, State.SWITCH_ON_DISABLED):
+            self._sdo(d, "controlword (disable voltage)", 0x6040, 0, "H", cia402.CW_DISABLE_VOLTAGE)
+        if consumer_off and self.config.heartbeat_producer_ms > 0:
+            self._sdo(d, "consumer heartbeat time (off)", 0x1016, 1, "I", 0, ok_aborts=_NO_SUCH_OBJECT)
+        with self._lock:
+            d.statusword = self._statusword(d)
 
     def __enter__(self) -> CanopenMaster:
         return self

@@ -81,7 +81,9 @@ def test_emcy_fault_quick_stop_and_reset_on_vcan0(rig, layout):
     assert r.master.fault.node == 1 and "EMCY 0x2310" in r.master.fault.reason
     r.run(10, lambda k: [5.0, 5.0])
     assert r.master.positions() == held
-    assert wait_for(lambda: r.sim(2).state == State.QUICK_STOP_ACTIVE, 5.0)
+    # compact: quick stop option 6 holds in Quick stop active; standard: option 2, Switch on disabled
+    ends_in = State.QUICK_STOP_ACTIVE if layout == "compact" else State.SWITCH_ON_DISABLED
+    assert wait_for(lambda: r.sim(2).state == ends_in, 5.0)
     r.master.reset_faults()
     r.master.enable()
     r.run(10)
