@@ -33,7 +33,8 @@ Public API (for the planner, the daemon and ``canon check``):
 Decisions a machine builder should know:
 
 * Output positions include every offset, the tool length offset too (machine = rotate(program + G92)
-  + G5x + tool); G28/G30/G53 positions are machine positions without the tool offset, as LinuxCNC.
+  + G5x + tool); G28/G30/G53 positions are machine positions: the tool offset is not added (G53 G0 Z0
+  goes to machine Z0 with G43 in force), and G28.1/G30.1 store the machine position, as LinuxCNC.
 * Offsets in the numbered parameters (#5161-#5390) and the tool table are in mm/deg whatever G20/G21
   says (LinuxCNC's "user units" on a millimetre machine); #5061-#5069, #5420-#5428 and the machine
   position #5021-#5029 (``#<_abs_x>`` ...) are in program units.
@@ -1474,10 +1475,10 @@ class Interpreter:
         elif code in (280, 300):
             self._go_home(block, 5161 if code == 280 else 5181)
         elif code in (281, 301):
+            # LinuxCNC (convert_savehome): the machine position, the tool length offset included
             base = 5161 if code == 281 else 5181
-            absolute = [m - t for m, t in zip(self.pos, self.frames.tool, strict=True)]
             for k in range(N_AXES):
-                self.params.set_system(base + k, absolute[k])
+                self.params.set_system(base + k, self.pos[k])
         elif code == 920:
             self._g92(block)
         elif code == 921 or code == 922:
@@ -1604,10 +1605,12 @@ class Interpreter:
             self._emit(StraightTraverse(self.pos, file=f, line=n))
         else:
             given = list(range(N_AXES))
+        # LinuxCNC (find_relative): the stored position is where the machine goes, the tool length
+        # offset not added, except on rotary axes (where LinuxCNC leaves it in when not wrapped)
         tool = self.frames.tool
         end = list(self.pos)
         for k in given:
-            end[k] = self.params.numbered[base + k] + tool[k]
+            end[k] = self.params.numbered[base + k] + (tool[k] if k in ROTARY_INDEXES else 0.0)
         self.pos = Pose(*end)
         self.prog = self._from_machine(self.pos)
         self._emit(StraightTraverse(self.pos, file=f, line=n))
@@ -1697,14 +1700,18 @@ class Interpreter:
             return
         f, n = self.file, self.line
         if g0 == 530:
+            # LinuxCNC (find_ends): machine coordinates, the tool length offset not added (G53 G0 Z0
+            # goes to machine Z0 whatever G43 is in force), except on (unwrapped) rotary axes
             tool = self.frames.tool
             end = list(self.pos)
             for k, letter in enumerate(AXIS_LETTERS):
                 value = block.take(letter)
                 if value is not None:
-                    if k not in ROTARY_INDEXES:
+                    if k in ROTARY_INDEXES:
+                        value += tool[k]
+                    else:
                         value *= self.scale
-                    end[k] = value + tool[k]
+                    end[k] = value
             target = self._from_machine(end)
         else:
             target = self._target(block)

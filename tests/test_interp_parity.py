@@ -1,0 +1,36 @@
+"""LinuxCNC parity: the differences measured against LinuxCNC's own interpreter (rs274), each with the
+value LinuxCNC gives (worked out from its source: interp_*.cc, emccanon.cc, and its documentation)."""
+
+from __future__ import annotations
+
+import pytest
+
+from tests.test_interp_helpers import last_end, run, xyz
+
+# --- G53, G28, G30 with a tool length offset (find_ends, find_relative, convert_savehome) ------------
+
+
+def test_g53_goes_to_machine_position_whatever_the_tool_offset() -> None:
+    # find_ends: z = Z - origin - axis - tool in program terms; emccanon adds all back: machine Z0
+    assert last_end("G43.1 Z5\nG53 G0 Z0") == xyz(0, 0, 0)
+    assert last_end("G10 L2 P1 Z7\nG43.1 Z5\nG0 Z1\nG53 G1 Z-2 F100") == xyz(0, 0, -2)
+    # then the program coordinate reads machine - G5x - tool
+    out = run("G43.1 Z5\nG53 G0 Z0\nG0 X1")
+    assert tuple(out[-1].end)[:3] == (1.0, 0.0, 0.0)
+
+
+def test_g28_g30_go_to_the_stored_machine_position_without_the_tool_offset() -> None:
+    assert last_end("#5163 = 10\nG43.1 Z5\nG28") == xyz(0, 0, 10)
+    assert last_end("#5183 = -3\nG43.1 Z5\nG30 Z0") == xyz(0, 0, -3)
+
+
+def test_g28_1_stores_the_machine_position_tool_offset_included() -> None:
+    # convert_savehome: current + tool + origin + axis offsets (program Z1 + tool 5 = machine 6)
+    from gcode_canon.interpreter import Interpreter
+    from gcode_canon.settings import InterpreterSettings
+
+    interp = Interpreter(InterpreterSettings(dry_run=True, require_program_end=False))
+    list(interp.run_string("G43.1 Z5\nG0 Z1\nG28.1\nG30.1", "t.ngc"))
+    assert interp.parameter(5163) == pytest.approx(6.0)
+    assert interp.parameter(5183) == pytest.approx(6.0)
+    assert last_end("G43.1 Z5\nG0 Z1\nG28.1\nG49\nG0 Z0\nG28") == xyz(0, 0, 6)
