@@ -1038,6 +1038,11 @@ class Interpreter:
             if self.selected_tool < 0:
                 raise GCodeError("M6 with no tool selected (give a T word first)")
             number = self.selected_tool
+            if not self.settings.tool_change_with_spindle_on and self.spindle is not None:
+                # LinuxCNC convert_tool_change: STOP_SPINDLE_TURNING first (a later G84 must not tap
+                # with a spindle it believes is turning)
+                self.spindle = None
+                self._emit(SpindleOff(file=self.file, line=self.line))
             self._emit(ToolChange(number, file=self.file, line=self.line))
             self._emit(_Resume(self._resync))
         else:

@@ -40,3 +40,6 @@ class InterpreterSettings:
     does not have is an error."""
     require_program_end: bool = True
     """A program (file or string) must end with M2/M30 or a closing ``%`` (LinuxCNC's rule)."""
+    tool_change_with_spindle_on: bool = False
+    """M6 leaves the spindle turning (LinuxCNC's ``[EMCIO] TOOL_CHANGE_WITH_SPINDLE_ON``); by default
+    M6 stops it first, as LinuxCNC does."""

@@ -34,3 +34,29 @@ def test_g28_1_stores_the_machine_position_tool_offset_included() -> None:
     assert interp.parameter(5163) == pytest.approx(6.0)
     assert interp.parameter(5183) == pytest.approx(6.0)
     assert last_end("G43.1 Z5\nG0 Z1\nG28.1\nG49\nG0 Z0\nG28") == xyz(0, 0, 6)
+
+
+# --- M6 stops the spindle (convert_tool_change, TOOL_CHANGE_WITH_SPINDLE_ON = 0) ------------------------
+
+
+def test_m6_stops_the_spindle_before_the_change() -> None:
+    from gcode_canon.commands import SpindleOff, ToolChange
+
+    out = run("S1000 M3\nT1 M6")
+    kinds = [type(c) for c in out]
+    assert kinds.index(SpindleOff) < kinds.index(ToolChange)
+    # the tap cycle then finds the spindle stopped, as LinuxCNC does
+    from tests.test_interp_helpers import error
+
+    assert "Spindle not turning" in error("S1000 M3\nT1 M6\nG0 Z5\nG84 Z-1 R2 F100").message
+    # M6 M3 on one line: the tool change runs first, the spindle starts after it
+    out = run("S1000 M3\nT1 M6 M3")
+    kinds = [type(c).__name__ for c in out]
+    assert kinds[-3:] == ["SpindleOff", "ToolChange", "SpindleOn"]
+
+
+def test_m6_keeps_the_spindle_when_the_machine_allows_it() -> None:
+    from gcode_canon.commands import SpindleOff
+
+    out = run("S1000 M3\nT1 M6", tool_change_with_spindle_on=True)
+    assert not any(isinstance(c, SpindleOff) for c in out)
