@@ -1044,7 +1044,7 @@ class Interpreter:
                 self.spindle = None
                 self._emit(SpindleOff(file=self.file, line=self.line))
             self._emit(ToolChange(number, file=self.file, line=self.line))
-            self._emit(_Resume(self._resync))
+            self._emit(_Resume(self._refresh_position))
         else:
             q = block.take("q")
             if q is None:
@@ -1054,6 +1054,7 @@ class Interpreter:
                 raise GCodeError(f"M61 Q{number}: negative tool number")
             self._tool(number)
             self._emit(SetToolNumber(number, file=self.file, line=self.line))
+            self._emit(_Resume(self._refresh_position))
         self.current_tool = number
         self._set_tool_parameters(number)
 
@@ -1062,6 +1063,15 @@ class Interpreter:
         if where is not None:
             self.pos = Pose(*where)
             self.prog = self._from_machine(self.pos)
+
+    def _refresh_position(self) -> None:
+        """After M6 / M61 (LinuxCNC's toolchange_flag, refresh_actual_position): the program position
+        is read back from where the machine is, or was last sent, even when it is not the programmed
+        point (after G40 the tool stays on the compensated path until the next move)."""
+        where = self.machine.current_position()
+        if where is not None:
+            self.pos = Pose(*where)
+        self.prog = self._from_machine(self.pos)
 
     def _step_spindle(self, block: Block, ml: ModalLine) -> None:
         code = ml.m.get(7)

@@ -60,3 +60,15 @@ def test_m6_keeps_the_spindle_when_the_machine_allows_it() -> None:
 
     out = run("S1000 M3\nT1 M6", tool_change_with_spindle_on=True)
     assert not any(isinstance(c, SpindleOff) for c in out)
+
+
+# --- G40, M6, then a move: the position is read back after a tool change (refresh_actual_position) -----
+
+
+@pytest.mark.parametrize("change", ["T2 M6", "M61 Q2"])
+def test_tool_change_after_g40_keeps_the_compensated_position(change: str) -> None:
+    # G41 radius 1 along +X: the tool runs at Y1. G40 leaves it there; LinuxCNC's M6/M61 read the
+    # position back, so a Z-only move keeps Y1 (without the change it would go back to Y0).
+    prog = f"G10 L1 P1 R1\nT1 M6\nF100\nG41\nG1 X10 Y0\nX20\nG40\n{change}\nG0 Z5\n"
+    assert last_end(prog) == xyz(20, 1, 5)
+    assert last_end("G10 L1 P1 R1\nT1 M6\nF100\nG41\nG1 X10 Y0\nX20\nG40\nG0 Z5\n") == xyz(20, 0, 5)
