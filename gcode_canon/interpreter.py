@@ -159,6 +159,8 @@ class Interpreter:
         self._out: list[Canon | _Resume] = []
         self.dialect = Dialect.parse(self.settings.dialect) if isinstance(self.settings.dialect, str) \
             else self.settings.dialect
+        # LinuxCNC (and Grbl, which has no expressions) compare GT/GE/LT/LE strictly
+        self.reader.tolerant_order = self.dialect is Dialect.GCODE_CANON
         self.flow = FlowControl(self)
         self.source: LineSource = LineSource.from_string("", "<none>")
         self.seen_code = False
@@ -223,7 +225,7 @@ class Interpreter:
         self.current_pocket = 0
         self.selected_tool = -1
         self.selected_pocket = -1
-        self.saved_state: dict | None = None
+        self.saved_states: dict[int, tuple[dict, bool]] = {}  # M70/M73 per call level: (state, M73)
         self.ended = False
         self._fast_ok = True
         self._tail: tuple[float, ...] | None = None
@@ -1100,23 +1102,40 @@ class Interpreter:
             "feed_mode": self.feed_mode, "plane": self.plane, "control": self.control,
             "g5x": self.frames.g5x_index, "feed": self.feed, "speed": self.speed,
             "spindle": self.spindle, "mist": self.mist, "flood": self.flood,
-            "overrides": dict(self.overrides),
+            "overrides": dict(self.overrides), "retract": self.retract,
+            "tool_length_mode": self.tool_length_mode, "g92_applied": self.params.numbered[5210] != 0.0,
+            "comp_code": self.comp_code,
         }
 
     def _step_state(self, block: Block, ml: ModalLine) -> None:
+        """M70-M73: LinuxCNC keeps one saved state per call level (its sub_context); M73's is restored
+        when that level's subroutine returns (LinuxCNC leave_context); M73 in the main program only
+        saves (LinuxCNC warns and stores it)."""
         code = ml.m.get(7)
         if code is None or code < 70:
             return
+        level = len(self.flow.frames)
         if code in (70, 73):
-            self.saved_state = self._modal_snapshot()
+            self.saved_states[level] = (self._modal_snapshot(), code == 73 and level > 0)
         elif code == 71:
-            self.saved_state = None
+            self.saved_states.pop(level, None)
         else:
-            if self.saved_state is None:
+            saved = self.saved_states.get(level)
+            if saved is None:
                 raise GCodeError("M72: no saved modal state to restore (M70 first)")
-            self._restore(self.saved_state)
+            self._restore(saved[0])
+
+    def leave_call_level(self, level: int) -> None:
+        """A subroutine of call level ``level`` returned: its M73 state comes back."""
+        saved = self.saved_states.pop(level, None)
+        if saved is not None and saved[1]:
+            self._restore(saved[0])
 
     def _restore(self, s: dict) -> None:
+        """What LinuxCNC's restore_settings puts back: units first, then F (in the restored units, to
+        one decimal, as its gen_settings writes "F%.1f") and S, the modal groups that differ
+        (plane, G40, distance, feed mode, G5x, G43/G49, retract mode, arc distance, G92.2/G92.3,
+        path control) and the spindle, coolant and override M codes."""
         f, n = self.file, self.line
         if s["inch"] != self.inch:
             self.inch = s["inch"]
@@ -1124,20 +1143,37 @@ class Interpreter:
             self._emit(UseLengthUnits(not self.inch, file=f, line=n))
         self.absolute = s["absolute"]
         self.ijk_absolute = s["ijk_absolute"]
+        self.retract = s["retract"]
         if s["feed_mode"] is not self.feed_mode:
             self.feed_mode = s["feed_mode"]
             self._emit(SetFeedMode(self.feed_mode, file=f, line=n))
         if s["plane"] is not self.plane:
             self.plane = s["plane"]
+            self.xform = self.xform.with_plane(self.plane)
             self._emit(SelectPlane(self.plane, file=f, line=n))
+        if s["comp_code"] == 400 and self.comp is not None:
+            self._comp_off()
         if s["control"] != self.control:
             self.control = s["control"]
             self._emit(SetMotionControlMode(*self.control, file=f, line=n))
         if s["g5x"] != self.frames.g5x_index:
             self._select_system(s["g5x"])
-        self._set_feed(s["feed"])
-        if s["speed"] != self.speed:
-            self.speed = s["speed"]
+        if s["tool_length_mode"] != self.tool_length_mode and s["tool_length_mode"] in (430, 490):
+            self._apply_tool_length(s["tool_length_mode"], None)
+        if s["g92_applied"] != (self.params.numbered[5210] != 0.0):
+            if s["g92_applied"]:
+                self.params.set_system(5210, 1.0)
+                self._set_g92([self.params.numbered[5211 + k] for k in range(N_AXES)])
+            else:
+                self.params.set_system(5210, 0.0)
+                self._set_g92([0.0] * N_AXES)
+        feed = s["feed"]
+        if self.feed_mode is not FeedMode.INVERSE_TIME:
+            feed = float(f"{feed / self.scale:.1f}") * self.scale
+        self._set_feed(feed)
+        speed = float(f"{s['speed']:.0f}")
+        if speed != self.speed:
+            self.speed = speed
             self._emit(SetSpindleSpeed(self.speed, file=f, line=n))
         if s["spindle"] is not self.spindle:
             self.spindle = s["spindle"]
@@ -1317,14 +1353,18 @@ class Interpreter:
         code = ml.g.get(8)
         if code is None:
             return
+        self._apply_tool_length(code, block)
+
+    def _apply_tool_length(self, code: int, block: Block | None) -> None:
         offset = [0.0] * N_AXES
         if code == 430:
-            h = self._int_word(block, "h", "G43")
+            h = self._int_word(block, "h", "G43") if block is not None else None
             number = self.current_tool if h is None else h
             tool = self._tool(number)
             if tool is not None:
                 offset = [float(v) for v in tool.offset]
         elif code == 431:
+            assert block is not None
             for k, letter in enumerate(AXIS_LETTERS):
                 value = block.take(letter)
                 if value is not None:

@@ -531,6 +531,7 @@ class FlowControl:
             assert frame.start is not None
             frame.source.jump(frame.start)
             return
+        level = len(self.frames)
         self.frames.pop()
         self.blocks = frame.blocks
         if not frame.fanuc:
@@ -543,6 +544,7 @@ class FlowControl:
         elif frame.restore is not None:
             frame.source.jump(frame.restore)
         interp.switch_source(frame.caller, frame.caller_file)
+        interp.leave_call_level(level)
 
     # --- Fanuc-style numbered programs ----------------------------------------------------------------
 

@@ -72,3 +72,73 @@ def test_tool_change_after_g40_keeps_the_compensated_position(change: str) -> No
     prog = f"G10 L1 P1 R1\nT1 M6\nF100\nG41\nG1 X10 Y0\nX20\nG40\n{change}\nG0 Z5\n"
     assert last_end(prog) == xyz(20, 1, 5)
     assert last_end("G10 L1 P1 R1\nT1 M6\nF100\nG41\nG1 X10 Y0\nX20\nG40\nG0 Z5\n") == xyz(20, 0, 5)
+
+
+# --- M73: the state saved in a subroutine comes back at its return (leave_context, restore_settings) ---
+
+
+def _table(tmp_path) -> str:
+    path = tmp_path / "tools.tbl"
+    path.write_text("T1 P1 Z10 D6\nT2 P2 Z20 D2\n")
+    return str(path)
+
+
+def test_m73_restores_distance_units_system_and_tool_length_at_return(tmp_path) -> None:
+    prog = ("G10 L2 P2 X100\nT1 M6\nG43\nF100\n"
+            "o<s> sub\nM73\nG49\nG91 G20 G55 G18 F7\nG0 X1\no<s> endsub\n"
+            "o<s> call\nG1 X2 Y3 Z1\n")
+    out = run(prog, tool_table=_table(tmp_path))
+    moves = [c for c in out if c.MOVES]
+    # in the sub: G91 G20 X1 from machine X0 in G55 (X offset 100), tool offset off: machine Z0
+    assert tuple(moves[0].end)[:3] == pytest.approx((25.4, 0.0, 0.0))
+    # after the return: G90 G21 G54 and G43 (tool 1, Z 10) again, feed back to 100 mm/min
+    assert tuple(moves[1].end)[:3] == pytest.approx((2.0, 3.0, 11.0))
+    from gcode_canon.commands import SelectPlane, SetFeedRate
+
+    assert [c.rate for c in out if isinstance(c, SetFeedRate)][-1] == pytest.approx(100.0)
+    assert out[-2].__class__ is not SelectPlane or out[-2].plane.gcode == "G17"
+
+
+def test_m73_restores_feed_to_one_decimal_as_linuxcnc_writes_it() -> None:
+    from gcode_canon.commands import SetFeedRate
+
+    out = run("F33.37\no<s> sub\nM73\nF5\no<s> endsub\no<s> call\n")
+    assert [c.rate for c in out if isinstance(c, SetFeedRate)][-1] == pytest.approx(33.4)
+
+
+def test_m73_in_the_main_program_restores_nothing_and_levels_are_separate() -> None:
+    assert last_end("M73\nG91\nG0 X1\nG0 X1\n") == xyz(2)
+    # M70 in the main program, M72 inside a sub: that level has nothing saved (LinuxCNC refuses)
+    from tests.test_interp_helpers import error
+
+    assert "no saved modal state" in error("M70\no<s> sub\nM72\no<s> endsub\no<s> call\n").message
+    # M70 then a sub with its own M73: the main program's M72 still gets its own state
+    assert last_end("M70\no<s> sub\nM73\nG20\no<s> endsub\no<s> call\nG91\nM72\nG0 X1\nG0 X1\n") == xyz(1)
+
+
+# --- comparisons: tolerance on EQ/NE only in the LinuxCNC dialect (interp_execute.cc execute_binary2) ---
+
+
+def _value(expr: str, dialect: str = "linuxcnc") -> float:
+    from gcode_canon.interpreter import Interpreter
+    from gcode_canon.settings import InterpreterSettings
+
+    interp = Interpreter(InterpreterSettings(dry_run=True, require_program_end=False, dialect=dialect))
+    list(interp.run_string(f"#1 = {expr}\n", "t.ngc"))
+    return interp.parameter(1)
+
+
+@pytest.mark.parametrize(("expr", "linuxcnc", "gcode_canon"), [
+    ("[0.99999 LT 1]", 1.0, 0.0),
+    ("[1.00001 GT 1]", 1.0, 0.0),
+    ("[0.99999 GE 1]", 0.0, 1.0),
+    ("[1.00001 LE 1]", 0.0, 1.0),
+    ("[1 LE 1]", 1.0, 1.0),
+    ("[1 GE 1]", 1.0, 1.0),
+    ("[0.99999 EQ 1]", 1.0, 1.0),
+    ("[0.99999 NE 1]", 0.0, 0.0),
+    ("[0.9998 EQ 1]", 0.0, 0.0),
+])
+def test_comparison_tolerance_by_dialect(expr: str, linuxcnc: float, gcode_canon: float) -> None:
+    assert _value(expr) == linuxcnc
+    assert _value(expr, "gcode-canon") == gcode_canon
