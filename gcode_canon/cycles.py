@@ -76,8 +76,10 @@ departures marked *canon*:
   G74/G84 is optional (the last P, initially 0). L is not sticky (default 1).
 * G73: peck by Q, rapid back up by the peck clearance; G83: peck by Q, rapid out to R, rapid back
   down to the peck clearance above the last depth. The clearance is the D word, else
-  ``CycleContext.g73_peck_clearance`` / ``g83_peck_clearance``, else LinuxCNC's built-in default
-  0.050 in / 1 mm (the manual says 0.010 in / 0.254 mm; the source uses 0.050 in / 1 mm).
+  ``CycleContext.g73_peck_clearance`` / ``g83_peck_clearance``, else LinuxCNC's built-in default for
+  a metric machine: 1 in the program's units (LinuxCNC chooses 0.050 or 1 by the machine's units at
+  start-up and never converts it, so a G20 program on a metric machine pecks back 1 inch; the manual
+  says 0.010 in / 0.254 mm).
   *canon*: a negative D is refused (it would rapid below the cut depth); peck depths are
   ``R - k*Q`` (no accumulated rounding) and one within rounding of Z is merged into the last feed.
 * G74/G84 (floating-chuck tapping, not synchronised in LinuxCNC either): feed in, spindle stop,
@@ -459,8 +461,9 @@ def expand_cycle(
             peck = words.d
         else:
             configured = ctx.g73_peck_clearance if code10 == 730 else ctx.g83_peck_clearance
-            default = DEFAULT_PECK_CLEARANCE_MM if ctx.metric else DEFAULT_PECK_CLEARANCE_INCH
-            peck = configured if configured is not None else default
+            # LinuxCNC picks its default by the machine's units at start-up and uses the bare number
+            # in the program's units: canon's machine is metric, so 1 (1 mm in G21, 1 inch in G20)
+            peck = configured if configured is not None else DEFAULT_PECK_CLEARANCE_MM
         if peck < 0.0:
             raise GCodeError(f"Negative peck clearance (D word) used with {name}")
     middle = 0.0

@@ -766,7 +766,7 @@ class Interpreter:
             raise GCodeError("L word with no G10, cutter compensation, canned cycle, M66 or M98 to use it")
         if "e" in w and not ms & {66, 67, 68}:
             raise GCodeError("E word with no M66, M67 or M68 to use it")
-        if "h" in w and ml.g.get(8) != 430 and g0 != 100:
+        if "h" in w and ml.g.get(8) not in (430, 432) and g0 != 100:
             raise GCodeError("H word with no G43 to use it")
         if "d" in w and motion not in (730, 830) and ml.g.get(7) not in (410, 420, 411, 421) and \
                 g0 not in (100, 120, 130):
@@ -1364,11 +1364,31 @@ class Interpreter:
             if tool is not None:
                 offset = [float(v) for v in tool.offset]
         elif code == 431:
+            # LinuxCNC convert_tool_length_offset: axes not given keep their current offset
             assert block is not None
+            offset = list(self.frames.tool)
             for k, letter in enumerate(AXIS_LETTERS):
                 value = block.take(letter)
                 if value is not None:
                     offset[k] = value if k in ROTARY_INDEXES else value * self.scale
+        elif code == 432:
+            # G43.2: adds tool H's offsets, or the axis words, to the offsets in force
+            assert block is not None
+            offset = list(self.frames.tool)
+            given = [k for k, letter in enumerate(AXIS_LETTERS) if letter in block.words]
+            h = self._int_word(block, "h", "G43.2")
+            if h is not None and given:
+                raise GCodeError("G43.2: Can not have both H and axis words")
+            if h is None and not given:
+                raise GCodeError("G43.2: No axes specified and H word missing")
+            if h is not None:
+                tool = self._tool(h)
+                if tool is not None:
+                    offset = [a + float(b) for a, b in zip(offset, tool.offset, strict=True)]
+            for k in given:
+                value = block.take(AXIS_LETTERS[k])
+                assert value is not None
+                offset[k] += value if k in ROTARY_INDEXES else value * self.scale
         self.tool_length_mode = code
         self.frames.tool = offset
         self._offsets_changed()

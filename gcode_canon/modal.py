@@ -45,7 +45,6 @@ G_UNSUPPORTED: dict[int, str] = {
     171: "G17.1 (UV plane)",
     181: "G18.1 (WU plane)",
     191: "G19.1 (VW plane)",
-    432: "G43.2 (additional tool offset)",
     960: "G96 (constant surface speed)",
     70: "G7 (lathe diameter mode)",
 }
@@ -73,7 +72,7 @@ def gname(code10: int) -> str:
     return f"G{whole}.{tenth}" if tenth else f"G{whole}"
 
 
-AXIS_USER_CODES = frozenset((*G_AXIS_USERS_GROUP0, 431, 220, 230, 510, 680))
+AXIS_USER_CODES = frozenset((*G_AXIS_USERS_GROUP0, 431, 432, 220, 230, 510, 680))
 """Codes other than the motion mode that take the line's axis words (G10 G28 G30 G92 G43.1, and the
 gcode-canon transforms G22 G23 G51 G68)."""
 

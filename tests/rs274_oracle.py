@@ -23,7 +23,16 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from gcode_canon.commands import ArcFeed, Plane, Pose, Probe, StraightFeed, StraightTraverse
+from gcode_canon.commands import (
+    ArcFeed,
+    Plane,
+    Pose,
+    Probe,
+    SetToolNumber,
+    StraightFeed,
+    StraightTraverse,
+    ToolChange,
+)
 from gcode_canon.errors import GCodeError
 
 MM_PER_INCH = 25.4
@@ -177,7 +186,15 @@ def run_rs274(binary: Path, work: Path, case: Case) -> Result:
 
 
 class OracleMachine:
-    """As rs274's stand-alone canon: inputs read their default (0), a probe ends at its target."""
+    """As rs274's stand-alone canon: inputs read their default (0), a probe ends at its target, and
+    after a tool change the position read back is the last move's end in program coordinates (its
+    GET_EXTERNAL_POSITION), not adjusted for offsets changed since (a real machine reports where it
+    is, which canon then reads in the new offsets)."""
+
+    def __init__(self) -> None:
+        self.interp = None
+        self.last_prog: list[float] | None = [0.0] * 9  # rs274 starts at program zero
+        self.after_change = False
 
     def wait_input(self, cmd) -> float:
         return 0.0
@@ -186,7 +203,10 @@ class OracleMachine:
         return cmd.end, True
 
     def current_position(self) -> Pose | None:
-        return None
+        if not self.after_change or self.last_prog is None or self.interp is None:
+            return None
+        self.after_change = False
+        return self.interp._to_machine(self.last_prog)
 
     def print_text(self, text: str) -> None:
         pass
@@ -203,9 +223,15 @@ def run_canon(work: Path, case: Case) -> Result:
         block_delete=case.block_delete, max_loop_iterations=100_000,
     )
     result = Result()
+    machine = OracleMachine()
     try:
-        interp = Interpreter(settings, OracleMachine())
+        interp = Interpreter(settings, machine)
+        machine.interp = interp
         for cmd in interp.run_file(work / case.program):
+            if cmd.MOVES:
+                machine.last_prog = list(interp.prog)
+            elif isinstance(cmd, (ToolChange, SetToolNumber)):
+                machine.after_change = True
             if isinstance(cmd, (StraightTraverse, StraightFeed, Probe)):
                 kind = {StraightTraverse: "traverse", StraightFeed: "feed"}.get(type(cmd), "probe")
                 result.moves.append(Move(kind, tuple(cmd.end[:6])))
@@ -274,7 +300,7 @@ def _drop_null(moves: list[Move]) -> list[Move]:
     """Straight moves to where the previous move ended change nothing (LinuxCNC's canned cycles emit
     some, canon does not): left out of the comparison on both sides."""
     out: list[Move] = []
-    prev: tuple[float, ...] | None = None
+    prev: tuple[float, ...] | None = (0.0,) * 6  # both start at machine zero
     for mv in moves:
         if mv.kind in ("traverse", "feed") and prev is not None and len(prev) == len(mv.end) and all(
                 abs(a - b) <= mv.tol for a, b in zip(prev, mv.end, strict=True)):

@@ -142,3 +142,15 @@ def _value(expr: str, dialect: str = "linuxcnc") -> float:
 def test_comparison_tolerance_by_dialect(expr: str, linuxcnc: float, gcode_canon: float) -> None:
     assert _value(expr) == linuxcnc
     assert _value(expr, "gcode-canon") == gcode_canon
+
+
+# --- G43.1 keeps the axes it does not name; G43.2 adds (convert_tool_length_offset) -------------------
+
+
+def test_g43_1_keeps_unnamed_axes_and_g43_2_adds() -> None:
+    assert last_end("G43.1 Z5\nG43.1 X1\nG0 X0 Z0") == xyz(1, 0, 5)
+    assert last_end("G43.1 Z5\nG43.2 Z2\nG0 Z0") == xyz(0, 0, 7)
+    from tests.test_interp_helpers import error
+
+    assert "H and axis words" in error("G43.2 H1 Z1").message
+    assert "No axes specified" in error("G43.2").message
