@@ -806,8 +806,8 @@ class Interpreter:
             raise GCodeError(f"Cannot use {gname(g0)} with cutter radius compensation on")
         if g0 == 530:
             raise GCodeError("Cannot use G53 with cutter radius compensation on")
-        if g0 in (920, 921, 922, 923):
-            raise GCodeError("Cannot change G92 offsets with cutter radius compensation on")
+        if g0 in (920, 921, 922, 923, 520):
+            raise GCodeError("Cannot change axis offsets (G52, G92) with cutter radius compensation on")
         if ml.g.get(12) is not None:
             raise GCodeError("Cannot change coordinate systems with cutter radius compensation on")
         if ml.m.get(6) == 6:
@@ -1554,8 +1554,8 @@ class Interpreter:
             base = 5161 if code == 281 else 5181
             for k in range(N_AXES):
                 self.params.set_system(base + k, self.pos[k])
-        elif code == 920:
-            self._g92(block)
+        elif code == 920 or code == 520:
+            self._g92(block, local=code == 520)
         elif code == 921 or code == 922:
             if code == 921:
                 for k in range(N_AXES):
@@ -1651,8 +1651,14 @@ class Interpreter:
         self._offsets_changed()
         self._emit(SetG92Offset(Pose(*values), file=self.file, line=self.line))
 
-    def _g92(self, block: Block) -> None:
-        if not block.has_axes():
+    def _g92(self, block: Block, local: bool = False) -> None:
+        """G92 (the current point gets the given coordinates) and G52 (LinuxCNC's local offset: the
+        given values are the offsets). Both live in the same registers (#5210-#5219), so G92.1/G92.2/
+        G92.3 and the parameter file's persistence apply to G52 too, as in LinuxCNC."""
+        name = "G52" if local else "G92"
+        if "@" in block.words or "^" in block.words:
+            raise GCodeError(f"Polar coordinates (@ ^) cannot be used with {name}")
+        if not block.has_axes() and not local:
             raise GCodeError("All axes missing with G92")
         current = [p + o for p, o in zip(self.prog, self.frames.g92, strict=True)]
         values = list(self.frames.g92)
@@ -1661,9 +1667,7 @@ class Interpreter:
             if value is not None:
                 if k not in ROTARY_INDEXES:
                     value *= self.scale
-                values[k] = current[k] - value
-        if "@" in block.words or "^" in block.words:
-            raise GCodeError("Polar coordinates (@ ^) cannot be used with G92")
+                values[k] = value if local else current[k] - value
         for k in range(N_AXES):
             self.params.set_system(5211 + k, values[k])
         self.params.set_system(5210, 1.0)

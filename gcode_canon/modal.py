@@ -41,7 +41,6 @@ G_UNSUPPORTED: dict[int, str] = {
     52: "G5.2 (NURBS)",
     330: "G33 (spindle-synchronized motion)",
     331: "G33.1 (rigid tapping)",
-    520: "G52 (local offset)",
     171: "G17.1 (UV plane)",
     181: "G18.1 (WU plane)",
     191: "G19.1 (VW plane)",
@@ -50,7 +49,7 @@ G_UNSUPPORTED: dict[int, str] = {
 }
 G_UNSUPPORTED[760] = "G76 (threading: it needs spindle-synchronized motion)"
 
-G_AXIS_USERS_GROUP0 = frozenset((100, 280, 300, 920))
+G_AXIS_USERS_GROUP0 = frozenset((100, 280, 300, 920, 520))
 """Group-0 codes that take axis words (the motion mode is suspended on their line)."""
 
 M_GROUPS: dict[int, int] = {}

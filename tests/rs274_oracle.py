@@ -25,7 +25,6 @@ from pathlib import Path
 
 from gcode_canon.commands import (
     ArcFeed,
-    Plane,
     Pose,
     Probe,
     SetToolNumber,
@@ -66,6 +65,7 @@ class Move:
 class Result:
     moves: list[Move] = field(default_factory=list)
     error: str | None = None  # None: accepted
+    prints: list[str] = field(default_factory=list)  # (PRINT,...) output
 
 
 @dataclass
@@ -174,12 +174,12 @@ def run_rs274(binary: Path, work: Path, case: Case) -> Result:
     except subprocess.TimeoutExpired:
         return Result([], "rs274: timeout")
     moves = parse_rs274(p.stdout)
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip() != "executing"]
     if p.returncode != 0:
-        lines = [ln for ln in p.stderr.splitlines() if ln.strip() and ln.strip() != "executing"]
         # the message, then the offending line (LinuxCNC's own bad/ test reads it so)
         message = lines[-2] if len(lines) >= 2 else lines[-1] if lines else f"rs274 exit {p.returncode}"
-        return Result(moves, message)
-    return Result(moves)
+        return Result(moves, message, lines[:-2])
+    return Result(moves, None, lines)
 
 
 # --- canon ---------------------------------------------------------------------------------------
@@ -195,6 +195,7 @@ class OracleMachine:
         self.interp = None
         self.last_prog: list[float] | None = [0.0] * 9  # rs274 starts at program zero
         self.after_change = False
+        self.prints: list[str] = []
 
     def wait_input(self, cmd) -> float:
         return 0.0
@@ -209,7 +210,7 @@ class OracleMachine:
         return self.interp._to_machine(self.last_prog)
 
     def print_text(self, text: str) -> None:
-        pass
+        self.prints.append(text)
 
 
 def run_canon(work: Path, case: Case) -> Result:
@@ -244,7 +245,7 @@ def run_canon(work: Path, case: Case) -> Result:
                 break
     except GCodeError as exc:
         result.error = str(exc)
-    _ = Plane
+    result.prints = machine.prints
     return result
 
 
@@ -326,7 +327,24 @@ def compare(theirs: Result, ours: Result) -> str | None:
         return f"rs274 refuses after {len(theirs.moves)} moves ({theirs.error}), canon accepts"
     if len(theirs.moves) != len(ours.moves):
         return f"rs274 {len(theirs.moves)} moves, canon {len(ours.moves)}"
+    for k, (a, b) in enumerate(zip(theirs.prints, ours.prints, strict=False)):
+        if not _same_text(a, b):
+            return f"PRINT {k + 1}: {a!r} on rs274, {b!r} on canon"
+    if theirs.error is None and len(theirs.prints) != len(ours.prints):
+        return f"rs274 printed {len(theirs.prints)} lines, canon {len(ours.prints)}"
     return None
+
+
+def _same_text(a: str, b: str) -> bool:
+    """Equal text, numbers within the rounding of LinuxCNC's %f (and of unit conversions)."""
+    na, nb = _NUM.findall(a), _NUM.findall(b)
+    if _NUM.sub("#", a).strip() != _NUM.sub("#", b).strip() or len(na) != len(nb):
+        return False
+    try:
+        return all(abs(float(x) - float(y)) <= 2e-4 * max(1.0, abs(float(x))) for x, y in zip(na, nb,
+                                                                                              strict=True))
+    except ValueError:
+        return na == nb
 
 
 def _differ(a: Move, b: Move) -> str | None:

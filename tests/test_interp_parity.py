@@ -154,3 +154,24 @@ def test_g43_1_keeps_unnamed_axes_and_g43_2_adds() -> None:
 
     assert "H and axis words" in error("G43.2 H1 Z1").message
     assert "No axes specified" in error("G43.2").message
+
+
+# --- G52: LinuxCNC's local offset, in the G92 registers (convert_axis_offsets) --------------------------
+
+
+def test_g52_sets_the_offset_itself_and_shares_the_g92_registers() -> None:
+    from gcode_canon.interpreter import Interpreter
+    from gcode_canon.settings import InterpreterSettings
+
+    assert last_end("G52 X2 Y3\nG0 X0 Y0") == xyz(2, 3)
+    # G92 X1 at X10 makes the offset 9; G52 X2 replaces it (Y keeps its G92 value 0)
+    assert last_end("G0 X10\nG92 X1\nG52 X2\nG0 X0") == xyz(2)
+    # G92.2 suspends, G92.3 restores, G92.1 clears it as any G92 offset
+    assert last_end("G52 X2\nG92.2\nG0 X0") == xyz(0)
+    assert last_end("G52 X2\nG92.2\nG92.3\nG0 X0") == xyz(2)
+    interp = Interpreter(InterpreterSettings(dry_run=True, require_program_end=False))
+    list(interp.run_string("G20\nG52 X2 Y3\n", "t.ngc"))
+    assert interp.parameter(5210) == 1.0
+    assert interp.parameter(5211) == pytest.approx(50.8)  # user units: the machine's mm
+    list(interp.run_string("G52 X0 Y0\n", "t.ngc"))
+    assert interp.parameter(5210) == 1.0 and interp.parameter(5211) == 0.0  # "leave param 5210 set"
