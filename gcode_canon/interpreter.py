@@ -244,11 +244,9 @@ class Interpreter:
 
     def _load_var_file(self) -> None:
         path = self.settings.var_file
-        if path is None:
-            return
-        from gcode_canon import paramfile
+        if path is not None and Path(path).exists():
+            from gcode_canon import paramfile
 
-        if Path(path).exists():
             values = paramfile.read_parameter_file(path)
             self.params.load(values)
             self._persist_keys.update(values)

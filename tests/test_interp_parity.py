@@ -175,3 +175,8 @@ def test_g52_sets_the_offset_itself_and_shares_the_g92_registers() -> None:
     assert interp.parameter(5211) == pytest.approx(50.8)  # user units: the machine's mm
     list(interp.run_string("G52 X0 Y0\n", "t.ngc"))
     assert interp.parameter(5210) == 1.0 and interp.parameter(5211) == 0.0  # "leave param 5210 set"
+
+
+def test_5220_reads_1_before_any_g54_to_g59_3() -> None:
+    # LinuxCNC's required parameter 5220 defaults to 1.0 (G54 active), with or without a .var file
+    assert _value("#5220") == 1.0
