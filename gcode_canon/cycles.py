@@ -177,6 +177,8 @@ class CycleWords:
     offset_second: float | None = None
     offset_normal: float | None = None
     extra_axes: frozenset[str] = field(default_factory=frozenset)
+    polar_radius: float | None = None  # @ (G17 only, checked by the interpreter)
+    polar_angle: float | None = None  # ^ in degrees
 
     @classmethod
     def from_letters(cls, plane: Plane, words: Mapping[str, float]) -> CycleWords:
@@ -198,6 +200,8 @@ class CycleWords:
             offset_second=lower.get(oj),
             offset_normal=lower.get(ok),
             extra_axes=extra,
+            polar_radius=lower.get("@"),
+            polar_angle=lower.get("^"),
         )
 
 
@@ -404,16 +408,27 @@ def expand_cycle(
     normal_word = words.normal if words.normal is not None else state.normal
     initial = state.initial_level if state.initial_level is not None else start[2]
 
+    polar = words.polar_radius is not None or words.polar_angle is not None
+    inc_radius = inc_angle = 0.0
     if ctx.incremental:
         inc_a = words.first if words.first is not None else 0.0
         inc_b = words.second if words.second is not None else 0.0
         hole_a, hole_b = start[0], start[1]
         r_level = r_word + initial
         bottom = r_level + normal_word
+        # LinuxCNC's CYCLE_MACRO: each repeat adds @ to the radius and ^ to the angle about the origin
+        inc_radius = words.polar_radius or 0.0
+        inc_angle = math.radians(words.polar_angle or 0.0)
     else:
         inc_a = inc_b = 0.0
-        hole_a = words.first if words.first is not None else start[0]
-        hole_b = words.second if words.second is not None else start[1]
+        if polar:  # LinuxCNC convert_cycle_xy: the missing one of @ ^ from the current point
+            radius = words.polar_radius if words.polar_radius is not None else math.hypot(start[0], start[1])
+            angle = (math.radians(words.polar_angle) if words.polar_angle is not None
+                     else math.atan2(start[1], start[0]))
+            hole_a, hole_b = radius * math.cos(angle), radius * math.sin(angle)
+        else:
+            hole_a = words.first if words.first is not None else start[0]
+            hole_b = words.second if words.second is not None else start[1]
         r_level = r_word
         bottom = normal_word
     if r_level < bottom:
@@ -495,6 +510,13 @@ def expand_cycle(
     for repeat in range(repeats):
         hole_a += inc_a
         hole_b += inc_b
+        if inc_radius or inc_angle:
+            if hole_a == 0.0 and hole_b == 0.0:
+                raise GCodeError("Incremental motion with polar coordinates is indeterminate when at the "
+                                 "origin")
+            radius = math.hypot(hole_a, hole_b) + inc_radius
+            angle = math.atan2(hole_b, hole_a) + inc_angle
+            hole_a, hole_b = radius * math.cos(angle), radius * math.sin(angle)
         if repeat == 0 and current > r_level:
             out.move("traverse", (hole_a, hole_b, current))
         else:

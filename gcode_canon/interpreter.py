@@ -736,6 +736,8 @@ class Interpreter:
         motion = self._effective_motion(ml)
         arc = motion in (20, 30)
         if "@" in w or "^" in w:
+            if self.plane is not Plane.XY:  # LinuxCNC enhance_block
+                raise GCodeError("Cannot use polar coordinate except in G17 plane")
             if "x" in w or "y" in w:
                 raise GCodeError("Cannot mix polar coordinates (@ ^) with X or Y words")
             if axis_user0 or g0 == 530:
@@ -875,6 +877,8 @@ class Interpreter:
             cur_r = math.hypot(target[0], target[1])
             cur_a = math.degrees(math.atan2(target[1], target[0]))
             if absolute:
+                if a_word is None and cur_r == 0.0:
+                    raise GCodeError("Must specify angle in polar coordinate if at the origin")
                 radius = r_word * scale if r_word is not None else cur_r
                 angle = a_word if a_word is not None else cur_a
             else:

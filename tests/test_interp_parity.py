@@ -3,6 +3,8 @@ value LinuxCNC gives (worked out from its source: interp_*.cc, emccanon.cc, and 
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
 from tests.test_interp_helpers import last_end, run, xyz
@@ -180,3 +182,27 @@ def test_g52_sets_the_offset_itself_and_shares_the_g92_registers() -> None:
 def test_5220_reads_1_before_any_g54_to_g59_3() -> None:
     # LinuxCNC's required parameter 5220 defaults to 1.0 (G54 active), with or without a .var file
     assert _value("#5220") == 1.0
+
+
+# --- polar coordinates @ ^ (enhance_block, find_ends, CYCLE_MACRO) -------------------------------------
+
+
+def test_polar_words_only_in_g17() -> None:
+    from tests.test_interp_helpers import error
+
+    assert "except in G17" in error("G18\nG0 @1 ^2").message
+    assert "except in G17" in error("G19\nG1 ^2 F100").message
+    assert "angle" in error("G0 @5").message  # at the origin, @ alone has no direction
+
+
+def test_incremental_angle_steps_a_hole_circle() -> None:
+    # LinuxCNC's nc_files/hole-circle.ngc: six holes 60 degrees apart on a 1.5 radius (inches here mm)
+    out = run("G17 G90\nG0 X1.5 Y0 Z0\nG91 G81 R.1 Z-.5 ^60 L6 F10\n")
+    feeds = [c.end for c in out if type(c).__name__ == "StraightFeed"]
+    assert len(feeds) == 6
+    for k, end in enumerate(feeds, start=1):
+        a = math.radians(60 * k)
+        assert (end.x, end.y, end.z) == pytest.approx((1.5 * math.cos(a), 1.5 * math.sin(a), -0.4), abs=1e-9)
+    # absolute: the missing one of @ ^ comes from the current point
+    out = run("G0 X3 Y4 Z5\nG81 ^90 Z-1 R1 F10\n")
+    assert next(c.end for c in out if type(c).__name__ == "StraightFeed")[:3] == pytest.approx((0, 5, -1))
