@@ -1774,7 +1774,9 @@ class Interpreter:
         if self.cycle_state.motion is not None or self.cycle_state.initial_level is not None:
             self.cycle_state = cycles.cancel(self.cycle_state)
         if motion in (20, 30):
-            if has_axes or "i" in w or "j" in w or "k" in w or "r" in w:
+            # a G2/G3 written on the line is an arc even with no other word (LinuxCNC then refuses it:
+            # "R, I, J or K words missing"); a line in G2/G3 mode with none of them moves nothing
+            if has_axes or "i" in w or "j" in w or "k" in w or "r" in w or explicit in (20, 30):
                 self._arc(block, motion == 20)
             return
         if not has_axes:

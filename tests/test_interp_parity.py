@@ -206,3 +206,16 @@ def test_incremental_angle_steps_a_hole_circle() -> None:
     # absolute: the missing one of @ ^ comes from the current point
     out = run("G0 X3 Y4 Z5\nG81 ^90 Z-1 R1 F10\n")
     assert next(c.end for c in out if type(c).__name__ == "StraightFeed")[:3] == pytest.approx((0, 5, -1))
+
+
+# --- arcs (convert_arc) ------------------------------------------------------------------------------
+
+
+def test_bare_g2_is_refused_and_wrong_plane_offsets_too() -> None:
+    from tests.test_interp_helpers import error
+
+    assert "missing for arc" in error("F100\nG2").message
+    assert "missing for arc" in error("F100\nG2 X2 I1\nG3").message
+    assert len(run("F100\nG2 X1 Y1 I1\nF200")) >= 2  # G2 modal, no words: nothing moves, no error
+    assert "J word given for arc" in error("G18 F100\nG2 X1 Z1 J1 I1").message
+    assert "I word given for arc" in error("G19 F100\nG2 Y1 Z1 I1 K1").message
