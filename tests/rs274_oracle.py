@@ -217,7 +217,7 @@ def run_canon(work: Path, case: Case) -> Result:
     from gcode_canon.interpreter import Interpreter
     from gcode_canon.settings import InterpreterSettings
 
-    sub_path = [work / d for d in case.subroutine_path]
+    sub_path = [work / d for d in _ini_subroutine_path(work, case)] + [work / d for d in case.subroutine_path]
     settings = InterpreterSettings(
         var_file=work / case.var_file if case.var_file else None,
         tool_table=_tool_table(work, case), dry_run=True, subroutine_path=sub_path,
@@ -247,6 +247,13 @@ def run_canon(work: Path, case: Case) -> Result:
         result.error = str(exc)
     result.prints = machine.prints
     return result
+
+
+def _ini_subroutine_path(work: Path, case: Case) -> list[str]:
+    if not case.ini or not (work / case.ini).exists():
+        return []
+    m = re.search(r"(?im)^\s*SUBROUTINE_PATH\s*=\s*(.*)$", (work / case.ini).read_text(errors="replace"))
+    return [p.strip() for p in m.group(1).split(":") if p.strip()] if m else []
 
 
 def _tool_table(work: Path, case: Case) -> Path:

@@ -219,3 +219,29 @@ def test_bare_g2_is_refused_and_wrong_plane_offsets_too() -> None:
     assert len(run("F100\nG2 X1 Y1 I1\nF200")) >= 2  # G2 modal, no words: nothing moves, no error
     assert "J word given for arc" in error("G18 F100\nG2 X1 Z1 J1 I1").message
     assert "I word given for arc" in error("G19 F100\nG2 Y1 Z1 I1 K1").message
+
+
+# --- o-words (interp_o_word.cc: control_back_to, convert_control_functions) ---------------------------
+
+
+def test_sub_defined_after_its_call_is_found_in_the_main_file() -> None:
+    prog = "o100 call [2]\nG0 Y1\nM2\no100 sub\nG0 X#1\no100 endsub\n"
+    assert [tuple(e)[:2] for e in [c.end for c in run(prog) if c.MOVES]] == [(2.0, 0.0), (2.0, 1.0)]
+    # after the main program's M2, named too, and every later call finds it again
+    prog = "o<a> call\no<a> call\nM2\no<a> sub\nG91 G0 X1\no<a> endsub\n"
+    assert last_end(prog) == xyz(2)
+    from tests.test_interp_helpers import error
+
+    # nothing after a closing percent is read (LinuxCNC: "Failed to find sub ... before EOF")
+    assert "o2 call" in error("%\no2 call\n%\no2 sub\nG0 X1\no2 endsub\n").message
+
+
+def test_nested_sub_definition_refused_return_any_label_comment_between_arguments() -> None:
+    from tests.test_interp_helpers import error
+
+    nested = "o<n> sub\no100 sub\no100 endsub\no<n> endsub\no<n> call\nM2\n"
+    assert "Nested subroutine definition" in error(nested).message
+    # return leaves the running sub whatever its label (LinuxCNC's return-value test)
+    assert last_end("o1000 sub\nG0 X1\no1010 return\nG0 X9\no1000 endsub\no1000 call\n") == xyz(1)
+    # a comment between call arguments (LinuxCNC's flowsnake)
+    assert last_end("o<s> sub\nG0 X#1 Y#2\no<s> endsub\no<s> call [1] (first) [2]\n") == xyz(1, 2)
