@@ -749,7 +749,8 @@ class Interpreter:
                 raise GCodeError(f"{letter.upper()} word with no G2 or G3 to use it")
         cycle = motion in cycles.CYCLE_CODES
         orient = ml.m.get(7) == 19
-        if "r" in w and not (arc or cycle or orient) and g0 != 100 and ml.g.get(18) != 680:
+        if "r" in w and not (arc or cycle or orient) and g0 != 100 and ml.g.get(18) != 680 and \
+                ml.g.get(13) != 640:
             raise GCodeError("R word with no G code that uses it")
         if "p" in w and not (arc or g0 in (40, 100) or ml.g.get(17) == 510 or ml.g.get(13) == 640
                              or motion in (740, 820, 840, 860, 880, 890) or orient
@@ -1423,6 +1424,14 @@ class Interpreter:
             if (p is not None and p < 0) or (q is not None and q < 0):
                 raise GCodeError("G64 P and Q must not be negative")
             control = (MotionControlMode.CONTINUOUS, (p or 0.0) * self.scale, (q or 0.0) * self.scale)
+            r = block.take("r")
+            if r is not None:
+                # LinuxCNC master (convert_control_mode, G64_R_PLANNER): R <= 0 trapezoidal, else the
+                # smooth planner with its peak scale clamped to 0.1..1; the path tolerances as P/Q
+                planner, peak = (0, -1.0) if r <= 0.0 else (1, min(1.0, max(0.1, r)))
+                self.control = control
+                self._emit(SetMotionControlMode(*control, planner, peak, file=self.file, line=self.line))
+                return
         elif code == 610:
             control = (MotionControlMode.EXACT_PATH, 0.0, 0.0)
         else:

@@ -194,8 +194,11 @@ class OracleMachine:
     def __init__(self) -> None:
         self.interp = None
         self.last_prog: list[float] | None = [0.0] * 9  # rs274 starts at program zero
+        self.last_tool: list[float] = [0.0] * 9
+        self.last_pos: list[float] = [0.0] * 9
         self.after_change = False
         self.prints: list[str] = []
+        self.jumps: list[Pose] = []
 
     def wait_input(self, cmd) -> float:
         return 0.0
@@ -207,7 +210,13 @@ class OracleMachine:
         if not self.after_change or self.last_prog is None or self.interp is None:
             return None
         self.after_change = False
-        return self.interp._to_machine(self.last_prog)
+        # rs274's stand-alone canon keeps its program position across G5x/G92 changes, but not across
+        # tool length offset changes: the machine seems to have moved by the change
+        tool = self.interp.frames.tool
+        where = Pose(*(p + t - t0 for p, t, t0 in zip(self.last_pos, tool, self.last_tool, strict=True)))
+        if any(abs(a - b) > 1e-9 for a, b in zip(where, self.interp.pos, strict=True)):
+            self.jumps.append(where)  # rs274 shows this jump as the next (otherwise null) move
+        return where
 
     def print_text(self, text: str) -> None:
         self.prints.append(text)
@@ -229,8 +238,12 @@ def run_canon(work: Path, case: Case) -> Result:
         interp = Interpreter(settings, machine)
         machine.interp = interp
         for cmd in interp.run_file(work / case.program):
+            while machine.jumps:
+                result.moves.append(Move("jump", tuple(machine.jumps.pop(0)[:6])))
             if cmd.MOVES:
                 machine.last_prog = list(interp.prog)
+                machine.last_tool = list(interp.frames.tool)
+                machine.last_pos = list(interp.pos)
             elif isinstance(cmd, (ToolChange, SetToolNumber)):
                 machine.after_change = True
             if isinstance(cmd, (StraightTraverse, StraightFeed, Probe)):
@@ -318,10 +331,28 @@ def _drop_null(moves: list[Move]) -> list[Move]:
     return out
 
 
+def _match_jumps(theirs: list[Move], ours: list[Move]) -> tuple[list[Move], list[Move]]:
+    """Where the oracle machine moved canon's position (a tool change read back), rs274's next,
+    otherwise null, move goes there: canon gets the same traverse; a jump rs274 does not show is
+    dropped (its next move simply starts from there)."""
+    out: list[Move] = []
+    for mv in ours:
+        if mv.kind != "jump":
+            out.append(mv)
+            continue
+        k = len(out)  # the lists are in step up to here (or compare reports the first difference)
+        if k < len(theirs):
+            t = theirs[k]
+            if t.kind == "traverse" and all(abs(x - y) <= t.tol for x, y in zip(t.end, mv.end, strict=False)):
+                out.append(Move("traverse", mv.end, tol=t.tol))
+    return theirs, out
+
+
 def compare(theirs: Result, ours: Result) -> str | None:
     """None when they agree, else the first difference in words."""
-    theirs = Result(_drop_null(theirs.moves), theirs.error)
-    ours = Result(_drop_null(ours.moves), ours.error)
+    theirs_moves, ours_moves = _match_jumps(theirs.moves, ours.moves)
+    theirs = Result(_drop_null(theirs_moves), theirs.error, theirs.prints)
+    ours = Result(_drop_null(ours_moves), ours.error, ours.prints)
     n = min(len(theirs.moves), len(ours.moves))
     for k in range(n):
         a, b = theirs.moves[k], ours.moves[k]

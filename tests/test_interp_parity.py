@@ -245,3 +245,14 @@ def test_nested_sub_definition_refused_return_any_label_comment_between_argument
     assert last_end("o1000 sub\nG0 X1\no1010 return\nG0 X9\no1000 endsub\no1000 call\n") == xyz(1)
     # a comment between call arguments (LinuxCNC's flowsnake)
     assert last_end("o<s> sub\nG0 X#1 Y#2\no<s> endsub\no<s> call [1] (first) [2]\n") == xyz(1, 2)
+
+
+def test_g64_r_selects_the_planner_as_linuxcnc_master() -> None:
+    from gcode_canon.commands import SetMotionControlMode
+    from tests.test_interp_helpers import error
+
+    modes = [c for c in run("G64 P1 R0.5\nG64 P1 R0\nG64 P1 R2.5\nG64 P1 R0.05\n")
+             if isinstance(c, SetMotionControlMode)]
+    assert [(m.planner, m.peak_scale) for m in modes] == [(1, 0.5), (0, -1.0), (1, 1.0), (1, 0.1)]
+    assert modes[0].tolerance == 1.0
+    assert "R word with no" in error("G61 R0.5").message
