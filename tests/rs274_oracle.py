@@ -92,8 +92,9 @@ def _numbers(text: str) -> list[float]:
     return [float(v) for v in _NUM.findall(text)]
 
 
-def parse_rs274(stdout: str) -> list[Move]:
-    """Canonical calls (program units) to moves in machine mm."""
+def parse_rs274(stdout: str, prints: list[str] | None = None) -> list[Move]:
+    """Canonical calls (program units) to moves in machine mm; other lines (the (PRINT,...) output,
+    which rs274 writes between them) go to ``prints``."""
     factor = 1.0
     g5x = [0.0] * 6
     g92 = [0.0] * 6
@@ -115,6 +116,8 @@ def parse_rs274(stdout: str) -> list[Move]:
         if m is None:
             if "NURBS_G6_FEED" in line:
                 moves.append(Move("nurbs", ()))
+            elif prints is not None and line.strip():
+                prints.append(line)
             continue
         name, args = m.groups()
         if name == "USE_LENGTH_UNITS":
@@ -173,13 +176,14 @@ def run_rs274(binary: Path, work: Path, case: Case) -> Result:
                            errors="replace")
     except subprocess.TimeoutExpired:
         return Result([], "rs274: timeout")
-    moves = parse_rs274(p.stdout)
-    lines = [ln for ln in p.stderr.splitlines() if ln.strip() != "executing"]
+    prints: list[str] = []
+    moves = parse_rs274(p.stdout, prints)
     if p.returncode != 0:
+        lines = [ln for ln in p.stderr.splitlines() if ln.strip() != "executing"]
         # the message, then the offending line (LinuxCNC's own bad/ test reads it so)
         message = lines[-2] if len(lines) >= 2 else lines[-1] if lines else f"rs274 exit {p.returncode}"
-        return Result(moves, message, lines[:-2])
-    return Result(moves, None, lines)
+        return Result(moves, message, prints)
+    return Result(moves, None, prints)
 
 
 # --- canon ---------------------------------------------------------------------------------------
@@ -427,7 +431,10 @@ def interp_cases(root: Path) -> list[Case]:
             if case is None:
                 continue
             for prog in _expand(d, case.program):
-                cases.append(Case(f"{d.relative_to(root)}/{prog}", d, prog, case.tool_table, case.var_file,
+                name = f"{d.relative_to(root)}/{prog}" + (f" [{case.ini}]" if case.ini else "")
+                if any(c.name == name for c in cases):
+                    continue
+                cases.append(Case(name, d, prog, case.tool_table, case.var_file,
                                   case.ini, case.block_delete, ["."]))
     for sub in ("bad", "good"):
         for prog in sorted((root / sub).glob("*.ngc")):
