@@ -1831,10 +1831,13 @@ class Interpreter:
                 raise GCodeError("Cannot probe with cutter radius compensation on")
             if self.feed_mode is FeedMode.INVERSE_TIME:
                 raise GCodeError("Cannot probe in inverse time feed mode")
+            if self.feed_mode is FeedMode.UNITS_PER_REV:
+                raise GCodeError("Cannot probe with feed per rev mode")
             if any(end_pose[k] != self.pos[k] for k in ROTARY_INDEXES):
                 raise GCodeError("Cannot move rotary axes during probing")
             self._require_feed(block, gname(motion))
-            if math.dist(end_pose, self.pos) < 1e-9:
+            if math.dist(end_pose, self.pos) < 1e-9 and _PROBE_MODES[motion].error_on_miss:
+                # LinuxCNC refuses it for G38.2/G38.4 only: G38.3/G38.5 may start where they end
                 raise GCodeError(f"{gname(motion)}: probe move has zero length")
             self._probe(Probe(end_pose, _PROBE_MODES[motion], file=f, line=n))
             return
@@ -1936,6 +1939,12 @@ class Interpreter:
                 self.probe_log.write(" ".join(f"{self.params.numbered[5061 + k]:.6f}" for k in range(N_AXES)))
             if not tripped and cmd.mode.error_on_miss:
                 raise GCodeError(f"G{cmd.mode.value} move finished without making contact")
+            # LinuxCNC set_probe_data: #5061-#5069 are where the probe tripped, the position the next
+            # move starts from is where the machine stopped (past the trip point, or backed off)
+            now = self.machine.current_position()
+            if now is not None:
+                self.pos = Pose(*now)
+                self.prog = self._from_machine(self.pos)
 
         self._emit(_Resume(answer))
 

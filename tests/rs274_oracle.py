@@ -203,14 +203,28 @@ class OracleMachine:
         self.after_change = False
         self.prints: list[str] = []
         self.jumps: list[Pose] = []
+        self.after_probe: Pose | None = None
 
     def wait_input(self, cmd) -> float:
         return 0.0
 
     def probe(self, cmd: Probe) -> tuple[Pose, bool]:
+        # rs274's canon: the probe position is the target; the position afterwards is 0.254 mm
+        # (0.01 in) back towards the start (its STRAIGHT_PROBE "models backing the probe off")
+        assert self.interp is not None
+        start, end = self.interp.pos, cmd.end
+        d = [a - b for a, b in zip(start[:3], end[:3], strict=True)]
+        length = math.sqrt(sum(v * v for v in d))
+        if length > 0:
+            back = 0.254  # mm: 0.01 in is the same distance
+            self.after_probe = Pose(*(e + back * v / length for e, v in zip(end[:3], d, strict=True)),
+                                    *end[3:])
         return cmd.end, True
 
     def current_position(self) -> Pose | None:
+        if self.after_probe is not None:
+            where, self.after_probe = self.after_probe, None
+            return where
         if not self.after_change or self.last_prog is None or self.interp is None:
             return None
         self.after_change = False
@@ -234,7 +248,8 @@ def run_canon(work: Path, case: Case) -> Result:
     settings = InterpreterSettings(
         var_file=work / case.var_file if case.var_file else None,
         tool_table=_tool_table(work, case), dry_run=True, subroutine_path=sub_path,
-        block_delete=case.block_delete, max_loop_iterations=100_000,
+        block_delete=case.block_delete, max_loop_iterations=100_000, log_dir=work,
+        axes="xyzabc",  # rs274 without [TRAJ] COORDINATES reads X Y Z A B C only
     )
     result = Result()
     machine = OracleMachine()

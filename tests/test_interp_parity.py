@@ -256,3 +256,33 @@ def test_g64_r_selects_the_planner_as_linuxcnc_master() -> None:
     assert [(m.planner, m.peak_scale) for m in modes] == [(1, 0.5), (0, -1.0), (1, 1.0), (1, 0.1)]
     assert modes[0].tolerance == 1.0
     assert "R word with no" in error("G61 R0.5").message
+
+
+# --- probing (convert_probe, set_probe_data) ---------------------------------------------------------
+
+
+def test_probe_zero_length_only_refused_when_contact_is_required_and_g95_refused() -> None:
+    from tests.test_interp_helpers import error
+
+    assert "zero length" in error("G38.4 Z0 F10").message
+    assert len([c for c in run("G38.3 Z0 F10\nG38.5 Z0\n") if c.MOVES]) == 2
+    assert "feed per rev" in error("G95 F1\nG38.2 Z-1").message
+
+
+def test_after_a_probe_the_next_move_starts_where_the_machine_stopped(tmp_path) -> None:
+    from gcode_canon.commands import Pose
+    from gcode_canon.interpreter import Interpreter
+    from gcode_canon.machine import DryRunMachine
+    from gcode_canon.settings import InterpreterSettings
+
+    class Overshoot(DryRunMachine):
+        def probe(self, cmd):
+            return Pose(0, 0, -3), True  # tripped at Z-3
+
+        def current_position(self):
+            return Pose(0, 0, -3.2)  # stopped 0.2 past it
+
+    interp = Interpreter(InterpreterSettings(dry_run=True, require_program_end=False), Overshoot())
+    out = list(interp.run_string("G38.2 Z-10 F100\nG91 G1 X1\n", "t.ngc"))
+    assert interp.parameter(5063) == pytest.approx(-3.0)  # the trip point
+    assert tuple(out[-1].end)[:3] == pytest.approx((1.0, 0.0, -3.2))  # from where it stopped
