@@ -220,7 +220,7 @@ class Interpreter:
         self.overrides = {"feed": True, "spindle": True, "adaptive_feed": False, "feed_hold": True}
         self.control = (MotionControlMode.CONTINUOUS, 0.0, 0.0)
         self.tool_length_mode = 490
-        self.retract = 980
+        self.retract = 990  # LinuxCNC starts in G99 (interp_setup.cc: RETRACT_MODE::R_PLANE)
         self.current_tool = 0
         self.current_pocket = 0
         self.selected_tool = -1

@@ -102,6 +102,11 @@ def parse_rs274(stdout: str, prints: list[str] | None = None) -> list[Move]:
     rot = 0.0
     plane = "XY"
     moves: list[Move] = []
+    err = {"g5x": 0.0, "g92": 0.0, "tool": 0.0}  # rounding of each offset as printed (mm)
+
+    def tol() -> float:
+        # each printed value is rounded to 0.5e-4 program units (of its own time); a rotation mixes X, Y
+        return 1.5 * (0.5e-4 * factor + sum(err.values())) * (1.5 if rot else 1.0) + 1e-9
 
     def machine(p: list[float]) -> list[float]:
         out = [v * factor if k < 3 else v for k, v in enumerate(p)]
@@ -127,20 +132,23 @@ def parse_rs274(stdout: str, prints: list[str] | None = None) -> list[Move]:
         elif name == "SET_G5X_OFFSET":
             v = _numbers(args)[1:7]
             g5x = [x * factor if k < 3 else x for k, x in enumerate(v)]
+            err["g5x"] = 0.5e-4 * factor
         elif name == "SET_G92_OFFSET":
             v = _numbers(args)[:6]
             g92 = [x * factor if k < 3 else x for k, x in enumerate(v)]
+            err["g92"] = 0.5e-4 * factor
         elif name == "SET_XY_ROTATION":
             rot = _numbers(args)[0]
         elif name == "USE_TOOL_LENGTH_OFFSET":
             v = _numbers(args)[:6]
             tool = [x * factor if k < 3 else x for k, x in enumerate(v)]
+            err["tool"] = 0.5e-4 * factor
         elif name in ("STRAIGHT_TRAVERSE", "STRAIGHT_FEED", "STRAIGHT_PROBE"):
             kind = {"STRAIGHT_TRAVERSE": "traverse", "STRAIGHT_FEED": "feed"}.get(name, "probe")
-            moves.append(Move(kind, tuple(machine(_numbers(args)[:6])), tol=_tol(factor, rot)))
+            moves.append(Move(kind, tuple(machine(_numbers(args)[:6])), tol=tol()))
         elif name == "RIGID_TAP":
             v = _numbers(args)[:3]
-            moves.append(Move("tap", tuple(machine([*v, 0.0, 0.0, 0.0])[:3]), tol=_tol(factor, rot)))
+            moves.append(Move("tap", tuple(machine([*v, 0.0, 0.0, 0.0])[:3]), tol=tol()))
         elif name == "NURBS_G5_FEED":
             moves.append(Move("nurbs", ()))
         elif name == "ARC_FEED":
@@ -155,13 +163,8 @@ def parse_rs274(stdout: str, prints: list[str] | None = None) -> list[Move]:
             centre[order[0]], centre[order[1]] = c1, c2
             mc = machine(centre)
             moves.append(Move("arc", tuple(machine(end)), (mc[order[0]], mc[order[1]]), int(turns),
-                              tol=_tol(factor, rot)))
+                              tol=tol()))
     return moves
-
-
-def _tol(factor: float, rot: float) -> float:
-    # printed values and offsets are each rounded to 0.5e-4 program units; a rotation mixes X and Y
-    return (3e-4 if rot else 2e-4) * factor + 1e-9
 
 
 def run_rs274(binary: Path, work: Path, case: Case) -> Result:

@@ -286,3 +286,9 @@ def test_after_a_probe_the_next_move_starts_where_the_machine_stopped(tmp_path) 
     out = list(interp.run_string("G38.2 Z-10 F100\nG91 G1 X1\n", "t.ngc"))
     assert interp.parameter(5063) == pytest.approx(-3.0)  # the trip point
     assert tuple(out[-1].end)[:3] == pytest.approx((1.0, 0.0, -3.2))  # from where it stopped
+
+
+def test_canned_cycles_start_in_g99_as_linuxcnc() -> None:
+    # interp_setup.cc: retract_mode(RETRACT_MODE::R_PLANE): with no G98/G99 the hole ends at R
+    assert last_end("F10\nG0 Z10\nG81 X1 Z-1 R2") == xyz(1, 0, 2)
+    assert last_end("F10\nG0 Z10\nG98 G81 X1 Z-1 R2") == xyz(1, 0, 10)
