@@ -1698,11 +1698,23 @@ class Interpreter:
         # LinuxCNC (find_relative): the stored position is where the machine goes, the tool length
         # offset not added, except on rotary axes (where LinuxCNC leaves it in when not wrapped)
         tool = self.frames.tool
-        end = list(self.pos)
-        for k in given:
-            end[k] = self.params.numbered[base + k] + (tool[k] if k in ROTARY_INDEXES else 0.0)
-        self.pos = Pose(*end)
-        self.prog = self._from_machine(self.pos)
+        home = [self.params.numbered[base + k] + (tool[k] if k in ROTARY_INDEXES else 0.0)
+                for k in range(N_AXES)]
+        if self.frames.rotation != 0.0 and len(given) < N_AXES:
+            # LinuxCNC find_relative: the named axes take the stored position's coordinates in the
+            # (rotated) program frame, so G28 X alone also moves machine Y when the system is rotated
+            prog_home = self._from_machine(home)
+            target = list(self.prog)
+            for k in given:
+                target[k] = prog_home[k]
+            self.prog = target
+            self.pos = self._to_machine(target)
+        else:
+            end = list(self.pos)
+            for k in given:
+                end[k] = home[k]
+            self.pos = Pose(*end)
+            self.prog = self._from_machine(self.pos)
         self._emit(StraightTraverse(self.pos, file=f, line=n))
 
     def _g10(self, block: Block) -> None:

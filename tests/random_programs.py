@@ -61,8 +61,12 @@ def _arc(r: random.Random, plane: int, incremental: bool) -> str:
     return f"{code} {first}{e1} {second}{e2}{normal} {ijk[0]}{i:.4f} {ijk[1]}{j:.4f}{turns}"
 
 
-def program(seed: int, lines: int = 30) -> str:
+def program(seed: int, lines: int = 30, avoid_known: bool = True) -> str:
+    """One program. ``avoid_known`` leaves out the two constructs docs/interpreter.md lists as known
+    differences: arcs in G18/G19 once a coordinate system may be rotated (canon refuses them), and
+    G10 L2 R while a G92/G52 offset may be active (LinuxCNC loses the current point, canon does not)."""
     r = random.Random(seed)
+    rotated = g92 = False
     out = ["G21 G17 G90 G40 G49 G80 G94 F500", "#5161=10 #5162=20 #5163=30 #5181=-5 #5182=5 #5183=15"]
     plane, incremental, tool_loaded, subs = 17, False, False, []
     # LinuxCNC keeps a tool length offset in the units it was applied in: a G20/G21 change while one
@@ -74,7 +78,10 @@ def program(seed: int, lines: int = 30) -> str:
         if pick < 0.25:
             out.append(f"G{r.choice((0, 1))} {_axes(r, incremental)}")
         elif pick < 0.37:
-            out.append(_arc(r, plane, incremental))
+            if avoid_known and rotated and plane != 17:
+                out.append(f"G1 {_axes(r, incremental)}")
+            else:
+                out.append(_arc(r, plane, incremental))
         elif pick < 0.41:
             plane = r.choice((17, 18, 19))
             out.append(f"G{plane}")
@@ -84,16 +91,21 @@ def program(seed: int, lines: int = 30) -> str:
         elif pick < 0.48:
             out.append(r.choice(("G20", "G21")) if not tlo else "G4 P0")
         elif pick < 0.53:
-            rot = f" R{_num(r, -40, 40, 1)}" if r.random() < 0.3 else ""
+            rot = f" R{_num(r, -40, 40, 1)}" if r.random() < 0.3 and not (avoid_known and g92) else ""
+            rotated = rotated or bool(rot)
             out.append(f"G10 L2 P{r.randint(1, 3)} {_axes(r, False)}{rot}")
         elif pick < 0.55:
             out.append(f"G10 L20 P{r.randint(0, 3)} {_axes(r, False)}")
         elif pick < 0.59:
             out.append(r.choice(("G54", "G55", "G56")))
         elif pick < 0.62:
-            out.append(r.choice((f"G92 {_axes(r, False)}", "G92.1", "G92.2", "G92.3")))
+            code = r.choice((f"G92 {_axes(r, False)}", "G92.1", "G92.2", "G92.3"))
+            g92 = (g92 or code.startswith("G92 ")) and code != "G92.1"
+            out.append(code)
         elif pick < 0.64:
-            out.append(r.choice((f"G52 {_axes(r, False)}", "G52 X0 Y0 Z0")))
+            code = r.choice((f"G52 {_axes(r, False)}", "G52 X0 Y0 Z0"))
+            g92 = g92 or code != "G52 X0 Y0 Z0"
+            out.append(code)
         elif pick < 0.68:
             n = r.randint(1, 4)
             if r.random() < 0.6:
@@ -151,14 +163,14 @@ def program(seed: int, lines: int = 30) -> str:
     return "\n".join(out) + "\n"
 
 
-def cases(n: int, seed: int, tmp: Path) -> list[Case]:
+def cases(n: int, seed: int, tmp: Path, avoid_known: bool = True) -> list[Case]:
     """``n`` programs from seeds ``seed`` .. ``seed + n - 1``, each in its own directory under tmp."""
-    root = tmp / f"canon-random-{seed}-{n}"
+    root = tmp / f"canon-random-{seed}-{n}-{int(avoid_known)}"
     out = []
     for k in range(seed, seed + n):
         d = root / f"p{k:05d}"
         d.mkdir(parents=True, exist_ok=True)
-        (d / "test.ngc").write_text(program(k))
+        (d / "test.ngc").write_text(program(k, avoid_known=avoid_known))
         (d / "tools.tbl").write_text(TOOL_TABLE)
         out.append(Case(f"random/{k}", d, "test.ngc", tool_table="tools.tbl", subroutine_path=["."]))
     return out

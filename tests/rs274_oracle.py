@@ -200,9 +200,11 @@ class OracleMachine:
 
     def __init__(self) -> None:
         self.interp = None
-        self.last_prog: list[float] | None = [0.0] * 9  # rs274 starts at program zero
-        self.last_tool: list[float] = [0.0] * 9
-        self.last_pos: list[float] = [0.0] * 9
+        # rs274's stand-alone canon, mirrored: its program position (set by each move, shifted by G5x
+        # and G92 changes since, not by rotation or tool offset changes), mm
+        self.p = [0.0] * 9
+        self.p_g5x = [0.0] * 9
+        self.p_g92 = [0.0] * 9
         self.after_change = False
         self.prints: list[str] = []
         self.jumps: list[Pose] = []
@@ -228,19 +230,29 @@ class OracleMachine:
         if self.after_probe is not None:
             where, self.after_probe = self.after_probe, None
             return where
-        if not self.after_change or self.last_prog is None or self.interp is None:
+        if not self.after_change or self.interp is None:
             return None
         self.after_change = False
-        # rs274's stand-alone canon keeps its program position across G5x/G92 changes, but not across
-        # tool length offset changes: the machine seems to have moved by the change
-        tool = self.interp.frames.tool
-        where = Pose(*(p + t - t0 for p, t, t0 in zip(self.last_pos, tool, self.last_tool, strict=True)))
+        # its GET_EXTERNAL_POSITION: that program position, read in the offsets now in force
+        f = self.interp.frames
+        x = [p + a - b + c - d + d for p, a, b, c, d in zip(self.p, self.p_g5x, f.g5x, self.p_g92, f.g92,
+                                                          strict=True)]
+        c, s_ = math.cos(math.radians(f.rotation)), math.sin(math.radians(f.rotation))
+        x[0], x[1] = x[0] * c - x[1] * s_, x[0] * s_ + x[1] * c
+        where = Pose(*(a + b + t for a, b, t in zip(x, f.g5x, f.tool, strict=True)))
         if any(abs(a - b) > 1e-9 for a, b in zip(where, self.interp.pos, strict=True)):
             self.jumps.append(where)  # rs274 shows this jump as the next (otherwise null) move
         return where
 
     def print_text(self, text: str) -> None:
         self.prints.append(text)
+
+    def follow(self, cmd) -> None:
+        """Keep the mirror of rs274's canon up to date with one command canon emitted."""
+        if cmd.MOVES:
+            assert self.interp is not None
+            f = self.interp.frames
+            self.p, self.p_g5x, self.p_g92 = list(self.interp.prog), list(f.g5x), list(f.g92)
 
 
 def run_canon(work: Path, case: Case) -> Result:
@@ -262,11 +274,8 @@ def run_canon(work: Path, case: Case) -> Result:
         for cmd in interp.run_file(work / case.program):
             while machine.jumps:
                 result.moves.append(Move("jump", tuple(machine.jumps.pop(0)[:6])))
-            if cmd.MOVES:
-                machine.last_prog = list(interp.prog)
-                machine.last_tool = list(interp.frames.tool)
-                machine.last_pos = list(interp.pos)
-            elif isinstance(cmd, (ToolChange, SetToolNumber)):
+            machine.follow(cmd)
+            if isinstance(cmd, (ToolChange, SetToolNumber)):
                 machine.after_change = True
             if isinstance(cmd, (StraightTraverse, StraightFeed, Probe)):
                 kind = {StraightTraverse: "traverse", StraightFeed: "feed"}.get(type(cmd), "probe")

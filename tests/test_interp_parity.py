@@ -292,3 +292,10 @@ def test_canned_cycles_start_in_g99_as_linuxcnc() -> None:
     # interp_setup.cc: retract_mode(RETRACT_MODE::R_PLANE): with no G98/G99 the hole ends at R
     assert last_end("F10\nG0 Z10\nG81 X1 Z-1 R2") == xyz(1, 0, 2)
     assert last_end("F10\nG0 Z10\nG98 G81 X1 Z-1 R2") == xyz(1, 0, 10)
+
+
+def test_g28_with_x_in_a_rotated_system_moves_the_program_x_as_linuxcnc() -> None:
+    # find_relative: the stored (machine) position seen in the rotated program frame; only its X is
+    # taken, so machine Y moves too. Rotation 90: program X is machine Y.
+    end = last_end("#5161=10 #5162=20\nG10 L2 P1 R90\nG0 X0 Y0\nG28 X0")
+    assert end[:2] == pytest.approx((0.0, 20.0))
