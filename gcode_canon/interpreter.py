@@ -61,6 +61,7 @@ import logging
 import math
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import ClassVar
 
 from gcode_canon import cutter_comp, cycles, transforms
 from gcode_canon.arcs import MM_PER_INCH, centre_ijk, centre_r
@@ -199,7 +200,11 @@ class Interpreter(ModalStateMixin, Group0Mixin):
             self._step_motion,
             self._step_stop,
         ]
-        """The order of execution (LinuxCNC's list); later modules insert their own steps."""
+        """The order of execution (LinuxCNC's list); later modules insert (or remove) their own steps;
+        each line runs only the steps its codes and words concern (``_STEP_TRIGGERS``)."""
+        self._step_cache: dict[tuple, list[Callable[[Block, ModalLine], None]]] = {}
+        self._step_cache_for: list[Callable[[Block, ModalLine], None]] = []
+        self._step_cache_len = -1
 
     # --- set-up -----------------------------------------------------------------------------------
 
@@ -673,10 +678,63 @@ class Interpreter(ModalStateMixin, Group0Mixin):
         units = ml.g.get(6)
         if units is not None:
             self.scale = MM_PER_INCH if units == 200 else 1.0
-        for step in self.steps:
+        words = block.words
+        key = (tuple(ml.g), tuple(ml.m), "f" in words, "s" in words, "t" in words, bool(block.comments))
+        steps = self._step_cache.get(key)
+        if steps is None or len(self.steps) != self._step_cache_len:
+            steps = self._steps_for(key)
+        for step in steps:
             step(block, ml)
         self._fast_ok = self.fast_path_allowed()
         return self._drain_list()
+
+    # What each built-in step acts on: G groups, M groups, words, comments; a step not listed (one a
+    # module added) runs on every line. Lines with the same groups and words share one step list.
+    _STEP_TRIGGERS: ClassVar[dict[str, tuple[tuple[int, ...], tuple[int, ...], str, bool]]] = {
+        "_step_comment": ((), (), "", True),
+        "_step_feed_mode": ((5,), (), "", False),
+        "_step_feed": ((), (), "f", False),
+        "_step_speed": ((), (), "s", False),
+        "_step_select_tool": ((), (), "t", False),
+        "_step_io": ((), (5,), "", False),
+        "_step_tool_change": ((), (6,), "", False),
+        "_step_spindle": ((), (7,), "", False),
+        "_step_state": ((), (7,), "", False),
+        "_step_coolant": ((), (8,), "", False),
+        "_step_overrides": ((), (9,), "", False),
+        "_step_dwell": ((0,), (), "", False),
+        "_step_plane": ((2,), (), "", False),
+        "_step_units": ((6,), (), "", False),
+        "_step_cutter_comp": ((7,), (), "", False),
+        "_step_tool_length": ((8,), (), "", False),
+        "_step_coord_system": ((12,), (), "", False),
+        "_step_path_control": ((13,), (), "", False),
+        "_step_distance": ((3, 4), (), "", False),
+        "_step_retract": ((10,), (), "", False),
+        "_step_transforms": ((16, 17, 18, 19), (), "", False),
+        "_step_group0": ((0,), (), "", False),
+        "_step_stop": ((), (4,), "", False),
+    }
+
+    def _steps_for(self, key: tuple) -> list[Callable[[Block, ModalLine], None]]:
+        if self._step_cache_for != self.steps:  # a module inserted or removed steps: start again
+            self._step_cache = {}
+            self._step_cache_for = list(self.steps)
+            self._step_cache_len = len(self.steps)
+        g_groups, m_groups, f, s, t, comments = key
+        present = {"f": f, "s": s, "t": t}
+        chosen = []
+        for step in self.steps:
+            trigger = self._STEP_TRIGGERS.get(getattr(step, "__name__", ""))
+            if trigger is None or getattr(step, "__self__", None) is not self:
+                chosen.append(step)
+                continue
+            gs, ms, letters, wants_comments = trigger
+            if (any(g in g_groups for g in gs) or any(m in m_groups for m in ms)
+                    or any(present[c] for c in letters) or (wants_comments and comments)):
+                chosen.append(step)
+        self._step_cache[key] = chosen
+        return chosen
 
     def fast_path_allowed(self) -> bool:
         """Whether plain G0/G1 lines may skip the general machinery in the current modal state.

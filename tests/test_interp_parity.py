@@ -299,3 +299,20 @@ def test_g28_with_x_in_a_rotated_system_moves_the_program_x_as_linuxcnc() -> Non
     # taken, so machine Y moves too. Rotation 90: program X is machine Y.
     end = last_end("#5161=10 #5162=20\nG10 L2 P1 R90\nG0 X0 Y0\nG28 X0")
     assert end[:2] == pytest.approx((0.0, 20.0))
+
+
+def test_a_step_added_by_a_module_runs_on_every_line_and_built_in_steps_by_their_codes() -> None:
+    from gcode_canon.interpreter import Interpreter
+    from gcode_canon.settings import InterpreterSettings
+
+    interp = Interpreter(InterpreterSettings(dry_run=True, require_program_end=False))
+    seen: list[int] = []
+    interp.steps.insert(0, lambda block, ml: seen.append(interp.line))
+    out = list(interp.run_string("G0 X1\n#1=2\nG1 X[#1] F100\nS100 M3\nG4 P1\n", "t.ngc"))
+    assert seen == [2, 3, 4, 5]  # line 1 takes the fast path (no steps at all)
+    kinds = [type(c).__name__ for c in out]
+    assert kinds == ["StraightTraverse", "SetFeedRate", "StraightFeed", "SetSpindleSpeed", "SpindleOn",
+                     "Dwell"]
+    interp.steps.pop(0)
+    list(interp.run_string("G0 X2\nG1 X3\n", "t.ngc"))
+    assert seen == [2, 3, 4, 5]
