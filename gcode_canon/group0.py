@@ -97,18 +97,7 @@ class Group0Mixin:
                 else:
                     if not given:
                         raise GCodeError(f"{what} without axis words has no effect")
-                    if self.frames.rotation != 0.0 and ("x" in w or "y" in w):
-                        raise GCodeError(f"{what} with X or Y in a rotated coordinate system is not "
-                                         "supported")
-                    if level == 10:
-                        base, g92 = list(self.frames.g5x), list(self.frames.g92)
-                    else:
-                        nums = self.params.numbered
-                        base = [nums[system_base(9) + k] for k in range(N_AXES)]
-                        g92 = [0.0] * N_AXES
-                    for k in given:
-                        value = w[AXIS_LETTERS[k]] * (1.0 if k in ROTARY_INDEXES else scale)
-                        offset[k] = self.pos[k] - value - base[k] - g92[k]
+                    offset = self._touch_off_tool(level, w, given, offset)
                 diameter = tool.diameter
                 if "r" in w:
                     diameter = 2.0 * w["r"] * scale
@@ -124,6 +113,44 @@ class Group0Mixin:
         path = self.settings.tool_table
         if path is not None and not self.settings.dry_run:
             self.tool_table.write(path)
+
+    def _touch_off_tool(self, level: int, w: dict[str, float], given: list[int],
+                        offset: list[float]) -> list[float]:
+        """G10 L10 / L11: the offsets that make the current point read the given coordinates in the
+        active system (L10) or in G59.3 without G92 (L11), as LinuxCNC's convert_setup_tool: X and Y
+        are worked out in the system's rotated frame; given only one of them, the tool's offset
+        along the other rotated axis is kept."""
+        scale = self.scale
+        if level == 10:
+            base, g92, rot = list(self.frames.g5x), list(self.frames.g92), self.frames.rotation
+        else:
+            nums = self.params.numbered
+            base = [nums[system_base(9) + k] for k in range(N_AXES)]
+            g92, rot = [0.0] * N_AXES, nums[system_base(9) + 9]
+        c, s = math.cos(math.radians(rot)), math.sin(math.radians(rot))
+
+        def rotate(x: float, y: float, sign: float = 1.0) -> tuple[float, float]:
+            return x * c - sign * y * s, sign * x * s + y * c
+
+        # find_current_in_system_without_tlo: the machine point in the destination system
+        t = [self.pos[k] - base[k] for k in range(N_AXES)]
+        t[0], t[1] = rotate(t[0], t[1], -1.0)
+        t = [a - b for a, b in zip(t, g92, strict=True)]
+        value = {k: w[AXIS_LETTERS[k]] * (1.0 if k in ROTARY_INDEXES else scale) for k in given}
+        out = list(offset)
+        if 0 in value and 1 in value:
+            out[0], out[1] = rotate(t[0] - value[0], t[1] - value[1])
+        elif 0 in value or 1 in value:
+            ox, oy = rotate(offset[0], offset[1], -1.0)  # keep the part along the other rotated axis
+            ox, oy = (0.0, oy) if 0 in value else (ox, 0.0)
+            ox, oy = rotate(ox, oy)
+            dx, dy = (t[0] - value[0], 0.0) if 0 in value else (0.0, t[1] - value[1])
+            dx, dy = rotate(dx, dy)
+            out[0], out[1] = dx + ox, dy + oy
+        for k in given:
+            if k >= 2:
+                out[k] = t[k] - value[k]
+        return out
 
     def _set_g92(self, values: list[float]) -> None:
         self.frames.g92 = values

@@ -27,7 +27,6 @@ KNOWN_INTERP = {
     "iniparam-failassign/test.ngc [test.ini]": "INI variables #<_ini[...]> are not supported",
     "m98m99/09-disable-fanuc-subs/test-fanuc.ngc [test-no-fanuc.ini]":
         "[RS274NGC] DISABLE_FANUC_STYLE_SUB is not supported",
-    "g10/g10-l1-l10/test.ngc": "G10 L10/L11 with X or Y in a rotated coordinate system is refused",
     "g33.1/g33.1.ngc": "G33.1 rigid tapping is not implemented (spindle-synchronized motion)",
     "g76/g76only.ngc": "G76 threading is not implemented (spindle-synchronized motion)",
     "g71-endless-loop/g71-endless-loop.ngc": "lathe G70-G72 cycles are not implemented",

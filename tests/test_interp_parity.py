@@ -316,3 +316,17 @@ def test_a_step_added_by_a_module_runs_on_every_line_and_built_in_steps_by_their
     interp.steps.pop(0)
     list(interp.run_string("G0 X2\nG1 X3\n", "t.ngc"))
     assert seen == [2, 3, 4, 5]
+
+
+def test_g10_l10_with_x_in_a_rotated_system(tmp_path) -> None:
+    # convert_setup_tool: rotation 90, machine at 0,0: "X reads 1 here" gives tool offset X0 Y-1, so
+    # after G43 the program point X1 Y0 is machine 0,0 again
+    from gcode_canon.interpreter import Interpreter
+    from gcode_canon.settings import InterpreterSettings
+
+    table = tmp_path / "t.tbl"
+    table.write_text("T1 P1 Z0 D6\n")
+    interp = Interpreter(InterpreterSettings(dry_run=True, require_program_end=False, tool_table=table))
+    out = list(interp.run_string("G10 L2 P1 R90\nT1 M6\nG0 X0 Y0\nG10 L10 P1 X1\nG43\nG0 X1 Y0\n", "t.ngc"))
+    assert interp.tool_table.get(1).offset[:2] == pytest.approx((0.0, -1.0))
+    assert tuple(out[-1].end)[:2] == pytest.approx((0.0, 0.0))
