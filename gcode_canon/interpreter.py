@@ -50,6 +50,9 @@ Decisions a machine builder should know:
   (``LineSource.mark``/``jump``) and between files; the output's ``file``/``line`` is where each
   command really comes from (a subroutine file's own line numbers). Canned cycles
   (:mod:`gcode_canon.cycles`) come out as plain moves and dwells, each block in exact path mode.
+* M6 stops the spindle first (setting ``tool_change_with_spindle_on`` keeps it turning); after M6,
+  M61 and a probe move the position is read back from the machine (after a probe: where it stopped,
+  while #5061-#5069 hold where it tripped). Canned cycles start in G99, as LinuxCNC.
 * M2/M30 reset what LinuxCNC's convert_stop resets (G54, G17, G90, G94 with F0, feed/spindle
   overrides on, spindle and coolant off, motion mode G1); G92 offsets and G20/G21 persist.
 """
