@@ -257,6 +257,8 @@ class Interpreter(ModalStateMixin, Group0Mixin):
             from gcode_canon import paramfile
 
             values = paramfile.read_parameter_file(path)
+            if self.settings.disable_g92_persistence:  # LinuxCNC init: those read are cleared
+                values = {k: (0.0 if 5210 <= k <= 5219 else v) for k, v in values.items()}
             self.params.load(values)
             self._persist_keys.update(values)
         index = round(self.params.numbered[5220])
@@ -1832,6 +1834,11 @@ class Interpreter(ModalStateMixin, Group0Mixin):
             if self.mist or self.flood:
                 self.mist = self.flood = False
                 self._emit(Coolant(False, False, file=f, line=n))
+            if self.settings.disable_g92_persistence:  # LinuxCNC convert_stop step 10
+                for k in range(5210, 5220):
+                    self.params.set_system(k, 0.0)
+                if any(self.frames.g92):
+                    self._set_g92([0.0] * N_AXES)
             self.motion = 10
             self.scale_code, self.rotation_code = 500, 690
             if self.xform_on or self.polar_on:  # Fanuc cancels these on reset

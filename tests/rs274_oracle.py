@@ -265,6 +265,7 @@ def run_canon(work: Path, case: Case) -> Result:
         tool_table=_tool_table(work, case), dry_run=True, subroutine_path=sub_path,
         block_delete=case.block_delete, max_loop_iterations=100_000, log_dir=work,
         axes="xyzabc",  # rs274 without [TRAJ] COORDINATES reads X Y Z A B C only
+        disable_g92_persistence=_ini_flag(work, case, "DISABLE_G92_PERSISTENCE"),
     )
     result = Result()
     machine = OracleMachine()
@@ -293,6 +294,13 @@ def run_canon(work: Path, case: Case) -> Result:
     return result
 
 
+def _ini_flag(work: Path, case: Case, key: str) -> bool:
+    if not case.ini or not (work / case.ini).exists():
+        return False
+    m = re.search(rf"(?im)^\s*{key}\s*=\s*(\S+)", (work / case.ini).read_text(errors="replace"))
+    return bool(m) and m.group(1).lower() in ("1", "true", "yes", "on")
+
+
 def _ini_subroutine_path(work: Path, case: Case) -> list[str]:
     if not case.ini or not (work / case.ini).exists():
         return []
@@ -312,6 +320,9 @@ def stage(case: Case, tmp: Path) -> Path:
     if work.exists():
         shutil.rmtree(work)
     shutil.copytree(case.directory, work, symlinks=True, ignore=_only_text)
+    template = work / f"{case.var_file}.template"
+    if case.var_file and not (work / case.var_file).exists() and template.exists():
+        shutil.copy(template, work / case.var_file)  # as the case's test.sh does
     ini = ""
     if case.ini:
         ini = (work / case.ini).read_text(errors="replace")
@@ -332,7 +343,7 @@ def stage(case: Case, tmp: Path) -> Path:
     return work
 
 
-_KEEP = {".ngc", ".nc", ".tbl", ".var", ".ini", ".txt", ""}
+_KEEP = {".ngc", ".nc", ".tbl", ".var", ".ini", ".txt", ".template", ""}
 
 
 def _only_text(directory: str, names: list[str]) -> list[str]:

@@ -330,3 +330,19 @@ def test_g10_l10_with_x_in_a_rotated_system(tmp_path) -> None:
     out = list(interp.run_string("G10 L2 P1 R90\nT1 M6\nG0 X0 Y0\nG10 L10 P1 X1\nG43\nG0 X1 Y0\n", "t.ngc"))
     assert interp.tool_table.get(1).offset[:2] == pytest.approx((0.0, -1.0))
     assert tuple(out[-1].end)[:2] == pytest.approx((0.0, 0.0))
+
+
+def test_disable_g92_persistence_clears_at_start_and_program_end(tmp_path) -> None:
+    from gcode_canon.interpreter import Interpreter
+    from gcode_canon.settings import InterpreterSettings
+
+    var = tmp_path / "m.var"
+    var.write_text("5210 1.0\n5211 5.0\n")
+    kept = Interpreter(InterpreterSettings(dry_run=True, var_file=var))
+    assert kept.parameter(5211) == 5.0
+    interp = Interpreter(InterpreterSettings(dry_run=True, var_file=var, disable_g92_persistence=True))
+    assert interp.parameter(5210) == 0.0 and interp.parameter(5211) == 0.0
+    list(interp.run_string("G92 X-3\nM2\n", "t.ngc"))
+    assert interp.parameter(5210) == 0.0 and interp.parameter(5211) == 0.0
+    out = list(interp.run_string("G0 X1\nM2\n", "t.ngc"))
+    assert out[0].end.x == pytest.approx(1.0)
