@@ -33,6 +33,7 @@ from gcode_canon.commands import (
     ToolChange,
 )
 from gcode_canon.errors import GCodeError
+from gcode_canon.interpreter import Interpreter
 
 MM_PER_INCH = 25.4
 TIMEOUT_S = 20.0
@@ -193,13 +194,14 @@ def run_rs274(binary: Path, work: Path, case: Case) -> Result:
 
 
 class OracleMachine:
-    """As rs274's stand-alone canon: inputs read their default (0), a probe ends at its target, and
-    after a tool change the position read back is the last move's end in program coordinates (its
-    GET_EXTERNAL_POSITION), not adjusted for offsets changed since (a real machine reports where it
-    is, which canon then reads in the new offsets)."""
+    """Answers as rs274's stand-alone canon does: inputs read their default (0); a probe trips at its
+    target and the machine then stands 0.254 mm back towards the start; after a tool change the
+    position read back is its program position (the last move's, shifted by G5x/G92 changes since,
+    not by rotation or tool offset changes) in the offsets now in force. A real machine reports
+    where it is, which canon then reads in the new offsets."""
 
     def __init__(self) -> None:
-        self.interp = None
+        self.interp: Interpreter | None = None
         # rs274's stand-alone canon, mirrored: its program position (set by each move, shifted by G5x
         # and G92 changes since, not by rotation or tool offset changes), mm
         self.p = [0.0] * 9
@@ -235,8 +237,11 @@ class OracleMachine:
         self.after_change = False
         # its GET_EXTERNAL_POSITION: that program position, read in the offsets now in force
         f = self.interp.frames
-        x = [p + a - b + c - d + d for p, a, b, c, d in zip(self.p, self.p_g5x, f.g5x, self.p_g92, f.g92,
-                                                          strict=True)]
+        # SET_G5X_OFFSET / SET_G92_OFFSET shift it by (old - new): p + (p_g5x - g5x) + (p_g92 - g92);
+        # emccanon then adds G92, rotates, adds G5x and the tool offset
+        p_now = [p + a - b + c - d for p, a, b, c, d in zip(self.p, self.p_g5x, f.g5x, self.p_g92, f.g92,
+                                                            strict=True)]
+        x = [p + g for p, g in zip(p_now, f.g92, strict=True)]
         c, s_ = math.cos(math.radians(f.rotation)), math.sin(math.radians(f.rotation))
         x[0], x[1] = x[0] * c - x[1] * s_, x[0] * s_ + x[1] * c
         where = Pose(*(a + b + t for a, b, t in zip(x, f.g5x, f.tool, strict=True)))
@@ -256,7 +261,6 @@ class OracleMachine:
 
 
 def run_canon(work: Path, case: Case) -> Result:
-    from gcode_canon.interpreter import Interpreter
     from gcode_canon.settings import InterpreterSettings
 
     sub_path = [work / d for d in _ini_subroutine_path(work, case)] + [work / d for d in case.subroutine_path]
