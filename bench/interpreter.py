@@ -10,6 +10,11 @@ Peak memory is the process's maximum resident set (``resource``) and the peak of
 during the run (``tracemalloc``, measured on a shorter run because tracing slows Python down); the
 second must not grow with the program's length, so it is printed for two lengths.
 
+Where ``tools/build-rs274`` has built LinuxCNC's rs274 (``$CANON_RS274_DIR``), the same programs go
+through it in the same run as the reference (its canonical calls to /dev/null, as ``canon check``'s
+text goes to /dev/null), and ``canon check`` runs on them as a user would (a new process, start-up
+included). Start-up alone is timed on a one-line program, and the import of the interpreter module.
+
 Usage: ``python bench/interpreter.py [LINES]`` (default 1,000,000).
 """
 
@@ -19,6 +24,9 @@ import argparse
 import math
 import os
 import resource
+import shutil
+import subprocess
+import sys
 import tempfile
 import time
 import tracemalloc
@@ -78,6 +86,27 @@ def run(path: Path) -> tuple[float, float, int]:
     return time.perf_counter() - t0, time.process_time() - c0, count
 
 
+def rs274_binary() -> Path | None:
+    root = Path(os.environ.get("CANON_RS274_DIR") or Path.home() / ".cache" / "canon" / "rs274")
+    binary = root / "bin" / "rs274"
+    return binary if binary.exists() else None
+
+
+def timed_process(args: list[str], cwd: Path) -> tuple[float, float]:
+    """Wall seconds and CPU seconds (user + system) of one child process, output to /dev/null."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    subprocess.run(args, cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=False)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+
+
+def canon_command() -> list[str]:
+    exe = shutil.which("canon", path=str(Path(sys.executable).parent)) or shutil.which("canon")
+    return [exe] if exe else [sys.executable, "-m", "motiond.cli"]
+
+
 def lines_of(path: Path) -> int:
     with open(path, "rb") as f:
         return sum(1 for _ in f)
@@ -102,11 +131,31 @@ def main() -> None:
         mixed = Path(tmp) / "mixed.ngc"
         write_plain(plain, n)
         write_mixed(mixed, n)
+        rs274 = rs274_binary()
+        ini = Path(tmp) / "mm.ini"
+        ini.write_text("[TRAJ]\nLINEAR_UNITS = mm\n")
+        if rs274 is None:
+            print("rs274 not built (tools/build-rs274): no reference in this run")
         for name, path in (("plain G1", plain), ("mixed", mixed)):
             nlines = lines_of(path)
             seconds, cpu, count = run(path)
             print(f"{name:9s}: {nlines:>9,d} lines in {seconds:6.2f} s = {nlines / seconds:>9,.0f} lines/s "
-                  f"wall, {nlines / cpu:>9,.0f} lines/s CPU ({count:,d} commands)")
+                  f"wall, {nlines / cpu:>9,.0f} lines/s CPU ({count:,d} commands), in process")
+            check_wall, check_cpu = timed_process([*canon_command(), "check", str(path)], Path(tmp))
+            print(f"{'':9s}  canon check: {check_wall:6.2f} s wall, {check_cpu:6.2f} s CPU")
+            if rs274 is not None:
+                ref_wall, ref_cpu = timed_process([str(rs274), "-g", "-i", str(ini), str(path)], Path(tmp))
+                print(f"{'':9s}  rs274:       {ref_wall:6.2f} s wall, {ref_cpu:6.2f} s CPU = "
+                      f"{nlines / ref_cpu:>9,.0f} lines/s CPU; canon/rs274 CPU: in process "
+                      f"{cpu / ref_cpu:.2f}x, canon check {check_cpu / ref_cpu:.2f}x")
+        one = Path(tmp) / "one.ngc"
+        one.write_text("G0 X1\nM2\n")
+        wall, cpu = timed_process([*canon_command(), "check", str(one)], Path(tmp))
+        print(f"start-up: canon check of a 2-line program {wall:.2f} s wall, {cpu:.2f} s CPU")
+        wall, cpu = timed_process([sys.executable, "-c", "import gcode_canon.interpreter"], Path(tmp))
+        _, base_cpu = timed_process([sys.executable, "-c", "pass"], Path(tmp))
+        print(f"start-up: importing gcode_canon.interpreter {cpu - base_cpu:.3f} s CPU over a bare "
+              f"interpreter ({base_cpu:.3f} s)")
         print(f"max RSS after both runs: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.1f} MiB")
         small = Path(tmp) / "small.ngc"
         big = Path(tmp) / "big.ngc"
@@ -116,8 +165,7 @@ def main() -> None:
         print(f"peak traced Python allocations: {p1 / 1024:.0f} KiB for 20,000 lines, "
               f"{p2 / 1024:.0f} KiB for 100,000 lines (must not grow with length)")
         print(f"load average after: {os.getloadavg()[0]:.2f}")
-        print("reference (same kind of machine, from the project notes): pygcode ~30,000 lines/s, "
-              "LinuxCNC rs274 (C++) ~135,000 lines/s")
+        print("reference (same kind of machine, from the project notes): pygcode ~30,000 lines/s")
 
 
 if __name__ == "__main__":

@@ -218,6 +218,10 @@ class SetMotionControlMode(Canon):
     mode: MotionControlMode
     tolerance: float = 0.0
     naive_cam_tolerance: float = 0.0
+    planner: int = -1
+    """G64 R (LinuxCNC master's planner dial): -1 unchanged (no R), 0 trapezoidal (R <= 0), 1 smooth."""
+    peak_scale: float = -1.0
+    """G64 R in (0, 1] (clamped to 0.1..1): the smooth planner's cornering aggressiveness; -1 unchanged."""
 
 
 @dataclass(frozen=True, slots=True)

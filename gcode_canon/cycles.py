@@ -76,8 +76,10 @@ departures marked *canon*:
   G74/G84 is optional (the last P, initially 0). L is not sticky (default 1).
 * G73: peck by Q, rapid back up by the peck clearance; G83: peck by Q, rapid out to R, rapid back
   down to the peck clearance above the last depth. The clearance is the D word, else
-  ``CycleContext.g73_peck_clearance`` / ``g83_peck_clearance``, else LinuxCNC's built-in default
-  0.050 in / 1 mm (the manual says 0.010 in / 0.254 mm; the source uses 0.050 in / 1 mm).
+  ``CycleContext.g73_peck_clearance`` / ``g83_peck_clearance``, else LinuxCNC's built-in default for
+  a metric machine: 1 in the program's units (LinuxCNC chooses 0.050 or 1 by the machine's units at
+  start-up and never converts it, so a G20 program on a metric machine pecks back 1 inch; the manual
+  says 0.010 in / 0.254 mm).
   *canon*: a negative D is refused (it would rapid below the cut depth); peck depths are
   ``R - k*Q`` (no accumulated rounding) and one within rounding of Z is merged into the last feed.
 * G74/G84 (floating-chuck tapping, not synchronised in LinuxCNC either): feed in, spindle stop,
@@ -175,6 +177,8 @@ class CycleWords:
     offset_second: float | None = None
     offset_normal: float | None = None
     extra_axes: frozenset[str] = field(default_factory=frozenset)
+    polar_radius: float | None = None  # @ (G17 only, checked by the interpreter)
+    polar_angle: float | None = None  # ^ in degrees
 
     @classmethod
     def from_letters(cls, plane: Plane, words: Mapping[str, float]) -> CycleWords:
@@ -196,6 +200,8 @@ class CycleWords:
             offset_second=lower.get(oj),
             offset_normal=lower.get(ok),
             extra_axes=extra,
+            polar_radius=lower.get("@"),
+            polar_angle=lower.get("^"),
         )
 
 
@@ -402,16 +408,27 @@ def expand_cycle(
     normal_word = words.normal if words.normal is not None else state.normal
     initial = state.initial_level if state.initial_level is not None else start[2]
 
+    polar = words.polar_radius is not None or words.polar_angle is not None
+    inc_radius = inc_angle = 0.0
     if ctx.incremental:
         inc_a = words.first if words.first is not None else 0.0
         inc_b = words.second if words.second is not None else 0.0
         hole_a, hole_b = start[0], start[1]
         r_level = r_word + initial
         bottom = r_level + normal_word
+        # LinuxCNC's CYCLE_MACRO: each repeat adds @ to the radius and ^ to the angle about the origin
+        inc_radius = words.polar_radius or 0.0
+        inc_angle = math.radians(words.polar_angle or 0.0)
     else:
         inc_a = inc_b = 0.0
-        hole_a = words.first if words.first is not None else start[0]
-        hole_b = words.second if words.second is not None else start[1]
+        if polar:  # LinuxCNC convert_cycle_xy: the missing one of @ ^ from the current point
+            radius = words.polar_radius if words.polar_radius is not None else math.hypot(start[0], start[1])
+            angle = (math.radians(words.polar_angle) if words.polar_angle is not None
+                     else math.atan2(start[1], start[0]))
+            hole_a, hole_b = radius * math.cos(angle), radius * math.sin(angle)
+        else:
+            hole_a = words.first if words.first is not None else start[0]
+            hole_b = words.second if words.second is not None else start[1]
         r_level = r_word
         bottom = normal_word
     if r_level < bottom:
@@ -459,8 +476,9 @@ def expand_cycle(
             peck = words.d
         else:
             configured = ctx.g73_peck_clearance if code10 == 730 else ctx.g83_peck_clearance
-            default = DEFAULT_PECK_CLEARANCE_MM if ctx.metric else DEFAULT_PECK_CLEARANCE_INCH
-            peck = configured if configured is not None else default
+            # LinuxCNC picks its default by the machine's units at start-up and uses the bare number
+            # in the program's units: canon's machine is metric, so 1 (1 mm in G21, 1 inch in G20)
+            peck = configured if configured is not None else DEFAULT_PECK_CLEARANCE_MM
         if peck < 0.0:
             raise GCodeError(f"Negative peck clearance (D word) used with {name}")
     middle = 0.0
@@ -492,6 +510,13 @@ def expand_cycle(
     for repeat in range(repeats):
         hole_a += inc_a
         hole_b += inc_b
+        if inc_radius or inc_angle:
+            if hole_a == 0.0 and hole_b == 0.0:
+                raise GCodeError("Incremental motion with polar coordinates is indeterminate when at the "
+                                 "origin")
+            radius = math.hypot(hole_a, hole_b) + inc_radius
+            angle = math.atan2(hole_b, hole_a) + inc_angle
+            hole_a, hole_b = radius * math.cos(angle), radius * math.sin(angle)
         if repeat == 0 and current > r_level:
             out.move("traverse", (hole_a, hole_b, current))
         else:

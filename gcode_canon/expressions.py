@@ -5,7 +5,10 @@ comment replaced by a ``(`` marker) and evaluates as it reads, as LinuxCNC does:
 are evaluated when the line is read, before anything on it is executed.
 
 Precedence, highest first: ``**``; ``* / MOD``; ``+ -``; ``EQ NE GT GE LT LE``; ``AND OR XOR``.
-Operators of one level apply left to right. Angles are degrees. Equality has a 0.0001 tolerance.
+Operators of one level apply left to right. Angles are degrees. Equality (EQ, NE) has a 0.0001
+tolerance; GT, GE, LT and LE compare strictly, as LinuxCNC does, unless the reader's
+``tolerant_order`` is set (the gcode-canon dialect: its documentation applies the tolerance to every
+comparison, so ``[0.99999 LT 1]`` is 0 there and 1 in LinuxCNC).
 """
 
 from __future__ import annotations
@@ -67,11 +70,12 @@ def _finite(value: float, what: str = "Result") -> float:
 class ExpressionReader:
     """Reads real values from a folded line; holds the parameter store and the nesting limit."""
 
-    __slots__ = ("max_depth", "params")
+    __slots__ = ("max_depth", "params", "tolerant_order")
 
-    def __init__(self, params: ParameterReader, max_depth: int = 64) -> None:
+    def __init__(self, params: ParameterReader, max_depth: int = 64, tolerant_order: bool = False) -> None:
         self.params = params
         self.max_depth = max_depth
+        self.tolerant_order = tolerant_order
 
     # --- values -----------------------------------------------------------------------------------
 
@@ -154,11 +158,11 @@ class ExpressionReader:
             prec = _PRECEDENCE[op]
             while ops and _PRECEDENCE[ops[-1]] >= prec:
                 b = values.pop()
-                values[-1] = _apply(ops.pop(), values[-1], b)
+                values[-1] = _apply(ops.pop(), values[-1], b, self.tolerant_order)
             ops.append(op)
         while ops:
             b = values.pop()
-            values[-1] = _apply(ops.pop(), values[-1], b)
+            values[-1] = _apply(ops.pop(), values[-1], b, self.tolerant_order)
         return values[0], i
 
     @staticmethod
@@ -255,7 +259,7 @@ def _unary(name: str, x: float) -> float:
     raise GCodeError(f"Unknown function {name.upper()}")  # pragma: no cover (names are checked first)
 
 
-def _apply(op: str, a: float, b: float) -> float:
+def _apply(op: str, a: float, b: float, tolerant: bool = False) -> float:
     if op == "+":
         return _finite(a + b)
     if op == "-":
@@ -287,13 +291,13 @@ def _apply(op: str, a: float, b: float) -> float:
     if op == "ne":
         return 0.0 if abs(a - b) < TOLERANCE_EQUAL else 1.0
     if op == "gt":
-        return 1.0 if a > b and abs(a - b) >= TOLERANCE_EQUAL else 0.0
+        return 1.0 if a > b and (not tolerant or abs(a - b) >= TOLERANCE_EQUAL) else 0.0
     if op == "ge":
-        return 1.0 if a > b or abs(a - b) < TOLERANCE_EQUAL else 0.0
+        return 1.0 if a >= b or (tolerant and abs(a - b) < TOLERANCE_EQUAL) else 0.0
     if op == "lt":
-        return 1.0 if a < b and abs(a - b) >= TOLERANCE_EQUAL else 0.0
+        return 1.0 if a < b and (not tolerant or abs(a - b) >= TOLERANCE_EQUAL) else 0.0
     if op == "le":
-        return 1.0 if a < b or abs(a - b) < TOLERANCE_EQUAL else 0.0
+        return 1.0 if a <= b or (tolerant and abs(a - b) < TOLERANCE_EQUAL) else 0.0
     if op == "and":
         return 1.0 if (a != 0.0 and b != 0.0) else 0.0
     if op == "or":

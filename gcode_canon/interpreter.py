@@ -3,7 +3,8 @@
 Each line goes through :func:`~gcode_canon.lexer.parse_line` (values evaluated as read), the modal
 checks of :mod:`gcode_canon.modal`, then the parameter settings of the line, then ``self.steps``: one
 method per item of LinuxCNC's order of execution. A later module (canned cycles, cutter compensation,
-o-words) adds or replaces a step instead of rewriting the loop.
+o-words) adds or replaces a step instead of rewriting the loop. Group 0 (G10, G28/G30, G52/G92) lives
+in :mod:`gcode_canon.group0`, M70-M73 in :mod:`gcode_canon.modal_state` (mixins of the class here).
 
 Plain ``G0``/``G1`` lines of literal X/Y/Z/F words take a fast path (one regular expression, no
 Block) while the modal state allows it (G94/G95, no rotation): the bulk of CAM output.
@@ -33,7 +34,8 @@ Public API (for the planner, the daemon and ``canon check``):
 Decisions a machine builder should know:
 
 * Output positions include every offset, the tool length offset too (machine = rotate(program + G92)
-  + G5x + tool); G28/G30/G53 positions are machine positions without the tool offset, as LinuxCNC.
+  + G5x + tool); G28/G30/G53 positions are machine positions: the tool offset is not added (G53 G0 Z0
+  goes to machine Z0 with G43 in force), and G28.1/G30.1 store the machine position, as LinuxCNC.
 * Offsets in the numbered parameters (#5161-#5390) and the tool table are in mm/deg whatever G20/G21
   says (LinuxCNC's "user units" on a millimetre machine); #5061-#5069, #5420-#5428 and the machine
   position #5021-#5029 (``#<_abs_x>`` ...) are in program units.
@@ -48,6 +50,9 @@ Decisions a machine builder should know:
   (``LineSource.mark``/``jump``) and between files; the output's ``file``/``line`` is where each
   command really comes from (a subroutine file's own line numbers). Canned cycles
   (:mod:`gcode_canon.cycles`) come out as plain moves and dwells, each block in exact path mode.
+* M6 stops the spindle first (setting ``tool_change_with_spindle_on`` keeps it turning); after M6,
+  M61 and a probe move the position is read back from the machine (after a probe: where it stopped,
+  while #5061-#5069 hold where it tripped). Canned cycles start in G99, as LinuxCNC.
 * M2/M30 reset what LinuxCNC's convert_stop resets (G54, G17, G90, G94 with F0, feed/spindle
   overrides on, spindle and coolant off, motion mode G1); G92 offsets and G20/G21 persist.
 """
@@ -59,6 +64,7 @@ import logging
 import math
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import ClassVar
 
 from gcode_canon import cutter_comp, cycles, transforms
 from gcode_canon.arcs import MM_PER_INCH, centre_ijk, centre_r
@@ -87,7 +93,6 @@ from gcode_canon.commands import (
     SetFeedMode,
     SetFeedRate,
     SetG5xOffset,
-    SetG92Offset,
     SetMotionControlMode,
     SetOverrides,
     SetSpindleSpeed,
@@ -107,11 +112,13 @@ from gcode_canon.commands import (
 from gcode_canon.dialect import GRBL_JUNCTION_DEVIATION_MM, Dialect
 from gcode_canon.errors import GCodeError
 from gcode_canon.expressions import ExpressionReader, near_int
+from gcode_canon.group0 import Group0Mixin
 from gcode_canon.lexer import AXIS_LETTERS, FAST_LINE, Block, parse_line
 from gcode_canon.machine import DryRunMachine, MachineCallbacks
 from gcode_canon.messages import LogFiles, classify, expand
 from gcode_canon.modal import G_AXIS_USERS_GROUP0, ModalLine, gname, sort_codes
-from gcode_canon.offsets import N_AXES, Frames, system_base
+from gcode_canon.modal_state import ModalStateMixin
+from gcode_canon.offsets import N_AXES, ROTARY_INDEXES, Frames
 from gcode_canon.owords import FlowControl
 from gcode_canon.parameters import Parameters
 from gcode_canon.settings import InterpreterSettings
@@ -119,7 +126,6 @@ from gcode_canon.source import LineSource
 
 log = logging.getLogger(__name__)
 
-ROTARY_INDEXES = frozenset((3, 4, 5))
 _PLANE_BY_CODE = {170: Plane.XY, 180: Plane.XZ, 190: Plane.YZ}
 _CODE_BY_PLANE = {v: k for k, v in _PLANE_BY_CODE.items()}
 _FEED_MODES = {930: FeedMode.INVERSE_TIME, 940: FeedMode.UNITS_PER_MINUTE, 950: FeedMode.UNITS_PER_REV}
@@ -141,7 +147,7 @@ class _Resume:
         self.fn = fn
 
 
-class Interpreter:
+class Interpreter(ModalStateMixin, Group0Mixin):
     """One interpreter, one machine state; run programs one after another (state carries over)."""
 
     def __init__(self, settings: InterpreterSettings | None = None,
@@ -158,6 +164,8 @@ class Interpreter:
         self._out: list[Canon | _Resume] = []
         self.dialect = Dialect.parse(self.settings.dialect) if isinstance(self.settings.dialect, str) \
             else self.settings.dialect
+        # LinuxCNC (and Grbl, which has no expressions) compare GT/GE/LT/LE strictly
+        self.reader.tolerant_order = self.dialect is Dialect.GCODE_CANON
         self.flow = FlowControl(self)
         self.source: LineSource = LineSource.from_string("", "<none>")
         self.seen_code = False
@@ -197,7 +205,11 @@ class Interpreter:
             self._step_motion,
             self._step_stop,
         ]
-        """The order of execution (LinuxCNC's list); later modules insert their own steps."""
+        """The order of execution (LinuxCNC's list); later modules insert (or remove) their own steps;
+        each line runs only the steps its codes and words concern (``_STEP_TRIGGERS``)."""
+        self._step_cache: dict[tuple, list[Callable[[Block, ModalLine], None]]] = {}
+        self._step_cache_for: list[Callable[[Block, ModalLine], None]] = []
+        self._step_cache_len = -1
 
     # --- set-up -----------------------------------------------------------------------------------
 
@@ -219,12 +231,12 @@ class Interpreter:
         self.overrides = {"feed": True, "spindle": True, "adaptive_feed": False, "feed_hold": True}
         self.control = (MotionControlMode.CONTINUOUS, 0.0, 0.0)
         self.tool_length_mode = 490
-        self.retract = 980
+        self.retract = 990  # LinuxCNC starts in G99 (interp_setup.cc: RETRACT_MODE::R_PLANE)
         self.current_tool = 0
         self.current_pocket = 0
         self.selected_tool = -1
         self.selected_pocket = -1
-        self.saved_state: dict | None = None
+        self.saved_states: dict[int, tuple[dict, bool]] = {}  # M70/M73 per call level: (state, M73)
         self.ended = False
         self._fast_ok = True
         self._tail: tuple[float, ...] | None = None
@@ -243,12 +255,12 @@ class Interpreter:
 
     def _load_var_file(self) -> None:
         path = self.settings.var_file
-        if path is None:
-            return
-        from gcode_canon import paramfile
+        if path is not None and Path(path).exists():
+            from gcode_canon import paramfile
 
-        if Path(path).exists():
             values = paramfile.read_parameter_file(path)
+            if self.settings.disable_g92_persistence:  # LinuxCNC init: those read are cleared
+                values = {k: (0.0 if 5210 <= k <= 5219 else v) for k, v in values.items()}
             self.params.load(values)
             self._persist_keys.update(values)
         index = round(self.params.numbered[5220])
@@ -690,10 +702,63 @@ class Interpreter:
         units = ml.g.get(6)
         if units is not None:
             self.scale = MM_PER_INCH if units == 200 else 1.0
-        for step in self.steps:
+        words = block.words
+        key = (tuple(ml.g), tuple(ml.m), "f" in words, "s" in words, "t" in words, bool(block.comments))
+        steps = self._step_cache.get(key)
+        if steps is None or len(self.steps) != self._step_cache_len:
+            steps = self._steps_for(key)
+        for step in steps:
             step(block, ml)
         self._fast_ok = self.fast_path_allowed()
         return self._drain_list()
+
+    # What each built-in step acts on: G groups, M groups, words, comments; a step not listed (one a
+    # module added) runs on every line. Lines with the same groups and words share one step list.
+    _STEP_TRIGGERS: ClassVar[dict[str, tuple[tuple[int, ...], tuple[int, ...], str, bool]]] = {
+        "_step_comment": ((), (), "", True),
+        "_step_feed_mode": ((5,), (), "", False),
+        "_step_feed": ((), (), "f", False),
+        "_step_speed": ((), (), "s", False),
+        "_step_select_tool": ((), (), "t", False),
+        "_step_io": ((), (5,), "", False),
+        "_step_tool_change": ((), (6,), "", False),
+        "_step_spindle": ((), (7,), "", False),
+        "_step_state": ((), (7,), "", False),
+        "_step_coolant": ((), (8,), "", False),
+        "_step_overrides": ((), (9,), "", False),
+        "_step_dwell": ((0,), (), "", False),
+        "_step_plane": ((2,), (), "", False),
+        "_step_units": ((6,), (), "", False),
+        "_step_cutter_comp": ((7,), (), "", False),
+        "_step_tool_length": ((8,), (), "", False),
+        "_step_coord_system": ((12,), (), "", False),
+        "_step_path_control": ((13,), (), "", False),
+        "_step_distance": ((3, 4), (), "", False),
+        "_step_retract": ((10,), (), "", False),
+        "_step_transforms": ((16, 17, 18, 19), (), "", False),
+        "_step_group0": ((0,), (), "", False),
+        "_step_stop": ((), (4,), "", False),
+    }
+
+    def _steps_for(self, key: tuple) -> list[Callable[[Block, ModalLine], None]]:
+        if self._step_cache_for != self.steps:  # a module inserted or removed steps: start again
+            self._step_cache = {}
+            self._step_cache_for = list(self.steps)
+            self._step_cache_len = len(self.steps)
+        g_groups, m_groups, f, s, t, comments = key
+        present = {"f": f, "s": s, "t": t}
+        chosen = []
+        for step in self.steps:
+            trigger = self._STEP_TRIGGERS.get(getattr(step, "__name__", ""))
+            if trigger is None or getattr(step, "__self__", None) is not self:
+                chosen.append(step)
+                continue
+            gs, ms, letters, wants_comments = trigger
+            if (any(g in g_groups for g in gs) or any(m in m_groups for m in ms)
+                    or any(present[c] for c in letters) or (wants_comments and comments)):
+                chosen.append(step)
+        self._step_cache[key] = chosen
+        return chosen
 
     def fast_path_allowed(self) -> bool:
         """Whether plain G0/G1 lines may skip the general machinery in the current modal state.
@@ -754,6 +819,8 @@ class Interpreter:
         motion = self._effective_motion(ml)
         arc = motion in (20, 30)
         if "@" in w or "^" in w:
+            if self.plane is not Plane.XY:  # LinuxCNC enhance_block
+                raise GCodeError("Cannot use polar coordinate except in G17 plane")
             if "x" in w or "y" in w:
                 raise GCodeError("Cannot mix polar coordinates (@ ^) with X or Y words")
             if axis_user0 or g0 == 530:
@@ -765,7 +832,8 @@ class Interpreter:
                 raise GCodeError(f"{letter.upper()} word with no G2 or G3 to use it")
         cycle = motion in cycles.CYCLE_CODES
         orient = ml.m.get(7) == 19
-        if "r" in w and not (arc or cycle or orient) and g0 != 100 and ml.g.get(18) != 680:
+        if "r" in w and not (arc or cycle or orient) and g0 != 100 and ml.g.get(18) != 680 and \
+                ml.g.get(13) != 640:
             raise GCodeError("R word with no G code that uses it")
         if "p" in w and not (arc or g0 in (40, 100) or ml.g.get(17) == 510 or ml.g.get(13) == 640
                              or motion in (740, 820, 840, 860, 880, 890) or orient
@@ -782,7 +850,7 @@ class Interpreter:
             raise GCodeError("L word with no G10, cutter compensation, canned cycle, M66 or M98 to use it")
         if "e" in w and not ms & {66, 67, 68}:
             raise GCodeError("E word with no M66, M67 or M68 to use it")
-        if "h" in w and ml.g.get(8) != 430 and g0 != 100:
+        if "h" in w and ml.g.get(8) not in (430, 432) and g0 != 100:
             raise GCodeError("H word with no G43 to use it")
         if "d" in w and motion not in (730, 830) and ml.g.get(7) not in (410, 420, 411, 421) and \
                 g0 not in (100, 120, 130):
@@ -822,8 +890,8 @@ class Interpreter:
             raise GCodeError(f"Cannot use {gname(g0)} with cutter radius compensation on")
         if g0 == 530:
             raise GCodeError("Cannot use G53 with cutter radius compensation on")
-        if g0 in (920, 921, 922, 923):
-            raise GCodeError("Cannot change G92 offsets with cutter radius compensation on")
+        if g0 in (920, 921, 922, 923, 520):
+            raise GCodeError("Cannot change axis offsets (G52, G92) with cutter radius compensation on")
         if ml.g.get(12) is not None:
             raise GCodeError("Cannot change coordinate systems with cutter radius compensation on")
         if ml.m.get(6) == 6:
@@ -893,6 +961,8 @@ class Interpreter:
             cur_r = math.hypot(target[0], target[1])
             cur_a = math.degrees(math.atan2(target[1], target[0]))
             if absolute:
+                if a_word is None and cur_r == 0.0:
+                    raise GCodeError("Must specify angle in polar coordinate if at the origin")
                 radius = r_word * scale if r_word is not None else cur_r
                 angle = a_word if a_word is not None else cur_a
             else:
@@ -1056,8 +1126,13 @@ class Interpreter:
             if self.selected_tool < 0:
                 raise GCodeError("M6 with no tool selected (give a T word first)")
             number = self.selected_tool
+            if not self.settings.tool_change_with_spindle_on and self.spindle is not None:
+                # LinuxCNC convert_tool_change: STOP_SPINDLE_TURNING first (a later G84 must not tap
+                # with a spindle it believes is turning)
+                self.spindle = None
+                self._emit(SpindleOff(file=self.file, line=self.line))
             self._emit(ToolChange(number, file=self.file, line=self.line))
-            self._emit(_Resume(self._resync))
+            self._emit(_Resume(self._refresh_position))
         else:
             q = block.take("q")
             if q is None:
@@ -1067,6 +1142,7 @@ class Interpreter:
                 raise GCodeError(f"M61 Q{number}: negative tool number")
             self._tool(number)
             self._emit(SetToolNumber(number, file=self.file, line=self.line))
+            self._emit(_Resume(self._refresh_position))
         self.current_tool = number
         self._set_tool_parameters(number)
 
@@ -1075,6 +1151,15 @@ class Interpreter:
         if where is not None:
             self.pos = Pose(*where)
             self.prog = self._from_machine(self.pos)
+
+    def _refresh_position(self) -> None:
+        """After M6 / M61 (LinuxCNC's toolchange_flag, refresh_actual_position): the program position
+        is read back from where the machine is, or was last sent, even when it is not the programmed
+        point (after G40 the tool stays on the compensated path until the next move)."""
+        where = self.machine.current_position()
+        if where is not None:
+            self.pos = Pose(*where)
+        self.prog = self._from_machine(self.pos)
 
     def _step_spindle(self, block: Block, ml: ModalLine) -> None:
         code = ml.m.get(7)
@@ -1096,64 +1181,6 @@ class Interpreter:
             return
         self.spindle = SpindleDirection.CW if code == 3 else SpindleDirection.CCW
         self._emit(SpindleOn(self.spindle, self.speed, file=self.file, line=self.line))
-
-    def _modal_snapshot(self) -> dict:
-        return {
-            "inch": self.inch, "absolute": self.absolute, "ijk_absolute": self.ijk_absolute,
-            "feed_mode": self.feed_mode, "plane": self.plane, "control": self.control,
-            "g5x": self.frames.g5x_index, "feed": self.feed, "speed": self.speed,
-            "spindle": self.spindle, "mist": self.mist, "flood": self.flood,
-            "overrides": dict(self.overrides),
-        }
-
-    def _step_state(self, block: Block, ml: ModalLine) -> None:
-        code = ml.m.get(7)
-        if code is None or code < 70:
-            return
-        if code in (70, 73):
-            self.saved_state = self._modal_snapshot()
-        elif code == 71:
-            self.saved_state = None
-        else:
-            if self.saved_state is None:
-                raise GCodeError("M72: no saved modal state to restore (M70 first)")
-            self._restore(self.saved_state)
-
-    def _restore(self, s: dict) -> None:
-        f, n = self.file, self.line
-        if s["inch"] != self.inch:
-            self.inch = s["inch"]
-            self.scale = MM_PER_INCH if self.inch else 1.0
-            self._emit(UseLengthUnits(not self.inch, file=f, line=n))
-        self.absolute = s["absolute"]
-        self.ijk_absolute = s["ijk_absolute"]
-        if s["feed_mode"] is not self.feed_mode:
-            self.feed_mode = s["feed_mode"]
-            self._emit(SetFeedMode(self.feed_mode, file=f, line=n))
-        if s["plane"] is not self.plane:
-            self.plane = s["plane"]
-            self._emit(SelectPlane(self.plane, file=f, line=n))
-        if s["control"] != self.control:
-            self.control = s["control"]
-            self._emit(SetMotionControlMode(*self.control, file=f, line=n))
-        if s["g5x"] != self.frames.g5x_index:
-            self._select_system(s["g5x"])
-        self._set_feed(s["feed"])
-        if s["speed"] != self.speed:
-            self.speed = s["speed"]
-            self._emit(SetSpindleSpeed(self.speed, file=f, line=n))
-        if s["spindle"] is not self.spindle:
-            self.spindle = s["spindle"]
-            if self.spindle is None:
-                self._emit(SpindleOff(file=f, line=n))
-            else:
-                self._emit(SpindleOn(self.spindle, self.speed, file=f, line=n))
-        if (s["mist"], s["flood"]) != (self.mist, self.flood):
-            self.mist, self.flood = s["mist"], s["flood"]
-            self._emit(Coolant(self.mist, self.flood, file=f, line=n))
-        if s["overrides"] != self.overrides:
-            self.overrides = dict(s["overrides"])
-            self._emit(SetOverrides(**self.overrides, file=f, line=n))
 
     def _step_coolant(self, block: Block, ml: ModalLine) -> None:
         codes = [c for c in block.m if c in (7, 8, 9)]
@@ -1320,18 +1347,42 @@ class Interpreter:
         code = ml.g.get(8)
         if code is None:
             return
+        self._apply_tool_length(code, block)
+
+    def _apply_tool_length(self, code: int, block: Block | None) -> None:
         offset = [0.0] * N_AXES
         if code == 430:
-            h = self._int_word(block, "h", "G43")
+            h = self._int_word(block, "h", "G43") if block is not None else None
             number = self.current_tool if h is None else h
             tool = self._tool(number)
             if tool is not None:
                 offset = [float(v) for v in tool.offset]
         elif code == 431:
+            # LinuxCNC convert_tool_length_offset: axes not given keep their current offset
+            assert block is not None
+            offset = list(self.frames.tool)
             for k, letter in enumerate(AXIS_LETTERS):
                 value = block.take(letter)
                 if value is not None:
                     offset[k] = value if k in ROTARY_INDEXES else value * self.scale
+        elif code == 432:
+            # G43.2: adds tool H's offsets, or the axis words, to the offsets in force
+            assert block is not None
+            offset = list(self.frames.tool)
+            given = [k for k, letter in enumerate(AXIS_LETTERS) if letter in block.words]
+            h = self._int_word(block, "h", "G43.2")
+            if h is not None and given:
+                raise GCodeError("G43.2: Can not have both H and axis words")
+            if h is None and not given:
+                raise GCodeError("G43.2: No axes specified and H word missing")
+            if h is not None:
+                tool = self._tool(h)
+                if tool is not None:
+                    offset = [a + float(b) for a, b in zip(offset, tool.offset, strict=True)]
+            for k in given:
+                value = block.take(AXIS_LETTERS[k])
+                assert value is not None
+                offset[k] += value if k in ROTARY_INDEXES else value * self.scale
         self.tool_length_mode = code
         self.frames.tool = offset
         self._offsets_changed()
@@ -1364,6 +1415,14 @@ class Interpreter:
             if (p is not None and p < 0) or (q is not None and q < 0):
                 raise GCodeError("G64 P and Q must not be negative")
             control = (MotionControlMode.CONTINUOUS, (p or 0.0) * self.scale, (q or 0.0) * self.scale)
+            r = block.take("r")
+            if r is not None:
+                # LinuxCNC master (convert_control_mode, G64_R_PLANNER): R <= 0 trapezoidal, else the
+                # smooth planner with its peak scale clamped to 0.1..1; the path tolerances as P/Q
+                planner, peak = (0, -1.0) if r <= 0.0 else (1, min(1.0, max(0.1, r)))
+                self.control = control
+                self._emit(SetMotionControlMode(*control, planner, peak, file=self.file, line=self.line))
+                return
         elif code == 610:
             control = (MotionControlMode.EXACT_PATH, 0.0, 0.0)
         else:
@@ -1480,215 +1539,6 @@ class Interpreter:
             self.pos = end_pose
         _ = normal
 
-    # --- group 0: G10, G28/G30, G92 ---------------------------------------------------------------
-
-    def _step_group0(self, block: Block, ml: ModalLine) -> None:
-        code = ml.g.get(0)
-        if code is None or code in (40, 530, 110):
-            return
-        if code in (120, 130):
-            self._full_circle(code, block)
-        elif code == 100:
-            self._g10(block)
-        elif code in (280, 300):
-            self._go_home(block, 5161 if code == 280 else 5181)
-        elif code in (281, 301):
-            base = 5161 if code == 281 else 5181
-            absolute = [m - t for m, t in zip(self.pos, self.frames.tool, strict=True)]
-            for k in range(N_AXES):
-                self.params.set_system(base + k, absolute[k])
-        elif code == 920:
-            self._g92(block)
-        elif code == 921 or code == 922:
-            if code == 921:
-                for k in range(N_AXES):
-                    self.params.set_system(5211 + k, 0.0)
-            self.params.set_system(5210, 0.0)
-            self._set_g92([0.0] * N_AXES)
-        elif code == 923:
-            self.params.set_system(5210, 1.0)
-            self._set_g92([self.params.numbered[5211 + k] for k in range(N_AXES)])
-
-    def _g10_tool(self, level: int, block: Block) -> None:
-        """Tool table edits: LinuxCNC's G10 L1 / L10 / L11, gcode-canon's G10 L1 (radius) and L3
-        (height and diameter), as :func:`gcode_canon.dialect.resolve` decides. The table file is
-        rewritten atomically after each edit (never in a dry run)."""
-        from dataclasses import replace
-
-        from gcode_canon.dialect import Action, resolve
-        from gcode_canon.tooltable import Tool, ToolTable
-
-        meaning = resolve(f"G10 L{level}", self.dialect)
-        if not meaning.accepted:
-            raise GCodeError(meaning.error or f"G10 L{level} is not accepted")
-        what = f"G10 L{level}"
-        number = self._int_word(block, "p", what)
-        if number is None:
-            raise GCodeError(f"{what} needs a P word (the tool number)")
-        if self.tool_table is None:
-            self.tool_table = ToolTable()
-            self._implicit_table = True
-        tool = self.tool_table.get(number)
-        if tool is None:
-            if not self._implicit_table:
-                raise GCodeError(f"{what} P{number}: tool {number} is not in the tool table")
-            tool = Tool(number, pocket=min(number, 1000))
-        scale = self.scale
-        w = block.words
-        offset = list(tool.offset)
-        action = meaning.action
-        try:
-            if action is Action.TOOL_RADIUS:
-                extra = sorted(set(w) - {"p", "r", "l"})
-                if extra or "r" not in w:
-                    raise GCodeError("G10 L1 (gcode-canon) takes P and R only: the tool radius")
-                tool = replace(tool, diameter=2.0 * w["r"] * scale)
-            elif action is Action.TOOL_HEIGHT_DIAMETER:
-                extra = sorted(set(w) - {"p", "h", "d", "l"})
-                if extra or not ("h" in w or "d" in w):
-                    raise GCodeError("G10 L3 takes P with H (tool height) and/or D (diameter) only")
-                if "h" in w:
-                    offset[2] = w["h"] * scale
-                tool = replace(tool, offset=Pose(*offset), diameter=w["d"] * scale if "d" in w
-                               else tool.diameter)
-            else:
-                given = [k for k, letter in enumerate(AXIS_LETTERS) if letter in w]
-                if level == 1:
-                    if not given and not any(x in w for x in "rijq"):
-                        raise GCodeError("G10 L1 without offsets has no effect")
-                    for k in given:
-                        offset[k] = w[AXIS_LETTERS[k]] * (1.0 if k in ROTARY_INDEXES else scale)
-                else:
-                    if not given:
-                        raise GCodeError(f"{what} without axis words has no effect")
-                    if self.frames.rotation != 0.0 and ("x" in w or "y" in w):
-                        raise GCodeError(f"{what} with X or Y in a rotated coordinate system is not "
-                                         "supported")
-                    if level == 10:
-                        base, g92 = list(self.frames.g5x), list(self.frames.g92)
-                    else:
-                        nums = self.params.numbered
-                        base = [nums[system_base(9) + k] for k in range(N_AXES)]
-                        g92 = [0.0] * N_AXES
-                    for k in given:
-                        value = w[AXIS_LETTERS[k]] * (1.0 if k in ROTARY_INDEXES else scale)
-                        offset[k] = self.pos[k] - value - base[k] - g92[k]
-                diameter = tool.diameter
-                if "r" in w:
-                    diameter = 2.0 * w["r"] * scale
-                orientation = near_int(w["q"], "Q word of G10 L1") if "q" in w else tool.orientation
-                tool = replace(tool, offset=Pose(*offset), diameter=diameter,
-                               front_angle=w.get("i", tool.front_angle),
-                               back_angle=w.get("j", tool.back_angle), orientation=orientation)
-        except (ValueError, TypeError) as exc:
-            raise GCodeError(f"{what} P{number}: {exc}") from None
-        self.tool_table.set(tool)
-        if number == self.current_tool:
-            self._set_tool_parameters(number)
-        path = self.settings.tool_table
-        if path is not None and not self.settings.dry_run:
-            self.tool_table.write(path)
-
-    def _set_g92(self, values: list[float]) -> None:
-        self.frames.g92 = values
-        self._offsets_changed()
-        self._emit(SetG92Offset(Pose(*values), file=self.file, line=self.line))
-
-    def _g92(self, block: Block) -> None:
-        if not block.has_axes():
-            raise GCodeError("All axes missing with G92")
-        current = [p + o for p, o in zip(self.prog, self.frames.g92, strict=True)]
-        values = list(self.frames.g92)
-        for k, letter in enumerate(AXIS_LETTERS):
-            value = block.take(letter)
-            if value is not None:
-                if k not in ROTARY_INDEXES:
-                    value *= self.scale
-                values[k] = current[k] - value
-        if "@" in block.words or "^" in block.words:
-            raise GCodeError("Polar coordinates (@ ^) cannot be used with G92")
-        for k in range(N_AXES):
-            self.params.set_system(5211 + k, values[k])
-        self.params.set_system(5210, 1.0)
-        self._set_g92(values)
-
-    def _go_home(self, block: Block, base: int) -> None:
-        self._after_comp = False
-        f, n = self.file, self.line
-        given = [k for k, letter in enumerate(AXIS_LETTERS) if letter in block.words]
-        if given or "@" in block.words or "^" in block.words:
-            target = self._target(block)
-            self.prog = target
-            self.pos = self._to_machine(target)
-            self._emit(StraightTraverse(self.pos, file=f, line=n))
-        else:
-            given = list(range(N_AXES))
-        tool = self.frames.tool
-        end = list(self.pos)
-        for k in given:
-            end[k] = self.params.numbered[base + k] + tool[k]
-        self.pos = Pose(*end)
-        self.prog = self._from_machine(self.pos)
-        self._emit(StraightTraverse(self.pos, file=f, line=n))
-
-    def _g10(self, block: Block) -> None:
-        level = self._int_word(block, "l", "G10")
-        if level in (1, 3, 10, 11):
-            self._g10_tool(level, block)
-            return
-        if level not in (2, 20):
-            raise GCodeError(f"Invalid L word with G10: L{level} (L1, L2, L3, L10, L11 or L20)")
-        p = self._int_word(block, "p", f"G10 L{level}")
-        if p is None:
-            raise GCodeError(f"G10 L{level} needs a P word (coordinate system 1-9, 0 for the active one)")
-        if p > 9:
-            raise GCodeError(f"G10 L{level} P{p}: coordinate system number out of range (0-9)")
-        if "@" in block.words or "^" in block.words:
-            raise GCodeError("Polar coordinates (@ ^) cannot be used with G10")
-        index = p or self.frames.g5x_index
-        base = system_base(index)
-        nums = self.params.numbered
-        old = [nums[base + k] for k in range(N_AXES)]
-        rotation = nums[base + 9]
-        r = block.take("r")
-        if r is not None:
-            if level == 20:
-                raise GCodeError("R not allowed in G10 L20")
-            rotation = r  # G91 has no effect on G10 L2 (LinuxCNC)
-        new = list(old)
-        if level == 2:
-            for k, letter in enumerate(AXIS_LETTERS):
-                value = block.take(letter)
-                if value is not None:
-                    if k not in ROTARY_INDEXES:
-                        value *= self.scale
-                    new[k] = value
-        else:
-            # L20: the current point gets the given coordinates in system `index` (G91 or not).
-            absolute = [m - t for m, t in zip(self.pos, self.frames.tool, strict=True)]
-            g92 = self.frames.g92
-            c, s = math.cos(math.radians(rotation)), math.sin(math.radians(rotation))
-            # the current point as system `index` calls it now; axes not given keep that
-            dx, dy = absolute[0] - old[0], absolute[1] - old[1]
-            current = [a - o - g for a, o, g in zip(absolute, old, g92, strict=True)]
-            current[0] = dx * c + dy * s - g92[0]
-            current[1] = -dx * s + dy * c - g92[1]
-            desired = list(current)
-            for k, letter in enumerate(AXIS_LETTERS):
-                value = block.take(letter)
-                if value is not None:
-                    desired[k] = value if k in ROTARY_INDEXES else value * self.scale
-            px, py = desired[0] + g92[0], desired[1] + g92[1]
-            new[0] = absolute[0] - (px * c - py * s)
-            new[1] = absolute[1] - (px * s + py * c)
-            for k in range(2, N_AXES):
-                new[k] = absolute[k] - (desired[k] + g92[k])
-        for k in range(N_AXES):
-            self.params.set_system(base + k, new[k])
-        self.params.set_system(base + 9, rotation)
-        if index == self.frames.g5x_index:
-            self._select_system(index)
-
     # --- motion -------------------------------------------------------------------------------------
 
     def _step_motion(self, block: Block, ml: ModalLine) -> None:
@@ -1709,21 +1559,27 @@ class Interpreter:
         if self.cycle_state.motion is not None or self.cycle_state.initial_level is not None:
             self.cycle_state = cycles.cancel(self.cycle_state)
         if motion in (20, 30):
-            if has_axes or "i" in w or "j" in w or "k" in w or "r" in w:
+            # a G2/G3 written on the line is an arc even with no other word (LinuxCNC then refuses it:
+            # "R, I, J or K words missing"); a line in G2/G3 mode with none of them moves nothing
+            if has_axes or "i" in w or "j" in w or "k" in w or "r" in w or explicit in (20, 30):
                 self._arc(block, motion == 20)
             return
         if not has_axes:
             return
         f, n = self.file, self.line
         if g0 == 530:
+            # LinuxCNC (find_ends): machine coordinates, the tool length offset not added (G53 G0 Z0
+            # goes to machine Z0 whatever G43 is in force), except on (unwrapped) rotary axes
             tool = self.frames.tool
             end = list(self.pos)
             for k, letter in enumerate(AXIS_LETTERS):
                 value = block.take(letter)
                 if value is not None:
-                    if k not in ROTARY_INDEXES:
+                    if k in ROTARY_INDEXES:
+                        value += tool[k]
+                    else:
                         value *= self.scale
-                    end[k] = value + tool[k]
+                    end[k] = value
             target = self._from_machine(end)
         else:
             target = self._target(block)
@@ -1751,10 +1607,13 @@ class Interpreter:
                 raise GCodeError("Cannot probe with cutter radius compensation on")
             if self.feed_mode is FeedMode.INVERSE_TIME:
                 raise GCodeError("Cannot probe in inverse time feed mode")
+            if self.feed_mode is FeedMode.UNITS_PER_REV:
+                raise GCodeError("Cannot probe with feed per rev mode")
             if any(end_pose[k] != self.pos[k] for k in ROTARY_INDEXES):
                 raise GCodeError("Cannot move rotary axes during probing")
             self._require_feed(block, gname(motion))
-            if math.dist(end_pose, self.pos) < 1e-9:
+            if math.dist(end_pose, self.pos) < 1e-9 and _PROBE_MODES[motion].error_on_miss:
+                # LinuxCNC refuses it for G38.2/G38.4 only: G38.3/G38.5 may start where they end
                 raise GCodeError(f"{gname(motion)}: probe move has zero length")
             self._probe(Probe(end_pose, _PROBE_MODES[motion], file=f, line=n))
             return
@@ -1856,6 +1715,12 @@ class Interpreter:
                 self.probe_log.write(" ".join(f"{self.params.numbered[5061 + k]:.6f}" for k in range(N_AXES)))
             if not tripped and cmd.mode.error_on_miss:
                 raise GCodeError(f"G{cmd.mode.value} move finished without making contact")
+            # LinuxCNC set_probe_data: #5061-#5069 are where the probe tripped, the position the next
+            # move starts from is where the machine stopped (past the trip point, or backed off)
+            now = self.machine.current_position()
+            if now is not None:
+                self.pos = Pose(*now)
+                self.prog = self._from_machine(self.pos)
 
         self._emit(_Resume(answer))
 
@@ -1988,6 +1853,11 @@ class Interpreter:
             if self.mist or self.flood:
                 self.mist = self.flood = False
                 self._emit(Coolant(False, False, file=f, line=n))
+            if self.settings.disable_g92_persistence:  # LinuxCNC convert_stop step 10
+                for k in range(5210, 5220):
+                    self.params.set_system(k, 0.0)
+                if any(self.frames.g92):
+                    self._set_g92([0.0] * N_AXES)
             self.motion = 10
             self.scale_code, self.rotation_code = 500, 690
             if self.xform_on or self.polar_on:  # Fanuc cancels these on reset

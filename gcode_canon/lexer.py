@@ -24,6 +24,8 @@ FAST_LINE = re.compile(
 """Groups: motion (0/1 or None), x, y, z, f (text of the number or None)."""
 
 _COMMENT_START = re.compile(r"[(;]")
+_PLAIN_NUMBER = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)").match
+_NUMBER_TAIL = frozenset("0123456789.")
 _BAD_CONTROL = re.compile(r"[\x00-\x08\x0a-\x1f\x7f]")
 _FOLD = str.maketrans("", "", " \t\r")
 _LINE_NUMBER = re.compile(r"n[0-9]+(?:\.[0-9]+)?")
@@ -100,7 +102,10 @@ def check_characters(raw: str) -> None:
 def parse_line(raw: str, reader: ExpressionReader) -> Block:
     """Parse (and evaluate the values of) one line without its end-of-line characters."""
     check_characters(raw)
-    code, comments = split_comments(raw)
+    if "(" in raw or ";" in raw:
+        code, comments = split_comments(raw)
+    else:
+        code, comments = raw, []
     s = code.translate(_FOLD)
     if not s.isascii():
         bad = next(ch for ch in s if not ch.isascii())
@@ -155,7 +160,15 @@ def parse_line(raw: str, reader: ExpressionReader) -> Block:
         elif c in WORD_LETTERS:
             if c in words:
                 raise GCodeError(f"Multiple {c.upper()} words on one line")
-            value, i = reader.real_value(s, i + 1)
+            m = _PLAIN_NUMBER(s, i + 1)  # the common case, a literal number: no expression reader
+            if m is not None and (m.end() >= n or s[m.end()] not in _NUMBER_TAIL):
+                value = float(m.group())
+                if value - value != 0.0:  # inf: the reader reports it
+                    value, i = reader.real_value(s, i + 1)
+                else:
+                    i = m.end()
+            else:
+                value, i = reader.real_value(s, i + 1)
             words[c] = value
             if c in _AXIS_WORDS:
                 block.axes = True

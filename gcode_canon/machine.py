@@ -26,7 +26,8 @@ class MachineCallbacks(Protocol):
 
     def current_position(self) -> Pose | None:
         """The machine position (machine coordinates) at the start of a program or MDI line and
-        after a stop (M0/M1/M60) or tool change; None: where the interpreter last commanded it."""
+        after a stop (M0/M1/M60), a tool change or a probe move; None: where the interpreter last
+        commanded it (after a probe: where the probe tripped)."""
         ...
 
     def print_text(self, text: str) -> None:

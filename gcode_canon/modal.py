@@ -41,17 +41,15 @@ G_UNSUPPORTED: dict[int, str] = {
     52: "G5.2 (NURBS)",
     330: "G33 (spindle-synchronized motion)",
     331: "G33.1 (rigid tapping)",
-    520: "G52 (local offset)",
     171: "G17.1 (UV plane)",
     181: "G18.1 (WU plane)",
     191: "G19.1 (VW plane)",
-    432: "G43.2 (additional tool offset)",
     960: "G96 (constant surface speed)",
     70: "G7 (lathe diameter mode)",
 }
 G_UNSUPPORTED[760] = "G76 (threading: it needs spindle-synchronized motion)"
 
-G_AXIS_USERS_GROUP0 = frozenset((100, 280, 300, 920))
+G_AXIS_USERS_GROUP0 = frozenset((100, 280, 300, 920, 520))
 """Group-0 codes that take axis words (the motion mode is suspended on their line)."""
 
 M_GROUPS: dict[int, int] = {}
@@ -73,7 +71,7 @@ def gname(code10: int) -> str:
     return f"G{whole}.{tenth}" if tenth else f"G{whole}"
 
 
-AXIS_USER_CODES = frozenset((*G_AXIS_USERS_GROUP0, 431, 220, 230, 510, 680))
+AXIS_USER_CODES = frozenset((*G_AXIS_USERS_GROUP0, 431, 432, 220, 230, 510, 680))
 """Codes other than the motion mode that take the line's axis words (G10 G28 G30 G92 G43.1, and the
 gcode-canon transforms G22 G23 G51 G68)."""
 

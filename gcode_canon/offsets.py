@@ -19,6 +19,8 @@ from gcode_canon.commands import Pose
 from gcode_canon.parameters import Parameters
 
 N_AXES = 9
+ROTARY_INDEXES = frozenset((3, 4, 5))
+"""A B C: angles, never scaled by G20/G21."""
 
 
 def system_base(index: int) -> int:

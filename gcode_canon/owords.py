@@ -127,6 +127,7 @@ class FlowControl:
     value: float = 0.0
     value_returned: bool = False
     main_dir: Path | None = None
+    main_source: LineSource | None = None
 
     # --- program start / end --------------------------------------------------------------------
 
@@ -138,6 +139,7 @@ class FlowControl:
         self.file_marks = {}
         self.value = 0.0
         self.value_returned = False
+        self.main_source = main
         is_file = not isinstance(main.stream, io.StringIO)
         self.main_dir = Path(main.name).parent if is_file else None
 
@@ -412,6 +414,9 @@ class FlowControl:
             b = self.blocks[-1]
             raise GCodeError(f"{label} sub inside the open {b.label} {b.kind} (line {b.line}): "
                              "subroutines cannot be defined inside a block")
+        if self.frames and not self.frames[-1].fanuc:
+            raise GCodeError(f"Nested subroutine definition: '{label} sub' found inside called "
+                             f"subroutine '{self.frames[-1].label}'")
         line = interp.line
         self.subs[label] = SubDef(interp.source, interp.source.mark(), line)
         self._skip(label, ("endsub",), f"{label} sub", line)
@@ -420,7 +425,10 @@ class FlowControl:
         interp = self.interp
         args: list[float] = []
         n = len(s)
-        while i < n and s[i] == "[":
+        while i < n and s[i] in "[(":
+            if s[i] == "(":  # a comment between the arguments (LinuxCNC reads past it)
+                i += 1
+                continue
             value, i = interp.reader.real_value(s, i)
             args.append(value)
         self._rest_empty(s, i, f"{label} call (arguments go in [brackets])")
@@ -445,7 +453,13 @@ class FlowControl:
             restore = d.source.mark()
             d.source.jump(d.mark)
             return d.source, False, restore, d.line
-        path = self._find_file(label)
+        try:
+            path = self._find_file(label)
+        except GCodeError:
+            found = self._scan_sub(label)
+            if found is None:
+                raise
+            return found
         source = LineSource.from_file(path, interp.settings.max_line_length)
         try:
             key = str(path)
@@ -462,6 +476,27 @@ class FlowControl:
         except BaseException:
             source.close()
             raise
+
+    def _scan_sub(self, label: str) -> tuple[LineSource, bool, tuple[int, int], int] | None:
+        """LinuxCNC's forward seek (control_back_to): a sub not defined yet and not on the path may
+        follow later in the main program's file; the subs passed on the way are recorded."""
+        interp = self.interp
+        src = interp.source
+        if src is not self.main_source:
+            return None
+        back = src.mark()
+        line = interp.line
+        for raw in src:
+            if raw.strip() == "%":  # nothing after the closing percent is read
+                break
+            head = o_head(raw)
+            if head is not None and head[1] == "sub":
+                self.subs.setdefault(head[0], SubDef(src, src.mark(), src.line))
+                if head[0] == label:
+                    return src, False, back, src.line
+        src.jump(back)
+        interp.line = line
+        return None
 
     def search_dirs(self) -> list[Path]:
         dirs = [Path(p) for p in self.interp.settings.subroutine_path]
@@ -506,9 +541,11 @@ class FlowControl:
         interp.switch_source(source)
 
     def _kw_return(self, label: str, s: str, i: int) -> None:
+        # LinuxCNC returns from the running subroutine whatever label the return carries
         value, _ = self._optional_value(s, i, label, "return")
-        frame = self._frame_for(label, "return")
-        self._return(value or 0.0, value is not None, "return", frame)
+        if not self.frames or self.frames[-1].fanuc:
+            raise GCodeError(f"{label} return outside a subroutine call")
+        self._return(value or 0.0, value is not None, "return", self.frames[-1])
 
     def _kw_endsub(self, label: str, s: str, i: int) -> None:
         value, _ = self._optional_value(s, i, label, "endsub")
@@ -536,6 +573,7 @@ class FlowControl:
             assert frame.start is not None
             frame.source.jump(frame.start)
             return
+        level = len(self.frames)
         self.frames.pop()
         self.blocks = frame.blocks
         if not frame.fanuc:
@@ -548,6 +586,7 @@ class FlowControl:
         elif frame.restore is not None:
             frame.source.jump(frame.restore)
         interp.switch_source(frame.caller, frame.caller_file)
+        interp.leave_call_level(level)
 
     # --- Fanuc-style numbered programs ----------------------------------------------------------------
 

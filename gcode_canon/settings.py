@@ -40,3 +40,9 @@ class InterpreterSettings:
     does not have is an error."""
     require_program_end: bool = True
     """A program (file or string) must end with M2/M30 or a closing ``%`` (LinuxCNC's rule)."""
+    tool_change_with_spindle_on: bool = False
+    """M6 leaves the spindle turning (LinuxCNC's ``[EMCIO] TOOL_CHANGE_WITH_SPINDLE_ON``); by default
+    M6 stops it first, as LinuxCNC does."""
+    disable_g92_persistence: bool = False
+    """G92/G52 offsets (#5210-#5219) are not kept from one program to the next: cleared when the
+    parameter file is read and at M2/M30 (LinuxCNC's ``[RS274NGC] DISABLE_G92_PERSISTENCE``)."""

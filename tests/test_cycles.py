@@ -392,12 +392,13 @@ def test_cancel_forgets_the_initial_level_and_the_cycle() -> None:
 
 
 def test_peck_clearance_default_inch_and_configured() -> None:
-    # G73 Q1 from R0 to Z-1.5 in inch units: one peck at -1, retract 0.050 to -0.95, final feed to -1.5,
+    # G73 Q1 from R0 to Z-1.5 in inch units on a metric machine: LinuxCNC's default clearance is the
+    # machine's (1) used as a program-unit number: one peck at -1, retract 1 to 0, final feed to -1.5,
     # rapid out to R (G99).
     inch = run(730, Plane.XY, (0, 0, 1), z=-1.5, r=0, q=1, metric=False, retract_mode=99)
     same(
         path(inch, Plane.XY),
-        [("G0", 0, 0, 0), ("G1", 0, 0, -1), ("G0", 0, 0, -0.95), ("G1", 0, 0, -1.5), ("G0", 0, 0, 0)],
+        [("G0", 0, 0, 0), ("G1", 0, 0, -1), ("G0", 0, 0, 0), ("G1", 0, 0, -1.5), ("G0", 0, 0, 0)],
     )
     # Configured G83 clearance 0.2: peck to -1, out to R0, back down to -0.8, final feed, out to R.
     conf = run(830, Plane.XY, (0, 0, 1), z=-1.5, r=0, q=1, g83_peck_clearance=0.2, retract_mode=99)

@@ -28,7 +28,7 @@ def test_incremental_with_repeats() -> None:
 
 
 def test_inch_units_and_yz_plane() -> None:
-    got = path("G20 F1\nG0 Z1\nG81 X1 Y0 Z-0.1 R0.1")
+    got = path("G20 F1\nG0 Z1\nG98 G81 X1 Y0 Z-0.1 R0.1")
     assert got[1:] == [("G0", 25.4, 0, 25.4), ("G0", 25.4, 0, 2.54), ("G1", 25.4, 0, -2.54),
                        ("G0", 25.4, 0, 25.4)]
     # G19: drill axis X, hole position Y Z

@@ -276,8 +276,9 @@ def test_coord_system_is_the_g_code_times_ten(before: str, expected: float) -> N
 
 def test_retract_mode_parameters_follow_linuxcncs_code() -> None:
     # lookup_named_param: _retract_r_plane is retract_mode == R_PLANE, set by G99;
-    # _retract_old_z is OLD_Z, set by G98 (canon starts in G98)
-    assert value("#<_retract_old_z>") == 1 and value("#<_retract_r_plane>") == 0
+    # _retract_old_z is OLD_Z, set by G98 (canon starts in G99, as LinuxCNC's interp_setup.cc)
+    assert value("#<_retract_old_z>") == 0 and value("#<_retract_r_plane>") == 1
+    assert value("#<_retract_old_z>", "G98") == 1 and value("#<_retract_r_plane>", "G98") == 0
     assert value("#<_retract_r_plane>", "G99") == 1 and value("#<_retract_old_z>", "G99") == 0
     assert value("#<_retract_old_z>", "G99\nG98") == 1
 
