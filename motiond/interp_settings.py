@@ -9,7 +9,8 @@ One place, so the four read a program the same way: the machine file's ``[interp
 * ``--block-delete`` turns block delete on (the file's ``block_delete = true`` cannot be turned off
   from the command line; it is an operator switch in the daemon).
 
-``max_call_depth``, ``max_loop_iterations`` and ``log_dir`` come from the file only. With a machine
+``max_call_depth``, ``max_loop_iterations``, ``log_dir``, ``tool_change_with_spindle_on`` and
+``disable_g92_persistence`` come from the file only. With a machine
 file, words for axes the machine does not have are errors (``axes``).
 """
 
@@ -77,6 +78,8 @@ def build_settings(config: Any, *, var: str | None = None, tool_table: str | Non
         max_call_depth=ic.max_call_depth,
         max_loop_iterations=ic.max_loop_iterations,
         axes=axes,
+        tool_change_with_spindle_on=ic.tool_change_with_spindle_on,
+        disable_g92_persistence=ic.disable_g92_persistence,
     )
 
 

@@ -244,3 +244,24 @@ def test_canon_run_finds_the_subroutine(layout: Path, capsys: pytest.CaptureFixt
     assert code == 0, capsys.readouterr().err
     summary = json.loads(capsys.readouterr().out)
     assert summary["ok"] and summary["final_positions"]["x"] == pytest.approx(7.0)
+
+
+def test_linuxcnc_ini_switches_from_the_file(layout: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """tool_change_with_spindle_on and disable_g92_persistence reach the interpreter from the file
+    (LinuxCNC's [EMCIO] / [RS274NGC] settings of the same names)."""
+    conf = layout / "conf"
+    prog = layout / "prog" / "tc.ngc"
+    prog.write_text("M3 S1000\nT1 M6\nM2\n")
+    default = check_lines(["--config", machine_file(conf, ""), str(prog)], capsys)
+    keep = check_lines(["--config", machine_file(conf, "tool_change_with_spindle_on = true\n", name="k.toml"),
+                        str(prog)], capsys)
+
+    def stops_before_change(lines: list[str]) -> bool:
+        change = next(i for i, s in enumerate(lines) if "CHANGE_TOOL" in s and "NUMBER" not in s)
+        return any("STOP_SPINDLE_TURNING" in s for s in lines[:change])
+
+    assert stops_before_change(default)
+    assert not stops_before_change(keep)
+    settings = build_settings(load_machine(machine_file(conf, "disable_g92_persistence = true\n",
+                                                        name="g92.toml")))
+    assert settings.disable_g92_persistence and not settings.tool_change_with_spindle_on
