@@ -5,9 +5,10 @@ I/O, and waits in E-stop for commands on ``CANON_COMMAND`` (each answered on ``C
 status goes out on ``CANON_STATUS`` at ``[telemetry] status_hz`` and events on ``CANON_EVENT``.
 ``canon ctl`` sends commands, ``canon status`` shows the status.
 
-On SIGTERM or SIGINT: the program is cancelled, the drives are stopped and disabled, the outputs go
-to their safe values, the parameter file is written, and the daemon exits 0 (1 when the parameter
-file could not be written: the message names it and says why).
+On SIGTERM or SIGINT: a moving program first comes to rest on its path (jerk-limited), then the
+drives are stopped and disabled, the outputs go to their safe values, the parameter file is written,
+and the daemon exits 0 (1 when the parameter file could not be written: the message names it and
+says why).
 
 The parameter file is ``--var``, else the configuration's ``[interpreter] var_file``, else
 ``<state dir>/<machine name>.var``; the state directory is
@@ -155,6 +156,21 @@ def root_warning() -> str | None:
     return ROOT_WARNING if hasattr(os, "geteuid") and os.geteuid() == 0 else None
 
 
+STOP_TIMEOUT_S = 10.0  # SIGTERM: the jerk-limited stop must be at rest by then (a few 100 ms at most)
+
+
+def stop_then_shutdown(machine: Any) -> bool:
+    """SIGTERM or SIGINT: a moving program (or jog) first comes to rest on its path, jerk-limited, then
+    the machine shuts down (drives disabled, outputs safe, parameters saved). True when the motion was
+    at rest before the drives were disabled."""
+    at_rest = machine.stop_on_path(STOP_TIMEOUT_S)
+    if not at_rest:
+        print(f"canon daemon: the motion was not at rest after {STOP_TIMEOUT_S:g} s: the drives were "
+              "disabled while moving", file=sys.stderr, flush=True)
+    machine.shutdown()
+    return at_rest
+
+
 def run(args: argparse.Namespace) -> int:
     from motiond.config import load_machine
     from motiond.instance_lock import lock_machine
@@ -222,7 +238,7 @@ def _run_locked(args: argparse.Namespace, config: Any) -> int:
         if server is not None:
             server.stop()
         if machine is not None:
-            machine.shutdown()
+            stop_then_shutdown(machine)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     if machine is not None and machine.save_error:

@@ -256,13 +256,7 @@ def _interrupted(machine: Any, program: str) -> int:
     """Ctrl-C or SIGTERM while the program runs: a jerk-limited stop on the path (the planner's
     abort, the drives kept streaming until the motion is at rest), then the machine shut down (drives
     disabled, outputs safe, parameters written) and the place to resume from printed."""
-    import contextlib
-
-    from motiond.states import CommandRefused
-
-    with contextlib.suppress(CommandRefused):  # refused: a fault is already stopping it
-        machine.abort()
-    at_rest = machine.wait_at_rest(STOP_TIMEOUT_S)
+    at_rest = machine.stop_on_path(STOP_TIMEOUT_S)
     place = machine.motion_place
     var = machine.interp.settings.var_file
     before = _file_state(var) if var is not None else None

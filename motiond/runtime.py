@@ -1944,6 +1944,15 @@ class Machine:
     def job(self) -> _Job | None:
         return self._job
 
+    def stop_on_path(self, timeout: float) -> bool:
+        """The jerk-limited stop on the path (:meth:`abort`: the drives keep streaming until the motion is
+        at rest), waited for at most ``timeout`` seconds; True at rest. What Ctrl-C and SIGTERM do before
+        :meth:`shutdown`, which alone would stop the stream with the axes at speed. A refused abort (a
+        fault or E-stop is already stopping the machine) is not an error here."""
+        with contextlib.suppress(CommandRefused):
+            self.abort()
+        return self.wait_at_rest(timeout)
+
     def wait_at_rest(self, timeout: float) -> bool:
         """After :meth:`abort`: True once the program has ended and its jerk-limited stop on the path
         has brought the motion to rest (or a fault ended it); False after ``timeout`` seconds."""

@@ -114,3 +114,35 @@ def test_stop_report_words() -> None:
     assert "before the first motion" in stop_report("p.ngc", ("", 0))
     sub = stop_report("p.ngc", ("subs/drill.ngc", 3))
     assert sub.startswith("stopped at subs/drill.ngc:3, inside a subroutine") and "--start-line 3" not in sub
+
+
+def test_daemon_sigterm_stops_on_the_path_before_shutting_down(tmp_path: Path) -> None:
+    """The daemon's SIGTERM path (``stop_then_shutdown``): the program running at full speed comes to
+    rest within the acceleration limit before the drives are disabled, not cut off at speed."""
+    from motiond.cmd_daemon import stop_then_shutdown
+
+    config = load_machine(None)
+    prog = tmp_path / "long.ngc"
+    prog.write_text(PROGRAM.replace("F600", "F6000"))
+    m = Machine(config, lc=None, var_file=tmp_path / "p.var")
+    try:
+        m.start()
+        m.bring_up()
+        m.trace = []
+        m.run(prog)
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline:
+            tr = m.trace
+            if len(tr) > 2 and abs(tr[-1][2][0] - tr[-2][2][0]) / m.T > 99.0:
+                break
+            time.sleep(0.01)
+        else:
+            raise AssertionError("never reached 100 mm/s")
+        assert stop_then_shutdown(m)
+    finally:
+        m.shutdown()
+    xs = [t[2][0] for t in m.trace]
+    v = [(b - a) / m.T for a, b in itertools.pairwise(xs)]
+    acc = [(b - a) / m.T for a, b in itertools.pairwise(v)]
+    assert abs(v[-1]) < 0.01, f"the stream ended moving at {v[-1]:.1f} mm/s"
+    assert max(abs(a) for a in acc) <= config.limits.axes[0].max_acceleration * 1.01
