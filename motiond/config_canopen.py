@@ -70,6 +70,8 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
     refresh = t.get("status_refresh_ms", int, 100, check=in_range(1, 65535))
     rt_priority = t.get("realtime_priority", int, 0, check=in_range(0, 99))
     cpu_latency = t.get("cpu_latency_us", int, 0, check=in_range(-1, 100_000))
+    affinity = t.get("cpu_affinity", list, [], check=_cpu_list)
+    steer_gc = t.get("steer_gc", bool, True)
     options = dict(t.table("options").data)
 
     base = Path(root.file).parent if root.file else Path.cwd()
@@ -118,7 +120,19 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
         master_node_id=master_id, boot_timeout_s=boot_timeout, sdo_timeout_s=sdo_timeout,
         state_timeout_s=state_timeout, homing_timeout_s=homing_timeout, max_bus_load=max_load / 100.0,
         pdo_layout=layout, following_error_every=fe_every, status_refresh_ms=refresh,
-        realtime_priority=rt_priority, cpu_latency_us=None if cpu_latency < 0 else cpu_latency)
+        realtime_priority=rt_priority, cpu_latency_us=None if cpu_latency < 0 else cpu_latency,
+        cpu_affinity=tuple(affinity), steer_gc=steer_gc)
+
+
+def _cpu_list(cpus: list[Any]) -> str | None:
+    """``cpu_affinity``: distinct CPU numbers (whether this machine has them is checked, and a refusal
+    logged, when the cycle thread starts: the file may be checked on another PC)."""
+    for cpu in cpus:
+        if not isinstance(cpu, int) or isinstance(cpu, bool) or not 0 <= cpu < 4096:
+            return f"must be a list of CPU numbers 0-4095, {cpu!r} is not one"
+    if len(set(cpus)) != len(cpus):
+        return "must not list a CPU twice"
+    return None
 
 
 def canopen_from_file(data: dict[str, Any], file: str = "") -> CanopenConfig:

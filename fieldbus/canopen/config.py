@@ -95,6 +95,10 @@ class CanopenConfig:
     #: CPU wake-up latency asked of the kernel while the cycle runs (/dev/cpu_dma_latency, us);
     #: None leaves the CPUs' idle states alone
     cpu_latency_us: int | None = 0
+    #: CPUs the cycle thread is pinned to (empty: any CPU)
+    cpu_affinity: tuple[int, ...] = ()
+    #: garbage collection kept out of the cycle (clock.PeriodicRunner's ``steer_gc``)
+    steer_gc: bool = True
 
     @property
     def layout(self) -> PdoLayout:
