@@ -163,7 +163,11 @@ def status_client(seconds: float, out_path: str) -> int:
     print("subscribed", flush=True)
     end = time.monotonic() + seconds
     while time.monotonic() < end and not stop.is_set():
-        lc.handle_timeout(50)
+        try:
+            lc.handle_timeout(50)
+        except OSError:  # the select() interrupted by SIGTERM: the end
+            if not stop.is_set():
+                raise
     Path(out_path).write_text(str(got[0]))
     return 0
 
