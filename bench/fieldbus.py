@@ -15,6 +15,7 @@ refuses over 70 % there; here a case over it is marked, and runs anyway).
 
     python bench/fieldbus.py              # 30 s per case; per case the PDO layout that fits 1 Mbit/s
     python bench/fieldbus.py --seconds 10 --rt-priority 80 --layout compact --fe-every 4
+    python bench/fieldbus.py --stress --seconds 60 --rt-priority 80   # as root: bench/fieldbus_stress.py
 """
 
 from __future__ import annotations
@@ -209,7 +210,8 @@ def case(n: int, period: float, seconds: float, interface: str = "virtual") -> d
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seconds", type=float, default=30.0, help="length of each case (default 30)")
+    ap.add_argument("--seconds", type=float, default=None,
+                    help="length of each case (default 30; with --stress 60)")
     ap.add_argument("--drives", default="3,6", help="drive counts (default 3,6)")
     ap.add_argument("--periods-ms", default="4,2,1", help="cycle periods (default 4,2,1)")
     ap.add_argument("--rt-priority", type=int, default=0,
@@ -225,11 +227,29 @@ def main() -> int:
     ap.add_argument("--bus", choices=("virtual", "udp_multicast"), default="virtual",
                     help="udp_multicast: the drives in another process (`canon sim drives`); run it inside "
                          "tests/netns-run")
+    ap.add_argument("--stress", action="store_true",
+                    help="the stressed case (bench/fieldbus_stress.py): two CPU hogs, a 100 Hz status load, "
+                         "drives in another process on udp_multicast, the C reference in the same run "
+                         "(--seconds default 60)")
+    ap.add_argument("--steer-gc", choices=("on", "off", "both"), default="both",
+                    help="--stress: the cycle runner's garbage collection steering (default both: each case "
+                         "twice)")
+    ap.add_argument("--stress-period-ms", type=float, default=2.0, help="--stress: cycle period (default 2)")
     args = ap.parse_args()
+    if args.stress:
+        import fieldbus_stress
+
+        global RT, LATENCY, LAYOUT, FE_EVERY
+        args.seconds = 60.0 if args.seconds is None else args.seconds
+        RT = args.rt_priority
+        LATENCY = None if args.cpu_latency_us < 0 else args.cpu_latency_us
+        LAYOUT, FE_EVERY = args.layout, args.fe_every
+        sys.setswitchinterval(args.switch_interval_ms / 1000.0)
+        return fieldbus_stress.run(args, layout_for, build_rt_floor, c_reference)
     if args.bus == "udp_multicast" and os.environ.get("CANON_NETNS") != "1":
         ap.error("--bus udp_multicast joins a multicast group: run it as tests/netns-run python "
                  "bench/fieldbus.py --bus udp_multicast")
-    global RT, LATENCY, LAYOUT, FE_EVERY
+    args.seconds = 30.0 if args.seconds is None else args.seconds
     RT = args.rt_priority
     LATENCY = None if args.cpu_latency_us < 0 else args.cpu_latency_us
     LAYOUT, FE_EVERY = args.layout, args.fe_every

@@ -83,6 +83,8 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
     refresh = t.get("status_refresh_ms", int, 100, check=in_range(1, 65535))
     rt_priority = t.get("realtime_priority", int, 0, check=in_range(0, 99))
     cpu_latency = t.get("cpu_latency_us", int, 0, check=in_range(-1, 100_000))
+    affinity = t.get("cpu_affinity", list, [], check=_cpu_list)
+    steer_gc = t.get("steer_gc", bool, True)
     options = dict(t.table("options").data)
     emcy_t = t.table("emcy")
     emcy_lists = {}
@@ -153,7 +155,7 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
         state_timeout_s=state_timeout, homing_timeout_s=homing_timeout, max_bus_load=max_load / 100.0,
         pdo_layout=layout, following_error_every=fe_every, status_refresh_ms=refresh,
         realtime_priority=rt_priority, cpu_latency_us=None if cpu_latency < 0 else cpu_latency,
-        emcy=EmcyPolicy(**emcy_lists))
+        emcy=EmcyPolicy(**emcy_lists), cpu_affinity=tuple(affinity), steer_gc=steer_gc)
 
 
 def _extra_sdo(axis: Table) -> tuple[tuple[int, int, str, int, str], ...]:
@@ -209,6 +211,17 @@ def check_drive_ranges(a: Table, d: DriveConfig) -> None:
             raise a.error("counts_per_unit", f"{unit}: axes.{d.axis}.{key} {pos:g} is {counts:,} counts from "
                           f"home (home_offset {d.home_offset:g}), beyond the drive's 32-bit position "
                           f"(0x607A: {I32[0]:,} to {I32[1]:,})")
+
+
+def _cpu_list(cpus: list[Any]) -> str | None:
+    """``cpu_affinity``: distinct CPU numbers (whether this machine has them is checked, and a refusal
+    logged, when the cycle thread starts: the file may be checked on another PC)."""
+    for cpu in cpus:
+        if not isinstance(cpu, int) or isinstance(cpu, bool) or not 0 <= cpu < 4096:
+            return f"must be a list of CPU numbers 0-4095, {cpu!r} is not one"
+    if len(set(cpus)) != len(cpus):
+        return "must not list a CPU twice"
+    return None
 
 
 def canopen_from_file(data: dict[str, Any], file: str = "") -> CanopenConfig:

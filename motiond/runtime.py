@@ -509,7 +509,9 @@ class Machine:
             self.runner = PeriodicRunner(self.T, self._step, on_late=self._on_late, keep_lateness=False,
                                          name="canon-cycle",
                                          realtime_priority=self.canopen.realtime_priority,
-                                         cpu_latency_us=self.canopen.cpu_latency_us)
+                                         cpu_latency_us=self.canopen.cpu_latency_us,
+                                         cpu_affinity=self.canopen.cpu_affinity,
+                                         steer_gc=self.canopen.steer_gc)
             self.runner.start()
             self._service_closed = False
             self._service_thread = threading.Thread(target=self._service_main, name="canon-service",

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import gc
 import logging
+import os
 import time
 
 import can
@@ -242,12 +244,20 @@ def test_machine_file_chooses_the_layout_and_the_cycle_thread_settings():
     d = _read({})
     assert (d.pdo_layout, d.following_error_every, d.realtime_priority, d.cpu_latency_us) == (
         "standard", 1, 0, 0)
+    assert (d.cpu_affinity, d.steer_gc) == ((), True)
+    e = _read({"cpu_affinity": [1, 0], "steer_gc": False})
+    assert (e.cpu_affinity, e.steer_gc) == ((1, 0), False)
 
 
 @pytest.mark.parametrize("key, value, message", [
     ("pdo_layout", "tiny", "canopen.pdo_layout: must be one of standard, compact"),
     ("following_error_every", 0, "canopen.following_error_every"),
     ("realtime_priority", 100, "canopen.realtime_priority"),
+    ("cpu_affinity", 1, "canopen.cpu_affinity: must be list"),
+    ("cpu_affinity", [0, "1"], "canopen.cpu_affinity: must be a list of CPU numbers 0-4095, '1' is not one"),
+    ("cpu_affinity", [-1], "canopen.cpu_affinity: .*-1 is not one"),
+    ("cpu_affinity", [1, 1], "canopen.cpu_affinity: must not list a CPU twice"),
+    ("steer_gc", "yes", "canopen.steer_gc: must be bool"),
 ])
 def test_machine_file_mistakes_name_the_key(key, value, message):
     from motiond.configkit import ConfigError
@@ -313,7 +323,8 @@ def test_the_daemon_runs_its_cycle_thread_as_the_machine_file_says(tmp_path, mon
     qos.write_bytes(b"")
     monkeypatch.setattr(CpuLatencyRequest, "PATH", str(qos))
     machine_file = tmp_path / "m.toml"
-    machine_file.write_text("""
+    cpu = max(os.sched_getaffinity(0))
+    machine_file.write_text(f"""
 [axes.x]
 max_velocity = 100.0
 max_acceleration = 1000.0
@@ -322,6 +333,7 @@ max_jerk = 10000.0
 simulate = true
 realtime_priority = 1
 cpu_latency_us = 25
+cpu_affinity = [{cpu}]
 [canopen.axes.x]
 node_id = 1
 """)
@@ -332,8 +344,11 @@ node_id = 1
         assert runner.cpu_latency is not None and runner.cpu_latency.us == 25
         assert wait_for(lambda: runner.cpu_latency_held, 2.0)
         assert qos.read_bytes() == (25).to_bytes(4, "little")
+        assert runner.steer_gc and not gc.isenabled()  # collections only in the cycle's slack
+        assert runner.affinity_applied and os.sched_getaffinity(runner.native_id) == {cpu}
     finally:
         m.shutdown()
+    assert gc.isenabled()
     assert not runner.cpu_latency.held
 
 

@@ -12,17 +12,36 @@ SCHED_FIFO for the cycle thread (``realtime_priority``), and a PM QoS request on
 ``/dev/cpu_dma_latency`` (``cpu_latency_us``) held while the runner runs, which keeps the CPUs out of
 the deep idle states (or, in a VM, out of the halt that hands the CPU back to the host) whose exit
 takes hundreds of microseconds. Both need root or CAP_SYS_NICE; without them the runner logs it and
-runs anyway.
+runs anyway. ``cpu_affinity`` pins the cycle thread to a set of CPUs (say, one kept free of other
+work with ``isolcpus`` or a cgroup); a refused or invalid set is logged and the thread runs unpinned.
+
+Garbage collection (``steer_gc``). CPython's cyclic collector runs when *any* thread's allocations
+cross a threshold, on that thread, holding the interpreter lock for the whole pass: a young-generation
+pass takes tens to hundreds of microseconds, a full (generation 2) pass over a large heap tens of
+milliseconds. Triggered by the interpreter or a status publisher, it stalls the cycle thread
+that wakes meanwhile; triggered by the step's own allocations, it stalls the step. With ``steer_gc``
+the runner, at its start (after the caller's set-up), collects once, moves every object that exists by
+then to the permanent generation (``gc.freeze``: never scanned again) and disables automatic
+collection for the whole process; it then collects the young generations itself in the slack after a
+step, when the time left before the next deadline exceeds twice the longest recent pass of that
+generation (measured: the first pass of each generation waits for a slack of half a period, and times
+itself), and a full collection only when the slack is at least half a period and at most every
+``gc_full_every_s``.
+If the slack never suffices, a young collection is forced after ``FORCE_FACTOR`` thresholds' worth
+of allocations (counted: memory must stay bounded). At stop or error the runner restores the
+collector's previous state (enabled or not; frozen objects unfrozen if none were frozen before).
+``gc`` state is process-wide: only one steering runner at a time (a second one is refused).
 """
 
 from __future__ import annotations
 
+import gc
 import logging
 import os
 import struct
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
 log = logging.getLogger(__name__)
@@ -41,6 +60,9 @@ class CycleStats:
     ended: float = 0.0
     cpu_s: float = 0.0
     work_s: float = 0.0  # time spent inside step (the rest is sleeping and spinning to the deadline)
+    gc_collections: list[int] = field(default_factory=lambda: [0, 0, 0])  # by generation, in the slack
+    gc_forced: int = 0  # young collections forced without enough slack (garbage piled up)
+    gc_max_s: float = 0.0  # longest collection the runner ran
 
     @property
     def achieved_period_s(self) -> float:
@@ -96,7 +118,9 @@ class PeriodicRunner:
                  cycles: int | None = None, late_s: float | None = None,
                  on_late: Callable[[int, float], None] | None = None, spin_s: float = 0.0003,
                  keep_lateness: bool = True, name: str = "canopen-cycle",
-                 realtime_priority: int = 0, cpu_latency_us: int | None = None) -> None:
+                 realtime_priority: int = 0, cpu_latency_us: int | None = None,
+                 cpu_affinity: Iterable[int] | None = None, steer_gc: bool = False,
+                 gc_full_every_s: float = 10.0) -> None:
         if period_s <= 0:
             raise ValueError("period must be > 0")
         self.period_s = period_s
@@ -110,6 +134,11 @@ class PeriodicRunner:
         self.realtime = False  # True when the thread got SCHED_FIFO
         self.cpu_latency = None if cpu_latency_us is None else CpuLatencyRequest(cpu_latency_us)
         self.cpu_latency_held = False  # True when the CPU latency request was made
+        self.cpu_affinity = frozenset(cpu_affinity) if cpu_affinity else None
+        self.affinity_applied = False  # True when the thread was pinned to cpu_affinity
+        self.native_id: int | None = None  # the cycle thread's kernel id, once running
+        self.steer_gc = steer_gc
+        self.gc_full_every_s = gc_full_every_s
         self.stats = CycleStats(period_s)
         self.error: BaseException | None = None
         self._stop = threading.Event()
@@ -139,10 +168,26 @@ class PeriodicRunner:
             log.warning("cycle thread stays at normal priority (SCHED_FIFO %d refused: %s)",
                         self.realtime_priority, exc)
 
+    def _set_affinity(self) -> None:
+        """Pin this thread (pid 0: the calling thread on Linux) to ``cpu_affinity``."""
+        if self.cpu_affinity is None:
+            return
+        try:
+            os.sched_setaffinity(0, self.cpu_affinity)
+            self.affinity_applied = True
+        except (AttributeError, OSError, ValueError) as exc:
+            log.warning("cycle thread not pinned to CPUs %s (refused: %s); it runs on any CPU",
+                        sorted(self.cpu_affinity), exc)
+
     def _run(self) -> None:
+        self.native_id = threading.get_native_id()
         self._set_realtime()
+        self._set_affinity()
         if self.cpu_latency is not None:
             self.cpu_latency_held = self.cpu_latency.acquire()
+        steer = _GcSteering(self) if self.steer_gc else None
+        if steer is not None and not steer.begin():
+            steer = None
         st = self.stats
         period = self.period_s
         cpu0 = time.thread_time()
@@ -170,6 +215,8 @@ class PeriodicRunner:
                 if result is False:
                     break
                 k += 1
+                if steer is not None:
+                    steer.after_step(t0 + k * period - self.spin_s)
                 behind = int((time.monotonic() - (t0 + k * period)) // period)
                 if behind > 0:  # deadlines already gone: late, and skipped (never a burst to catch up)
                     st.late += 1
@@ -183,8 +230,85 @@ class PeriodicRunner:
         finally:
             st.ended = time.monotonic()
             st.cpu_s = time.thread_time() - cpu0
+            if steer is not None:
+                steer.end()
             if self.cpu_latency is not None:
                 self.cpu_latency.release()
+
+
+class _GcSteering:
+    """The garbage collector driven from a :class:`PeriodicRunner`'s slack (see the module docstring)."""
+
+    #: a young collection is forced, slack or not, once this many thresholds of allocations piled up
+    FORCE_FACTOR = 20
+    _owner: PeriodicRunner | None = None  # the one steering runner (gc state is process-wide)
+    _owner_lock = threading.Lock()
+
+    def __init__(self, runner: PeriodicRunner) -> None:
+        self.runner = runner
+        self.was_enabled = True
+        self.was_frozen = 0
+        self.estimate: list[float | None] = [None, None, None]  # longest recent pass per generation, s
+        self.last_full = 0.0
+
+    def begin(self) -> bool:
+        with _GcSteering._owner_lock:
+            if _GcSteering._owner is not None:
+                log.warning("garbage collection already steered by %s: %s leaves it alone",
+                            _GcSteering._owner._thread.name, self.runner._thread.name)
+                return False
+            _GcSteering._owner = self.runner
+        self.was_enabled = gc.isenabled()
+        self.was_frozen = gc.get_freeze_count()
+        gc.disable()
+        gc.collect()  # before the first deadline: the set-up's garbage is not frozen
+        gc.freeze()
+        self.last_full = time.monotonic()
+        return True
+
+    def end(self) -> None:
+        if self.was_frozen == 0:
+            gc.unfreeze()
+        if self.was_enabled:
+            gc.enable()
+        with _GcSteering._owner_lock:
+            _GcSteering._owner = None
+
+    def _collect(self, generation: int) -> None:
+        t = time.perf_counter()
+        gc.collect(generation)
+        took = time.perf_counter() - t
+        st = self.runner.stats
+        st.gc_collections[generation] += 1
+        st.gc_max_s = max(st.gc_max_s, took)
+        # the estimate follows a longer pass at once and decays slowly towards shorter ones
+        est = self.estimate
+        old = est[generation]
+        est[generation] = took if old is None or took > old else 0.9 * old + 0.1 * took
+
+    def _fits(self, generation: int, slack: float) -> bool:
+        est = self.estimate[generation]
+        if est is None:  # not measured yet: only in a generous slack
+            return slack >= self.runner.period_s / 2
+        return slack > 2 * est
+
+    def after_step(self, wake_at: float) -> None:
+        """Collect what is due and fits before ``wake_at`` (monotonic time the runner must be awake)."""
+        count = gc.get_count()
+        threshold = gc.get_threshold()
+        now = time.monotonic()
+        slack = wake_at - now
+        if (count[2] >= threshold[2] and slack >= self.runner.period_s / 2 and self._fits(2, slack)
+                and now - self.last_full >= self.runner.gc_full_every_s):
+            self._collect(2)
+            self.last_full = now
+        elif count[1] >= threshold[1] and self._fits(1, slack):
+            self._collect(1)
+        elif count[0] >= threshold[0] and self._fits(0, slack):
+            self._collect(0)
+        elif count[0] >= self.FORCE_FACTOR * threshold[0]:
+            self.runner.stats.gc_forced += 1
+            self._collect(0)
 
 
 def stream(master, trajectory: Callable[[float], Sequence[float]], seconds: float, *,

@@ -142,6 +142,10 @@ class CanopenConfig:
     cpu_latency_us: int | None = 0
     #: which EMCYs are warnings and which stop the machine
     emcy: EmcyPolicy = field(default_factory=EmcyPolicy)
+    #: CPUs the cycle thread is pinned to (empty: any CPU)
+    cpu_affinity: tuple[int, ...] = ()
+    #: garbage collection kept out of the cycle (clock.PeriodicRunner's ``steer_gc``)
+    steer_gc: bool = True
 
     @property
     def layout(self) -> PdoLayout:
