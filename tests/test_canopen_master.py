@@ -171,6 +171,10 @@ def test_a_drive_leaving_operation_enabled_is_a_fault(rig):
     assert "left Operation enabled" in r.master.fault.reason
     assert "Switch on disabled" in r.master.fault.reason
     assert "disabled itself" in r.master.fault.reason
+    for _ in range(50):  # bounded: the other drive's reader takes the quick stop when it is scheduled
+        if r.sim(2).state in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED):
+            break
+        r.run(1)
     assert r.sim(2).state in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)  # its quick stop
     assert r.sim(2).controlword == 0x0002
 
