@@ -29,7 +29,7 @@ def test_boot_configures_drives_and_enables(rig):
         assert sim.mode == cia402.MODE_CSP
         assert [p.cob_id for p in sim._rpdos] == [0x200 + node]
         assert [p.entries for p in sim._rpdos] == [((0x607A, 0, 4), (0x6040, 0, 2))]
-        assert [p.cob_id for p in sim._tpdos] == [0x180 + node, 0x280 + node]
+        assert [p.cob_id for p in sim._tpdos] == [0x180 + node, 0x280 + node, 0x480 + node]
         assert sim._value(0x1017) == 100
         assert sim._value(0x1016, 1) == (127 << 16) | 300
         assert sim._value(0x60C2, 1) == 2 and sim._value(0x60C2, 2) == -3
