@@ -533,3 +533,19 @@ def test_a_limit_switch_that_becomes_active_while_the_axis_holds_stops_the_machi
     r.run(20)
     f = r.master.fault
     assert f is not None and (f.node, f.axis) == (1, "x") and "positive limit switch" in f.reason, f
+
+
+def test_sim_drives_limit_option_puts_the_switches_on_the_drive_s_sides():
+    import argparse
+
+    from fieldbus.canopen.config import AxisScale, DriveConfig
+    from motiond.cmd_sim_drives import _limit, limit_counts
+
+    assert _limit("y=-5:120") == ("y", -5.0, 120.0)
+    assert _limit("x=:50") == ("x", None, 50.0)
+    for bad in ("x=1", "x=:", "=1:2", "x=a:2"):
+        with pytest.raises(argparse.ArgumentTypeError, match="AXIS=MIN:MAX"):
+            _limit(bad)
+    assert limit_counts(AxisScale(DriveConfig("x", 1)), -5.0, 120.0) == (-50000, 1200000)
+    # direction -1: the machine's maximum is on the drive's negative side
+    assert limit_counts(AxisScale(DriveConfig("y", 2, direction=-1)), None, 1.0) == (-10000, None)
