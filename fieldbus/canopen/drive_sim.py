@@ -21,7 +21,8 @@ Behaviour a real drive has and the tests rely on:
 * Quick stop and fault reaction decelerate at 0x6085; quick stop option 0x605A 5/6 stays in Quick
   stop active holding the position, 1/2 ends in Switch on disabled.
 * Homing mode 6: methods 35/37 take the current position as home; others travel at 0x6099:1 to a
-  simulated home switch; either way the position then reads 0x607C.
+  simulated home switch, at 0x6099:2 once on it (its 0x60FD bit 2, with ``home_switch_window_counts``);
+  either way the position then reads 0x607C.
 * Digital inputs 0x60FD from the actual position: bit 0 negative limit switch (at or below
   ``negative_limit_counts``), bit 1 positive limit switch (at or above ``positive_limit_counts``), bit 2
   home switch (within ``home_switch_window_counts`` of ``home_switch_counts``; 0: no home input).
@@ -403,6 +404,7 @@ class SimDrive:
         self._home_offset = self._value(0x607C)
         self._homing_method = self._value(0x6098)
         self._homing_speed = max(1, self._value(0x6099, 1))
+        self._homing_speed_zero = max(1, self._value(0x6099, 2))
 
     def _read_pdo(self, comm: int, mapping: int) -> PdoMap | None:
         if comm not in self.node.object_dictionary or mapping not in self.node.object_dictionary:
@@ -749,7 +751,10 @@ class SimDrive:
             goal = self.actual
         else:
             goal = float(self.home_switch_counts)
-        step = self._homing_speed * dt
+        speed = self._homing_speed
+        if self.home_switch_window_counts and self.digital_inputs() & DI_HOME:
+            speed = self._homing_speed_zero  # on the home switch: the slow search for its zero
+        step = speed * dt
         d = goal - self.actual
         if abs(d) > step:
             self.actual += math.copysign(step, d)

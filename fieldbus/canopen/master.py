@@ -840,6 +840,13 @@ class CanopenMaster:
         if cia402.decode(self._statusword(d)) != State.OPERATION_ENABLED:
             raise CanopenError(f"{d.describe()}: homing needs Operation enabled; enable() first")
         self._sdo(d, "homing method", 0x6098, 0, "b", d.cfg.homing_method)
+        per_unit = abs(d.scale.scale)
+        cfg = d.cfg
+        for what, index, sub, value in (("homing speed (search for switch)", 0x6099, 1, cfg.homing_speed),
+                                        ("homing speed (search for zero)", 0x6099, 2, cfg.homing_speed_zero),
+                                        ("homing acceleration", 0x609A, 0, cfg.homing_acceleration)):
+            if value is not None:  # from the machine file; else the drive's own setting
+                self._sdo(d, what, index, sub, "I", max(1, round(value * per_unit)))
         self._sdo(d, "home offset", 0x607C, 0, "i", 0)
         self._set_mode(d, cia402.MODE_HOMING)
         self._sdo(d, "controlword", 0x6040, 0, "H", cia402.CW_ENABLE_OPERATION)
