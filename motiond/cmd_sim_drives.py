@@ -7,6 +7,10 @@ master (``canon run`` or a test) finds them as it would real drives: boot-up, SD
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from fieldbus.canopen.config import AxisScale
 
 
 def _indexes(text: str) -> tuple[int, ...]:
@@ -29,6 +33,27 @@ def _param(text: str) -> tuple[tuple[int, int], int]:
         raise argparse.ArgumentTypeError(f"not INDEX[:SUB]=VALUE: {text!r} (e.g. 0x6080=1500)") from None
 
 
+def _limit(text: str) -> tuple[str, float | None, float | None]:
+    try:
+        axis, _, span = text.partition("=")
+        lo, sep, hi = span.partition(":")
+        if not axis or not sep or not (lo.strip() or hi.strip()):
+            raise ValueError
+        return axis.strip(), float(lo) if lo.strip() else None, float(hi) if hi.strip() else None
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not AXIS=MIN:MAX (either may be left out): {text!r} "
+                                         "(e.g. y=-5:120 or x=:50)") from None
+
+
+def limit_counts(scale: AxisScale, lo: float | None, hi: float | None) -> tuple[int | None, int | None]:
+    """``(negative, positive)`` limit switch positions in the drive's counts for switches at machine
+    positions ``lo``/``hi``: with a negative scale (direction -1) the machine's maximum is the drive's
+    negative side."""
+    lo_c = None if lo is None else scale.to_counts(lo)
+    hi_c = None if hi is None else scale.to_counts(hi)
+    return (lo_c, hi_c) if scale.scale > 0 else (hi_c, lo_c)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", metavar="machine.toml", help="machine configuration file (demo: x y z)")
     parser.add_argument("--interface", help="python-can interface, instead of the file's canopen.interface")
@@ -47,6 +72,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a value the drives have instead of their EDS default, e.g. 0x6080=1500 "
                              "(max motor speed, rpm) or 0x608F:1=10000 (encoder counts); repeatable. "
                              "Without it the motor is sized to fit the file's axes")
+    parser.add_argument("--limit", type=_limit, action="append", default=[], metavar="AXIS=MIN:MAX",
+                        help="limit switches of an axis at these machine positions (0x60FD bits 0/1, from "
+                             "the actual position; the drive only reports them), e.g. y=-5:120; repeatable")
     parser.add_argument("--strict", action="store_true",
                         help="take 'enable operation' in Quick stop active at once, during the stop ramp "
                              "(CiA 402 transition 16, as strict drives do)")
@@ -66,9 +94,26 @@ def run(args: argparse.Namespace) -> int:
         from motiond.cli import UserError
 
         raise UserError(f"--rpdo-timeout-syncs {args.rpdo_timeout_syncs}: must not be negative")
+    from fieldbus.canopen.config import AxisScale
+
+    switches = {}
+    axes = {d.axis: d for d in config.drives}
+    for axis, lo, hi in args.limit:
+        if axis not in axes:
+            from motiond.cli import UserError
+
+            raise UserError(f"--limit {axis}=...: no axis {axis!r} (axes: {', '.join(axes)})")
+        try:
+            switches[axis] = limit_counts(AxisScale(axes[axis]), lo, hi)
+        except OverflowError as exc:
+            from motiond.cli import UserError
+
+            raise UserError(f"--limit {axis}=...: {exc}") from None
     drives = [SimDrive(d.node_id, d.eds_path, lag_s=args.lag_ms / 1000.0, order=args.order,
                        boot_delay_s=args.boot_delay_ms / 1000.0, rpdo_timeout_syncs=args.rpdo_timeout_syncs,
                        absent_objects=args.absent,
+                       negative_limit_counts=switches.get(d.axis, (None, None))[0],
+                       positive_limit_counts=switches.get(d.axis, (None, None))[1],
                        parameters={**motor_for(d, d.eds_path), **dict(args.param)})
               for d in config.drives]
     for d in drives:

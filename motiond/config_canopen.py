@@ -136,6 +136,9 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
             following_error_window=a.get("following_error_window", float, 1.0, check=positive),
             homing=a.get("homing", str, "set", check=one_of("set", "cia402")),
             homing_method=a.get("homing_method", int, 35, check=in_range(-128, 127)),
+            homing_speed=a.get("homing_speed", float, None, check=positive),
+            homing_speed_zero=a.get("homing_speed_zero", float, None, check=positive),
+            homing_acceleration=a.get("homing_acceleration", float, None, check=positive),
             vendor_id=a.get("vendor_id", int, None, check=in_range(0, U32)),
             product_code=a.get("product_code", int, None, check=in_range(0, U32)),
             quick_stop_option=qs_option,
@@ -196,8 +199,13 @@ def check_drive_ranges(a: Table, d: DriveConfig) -> None:
         ("quick stop deceleration 0x6085", f"axes.{d.axis}.quick_stop_deceleration",
          d.quick_stop_deceleration, ""),
         ("following error window 0x6065", f"{a.key('following_error_window')}", d.following_error_window, ""),
+        ("homing speed 0x6099:1", a.key("homing_speed"), d.homing_speed, ""),
+        ("homing speed 0x6099:2", a.key("homing_speed_zero"), d.homing_speed_zero, ""),
+        ("homing acceleration 0x609A", a.key("homing_acceleration"), d.homing_acceleration, ""),
     )
     for obj, key, value, note in checks:
+        if value is None:
+            continue
         counts = math.ceil(value * scale)
         if counts > U32:
             raise a.error("counts_per_unit", f"{unit} x {key} {value:g}{note} = {counts:,} counts, beyond "

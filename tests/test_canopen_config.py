@@ -20,7 +20,8 @@ GOOD = {
         "heartbeat_producer_ms": 50, "heartbeat_consumer_ms": 150,
         "axes": {"x": {"node_id": 4, "counts_per_unit": 8192, "direction": -1, "home_offset": 1.5,
                        "following_error_window": 0.5, "homing": "cia402", "homing_method": 19,
-                       "vendor_id": 0xCA0},
+                       "vendor_id": 0xCA0, "homing_speed": 5.0, "homing_speed_zero": 0.5,
+                       "homing_acceleration": 100.0},
                  "y": {"node_id": 5}},
     }
 }
@@ -38,6 +39,8 @@ def test_reads_the_canopen_table():
     assert (x.node_id, x.counts_per_unit, x.direction, x.home_offset) == (4, 8192.0, -1, 1.5)
     assert (x.following_error_window, x.homing, x.homing_method, x.vendor_id) == (0.5, "cia402", 19, 0xCA0)
     assert (x.max_velocity, x.min_position, x.max_position) == (150.0, -1.0, 300.0)
+    assert (x.homing_speed, x.homing_speed_zero, x.homing_acceleration) == (5.0, 0.5, 100.0)
+    assert c.drive("y").homing_speed is None  # the drive's own
     assert c.drive("y").node_id == 5 and c.drive("y").product_code is None
 
 
@@ -66,6 +69,8 @@ def test_bad_bus_settings_name_the_key(patch, key, words):
     ({"direction": 2}, "canopen.axes.x.direction", "one of 1, -1"),
     ({"counts_per_unit": -3}, "canopen.axes.x.counts_per_unit", "> 0"),
     ({"homing": "switch"}, "canopen.axes.x.homing", "one of set, cia402"),
+    ({"homing_speed": 0}, "canopen.axes.x.homing_speed", "> 0"),
+    ({"homing_acceleration": 1e9}, "canopen.axes.x.counts_per_unit", "homing acceleration 0x609A"),
     ({"eds": "nope.eds"}, "canopen.axes.x.eds", "no such file"),
     ({"node_idd": 3}, "canopen.axes.x.node_idd", "unknown key"),
 ])

@@ -458,3 +458,94 @@ def test_the_simulated_machine_gets_a_motor_sized_for_its_axes(rig):
     assert params[(0x6080, 0)] == 6000  # 400 mm/s x 1.25 x 10000 counts/mm at 50000 counts/rev
     r = rig(1, sims=[SimDrive(1, parameters=params)], max_velocity=400.0, max_acceleration=60000.0)
     assert r.master.fault is None and r.master.drives[0].limits[(0x6080, 0)] == 6000
+
+
+LIMIT = 20000  # counts: 2 mm at 10000 counts/mm
+
+
+@pytest.mark.parametrize("layout", ["standard", "compact"])
+def test_a_limit_switch_tripped_mid_move_stops_the_machine_naming_axis_node_and_switch(rig, layout):
+    """Drive 2's positive limit switch (0x60FD bit 1, from its actual position) trips mid-move; the
+    drive itself does not react. The master must stop the machine within a bounded number of SYNCs,
+    name axis, node and switch, and never re-enable the drive."""
+    from fieldbus.canopen.drive_sim import SimDrive
+
+    r = rig(2, sims=[SimDrive(1), SimDrive(2, positive_limit_counts=LIMIT)], pdo_layout=layout)
+    r.sim(2).record_targets = True
+    enables = r.sim(2).enables
+    start = r.master.positions()
+    assert start[1] == 0.0
+    r.run(80, _move(start))  # 50 mm/s: 0.1 mm = 1000 counts per SYNC, 4 mm in all
+    f = r.master.fault
+    assert f is not None, "a limit switch tripped mid-move went unseen"
+    assert (f.node, f.axis) == (2, "y") and "positive limit switch" in f.reason, f
+    assert "node 2 (axis y)" in str(f)
+    # the targets step 1000 counts per SYNC: the last one the drive latched says how many SYNCs the
+    # master went on streaming after the commanded position passed the switch (the actual lags one)
+    last = r.sim(2).latched[-1][1]
+    assert last > LIMIT
+    assert (last - LIMIT) // 1000 <= 10, f"streamed {(last - LIMIT) // 1000} SYNCs past the switch"
+    assert r.master.feedback().digital_inputs[1] & 0x2
+    r.run(30)
+    assert r.sim(2).enables == enables, "the master re-enabled a drive stopped on a limit switch"
+    assert wait_for(lambda: r.sim(2).state != State.OPERATION_ENABLED, 2.0)
+
+
+def test_after_a_limit_switch_stop_the_axis_may_move_off_the_switch_but_not_onto_it(rig):
+    from fieldbus.canopen.drive_sim import SimDrive
+
+    r = rig(1, sims=[SimDrive(1, negative_limit_counts=-LIMIT)])
+    r.run(60, _move(r.master.positions(), speed=-50.0))
+    assert r.master.fault is not None and "negative limit switch" in r.master.fault.reason
+    assert wait_for(lambda: r.sim(1).velocity == 0.0, 2.0)
+    r.master.reset_faults()
+    r.master.enable()  # on the switch: enabling is allowed
+    r.run(5)
+    assert r.master.fault is None, r.master.fault
+    here = r.master.positions()
+    r.run(3, _move(here, speed=-50.0))  # further onto it: refused at once
+    f = r.master.fault
+    assert f is not None and f.node == 1 and "negative limit switch" in f.reason and "toward" in f.reason
+    assert r.master.positions() == here
+    assert wait_for(lambda: r.sim(1).velocity == 0.0, 2.0)
+    r.master.reset_faults()
+    r.master.enable()
+    r.run(40, _move(r.master.positions(), speed=50.0))  # off it
+    assert r.master.fault is None, r.master.fault
+    assert r.master.feedback().digital_inputs == (0,)
+
+
+def test_a_drive_without_digital_inputs_boots_with_a_warning(rig):
+    from fieldbus.canopen.drive_sim import SimDrive
+
+    r = rig(1, sims=[SimDrive(1, absent_objects={0x60FD})])
+    assert any(w.node == 1 and "0x60FD" in w.reason for w in r.master.warnings)
+    r.run(20, _move(r.master.positions()))
+    assert r.master.fault is None, r.master.fault
+
+
+def test_a_limit_switch_that_becomes_active_while_the_axis_holds_stops_the_machine(rig):
+    """Not moving toward it, the switch still trips (a crash pushed the axis, a wiring fault): an
+    edge of 0x60FD while streamed to stops the machine."""
+    r = rig(2)
+    r.run(10)
+    r.sim(1).positive_limit_counts = -5  # the switch now reads active where the axis stands
+    r.run(20)
+    f = r.master.fault
+    assert f is not None and (f.node, f.axis) == (1, "x") and "positive limit switch" in f.reason, f
+
+
+def test_sim_drives_limit_option_puts_the_switches_on_the_drive_s_sides():
+    import argparse
+
+    from fieldbus.canopen.config import AxisScale, DriveConfig
+    from motiond.cmd_sim_drives import _limit, limit_counts
+
+    assert _limit("y=-5:120") == ("y", -5.0, 120.0)
+    assert _limit("x=:50") == ("x", None, 50.0)
+    for bad in ("x=1", "x=:", "=1:2", "x=a:2"):
+        with pytest.raises(argparse.ArgumentTypeError, match="AXIS=MIN:MAX"):
+            _limit(bad)
+    assert limit_counts(AxisScale(DriveConfig("x", 1)), -5.0, 120.0) == (-50000, 1200000)
+    # direction -1: the machine's maximum is on the drive's negative side
+    assert limit_counts(AxisScale(DriveConfig("y", 2, direction=-1)), None, 1.0) == (-10000, None)

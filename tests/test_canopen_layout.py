@@ -49,9 +49,12 @@ def test_layouts_map_the_objects_the_issue_names():
         rx = {e[0] for p in lay.rpdos for e in p.entries}
         tx = {e[0] for p in lay.tpdos for e in p.entries}
         assert rx == {0x607A, 0x6040}
-        assert tx == {0x6041, 0x6064, 0x60F4}
+        assert tx == {0x6041, 0x6064, 0x60F4, 0x60FD}
         fe = lay.carrying((0x60F4, 0, 32), tpdo=True)
         assert fe.transmission == 3
+        # the limit switches: on change only, so no cyclic load on the bus budget
+        di = lay.carrying((0x60FD, 0, 32), tpdo=True)
+        assert (di.transmission, di.event_timer_ms) == (255, 0)
     compact = make_layout("compact", 1, 50)
     sw = compact.carrying((0x6041, 0, 16), tpdo=True)
     assert (sw.transmission, sw.event_timer_ms) == (255, 50)
@@ -69,7 +72,7 @@ def test_sdo_steps_disable_before_mapping_and_enable_last():
     assert ("TPDO3 event timer", 0x1802, 5, 100) in tpdo3
     assert ("TPDO3 map 0x6041", 0x1A02, 1, 0x60410010) in tpdo3
     unused = [(p.tpdo, p.number) for p in make_layout("compact").unused_pdos()]
-    assert unused == [(False, 3), (False, 4), (True, 4)]
+    assert unused == [(False, 3), (False, 4)]
 
 
 def _bits(data_bytes: int) -> int:
@@ -113,9 +116,9 @@ def test_compact_layout_frames_per_cycle(rig):
         assert [(p.cob_id, p.entries) for p in sim._rpdos] == [
             (0x200 + node, ((0x607A, 0, 4),)), (0x300 + node, ((0x6040, 0, 2),))]
         assert [(p.cob_id, p.transmission) for p in sim._tpdos] == [
-            (0x180 + node, 1), (0x280 + node, 4), (0x380 + node, 255)]
+            (0x180 + node, 1), (0x280 + node, 4), (0x380 + node, 255), (0x480 + node, 255)]
         # the PDOs the layout does not use are disabled: a factory mapping adds nothing
-        assert sim._value(0x1803, 1) & 0x80000000 and sim._value(0x1402, 1) & 0x80000000
+        assert sim._value(0x1403, 1) & 0x80000000 and sim._value(0x1402, 1) & 0x80000000
     rec = Recorder(r.config.bus.channel)
     try:
         start = r.master.positions()
@@ -131,6 +134,7 @@ def test_compact_layout_frames_per_cycle(rig):
             assert cobs.count(0x300 + node) == 0  # the controlword only on a change
             assert syncs / 4 - 2 <= cobs.count(0x280 + node) <= syncs / 4 + 2
             assert cobs.count(0x380 + node) <= 2  # nothing changed; the 1 s refresh at most once
+            assert cobs.count(0x480 + node) == 0  # digital inputs: on a change only
         fb = r.master.feedback()
         assert fb.positions[0] == pytest.approx(start[0] + 0.002 * 199, abs=0.01)
         assert fb.following_errors[0] > 0  # the value arrived, every 4th SYNC
@@ -183,6 +187,8 @@ def test_a_drive_without_pdo_3_and_4_boots(rig):
         sims[0].abort_sdo(index, 1, 0x06020000)  # object does not exist
     r = rig(1, sims)
     assert r.master.state[0].state == State.OPERATION_ENABLED
+    # no TPDO4 for the digital inputs: said, not refused
+    assert any(w.node == 1 and "0x1803" in w.reason and "limit" in w.reason for w in r.master.warnings)
 
 
 def test_other_aborts_while_disabling_a_pdo_stop_the_boot(rig):

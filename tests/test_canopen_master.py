@@ -29,7 +29,7 @@ def test_boot_configures_drives_and_enables(rig):
         assert sim.mode == cia402.MODE_CSP
         assert [p.cob_id for p in sim._rpdos] == [0x200 + node]
         assert [p.entries for p in sim._rpdos] == [((0x607A, 0, 4), (0x6040, 0, 2))]
-        assert [p.cob_id for p in sim._tpdos] == [0x180 + node, 0x280 + node]
+        assert [p.cob_id for p in sim._tpdos] == [0x180 + node, 0x280 + node, 0x480 + node]
         assert sim._value(0x1017) == 100
         assert sim._value(0x1016, 1) == (127 << 16) | 300
         assert sim._value(0x60C2, 1) == 2 and sim._value(0x60C2, 2) == -3
@@ -409,3 +409,33 @@ def test_a_fault_scheduled_at_a_time_happens_then(rig):
         r.run(5)
     assert r.master.fault is not None and "EMCY 0x3210" in r.master.fault.reason
     assert r.master.fault.time >= at
+
+
+def test_homing_cia402_on_the_home_switch_with_the_machine_file_s_speeds(rig):
+    """Method 19 on a home switch the drive reports (0x60FD bit 2, 5000 counts wide around 20000):
+    the machine file's speeds go to 0x6099:1/2 and 0x609A in counts; the drive searches at 5 mm/s,
+    slows to 1 mm/s on the switch, and ends on it, which the master's feedback shows."""
+    sims = [SimDrive(1, home_switch_counts=20000, home_switch_window_counts=5000)]
+    cfg = make_config(1, homing="cia402", homing_method=19, homing_speed=5.0, homing_speed_zero=1.0,
+                      homing_acceleration=100.0)
+    r = Rig(cfg, sims)
+    try:
+        r.up()
+        runner = PeriodicRunner(r.config.cycle_s, lambda k, t: r.master.cycle(None), cycles=3000,
+                                late_s=1.0).start()
+        try:
+            t = time.monotonic()
+            assert r.master.home("x") == pytest.approx(0.0)
+            # 15000 counts at 50000 counts/s, then 5000 at 10000 counts/s: 0.8 s at least
+            assert time.monotonic() - t > 0.75
+        finally:
+            runner.stop()
+            assert runner.join(5.0)
+        sim = r.sim(1)
+        assert (sim._value(0x6099, 1), sim._value(0x6099, 2), sim._value(0x609A)) == (50000, 10000, 1000000)
+        assert r.master.fault is None, r.master.fault
+        r.run(5)
+        assert r.master.feedback().digital_inputs[0] & 0x4  # on the home switch
+        assert r.master.fault is None, r.master.fault
+    finally:
+        r.close()

@@ -261,3 +261,28 @@ def test_a_motor_slower_than_the_configuration_is_refused_naming_both(setup):
                                            r"counts/s, more than the motor allows: 0x6080 max motor speed "
                                            r"1000 rpm"):
         master.boot()
+
+
+def test_a_limit_switch_of_a_drive_in_the_drive_process_stops_the_machine(setup):
+    """y (direction -1) has a switch at machine position 1 mm: its drive's negative limit switch
+    (0x60FD bit 0), reported by the other process in TPDO4. y moves onto it at 10 mm/s: the machine
+    stops within a bounded number of SYNCs, y, node 2 and the switch named, and stays stopped."""
+    _drives, master = setup(4.0, "standard", "--limit", "y=:1")
+    master.boot()
+    master.enable()
+    start = master.positions()
+    assert start[1] == pytest.approx(0.0, abs=1e-3)
+    runner = stream(master, lambda t: [start[0], start[1] + 10.0 * t, start[2]], 1.0, fault_on_late=False)
+    assert runner.join(30.0) and runner.error is None
+    f = master.fault
+    assert f is not None and (f.node, f.axis) == (2, "y"), f
+    assert "negative limit switch" in f.reason and "not re-enabled" in f.reason
+    # 0.04 mm per 4 ms SYNC: the last target sent is at most 25 SYNCs (100 ms, the other process on a
+    # loaded machine) past the switch
+    assert 1.0 < master.positions()[1] <= 1.0 + 25 * 0.04
+    assert master.feedback().digital_inputs[1] & 0x1
+    for _ in range(50):
+        master.cycle(None)
+        time.sleep(0.002)
+    states = [decode(master._statusword(d)) for d in master.drives]  # by SDO, from the drives
+    assert State.OPERATION_ENABLED not in states, states

@@ -56,6 +56,11 @@ class DriveConfig:
     following_error_window: float = 1.0
     homing: str = "set"
     homing_method: int = 35
+    #: homing by the drive (``homing = "cia402"``): 0x6099:1 speed during search for switch, 0x6099:2
+    #: during search for zero (machine units/s), 0x609A acceleration (units/s^2); None: the drive's own
+    homing_speed: float | None = None
+    homing_speed_zero: float | None = None
+    homing_acceleration: float | None = None
     max_velocity: float = 200.0
     max_acceleration: float | None = None
     quick_stop_deceleration: float = 5000.0

@@ -21,7 +21,13 @@ Behaviour a real drive has and the tests rely on:
 * Quick stop and fault reaction decelerate at 0x6085; quick stop option 0x605A 5/6 stays in Quick
   stop active holding the position, 1/2 ends in Switch on disabled.
 * Homing mode 6: methods 35/37 take the current position as home; others travel at 0x6099:1 to a
-  simulated home switch; either way the position then reads 0x607C.
+  simulated home switch, at 0x6099:2 once on it (its 0x60FD bit 2, with ``home_switch_window_counts``);
+  either way the position then reads 0x607C.
+* Digital inputs 0x60FD from the actual position: bit 0 negative limit switch (at or below
+  ``negative_limit_counts``), bit 1 positive limit switch (at or above ``positive_limit_counts``), bit 2
+  home switch (within ``home_switch_window_counts`` of ``home_switch_counts``; 0: no home input).
+  The drive itself does not react to them (as a drive whose limit switch reaction is "report"): the
+  master must.
 * Optional objects absent (``absent_objects``): SDO access aborts 0x06020000 and the drive keeps its
   own defaults for them.
 * A small motor's limits, from the EDS (0x6080 3000 rpm, 0x608F 50000 counts/rev, 0x60C5/0x60C6,
@@ -77,7 +83,10 @@ SIM_QUICK_STOP_INPUT = 3
 
 NO_SUCH_OBJECT = 0x06020000  # SDO abort: object does not exist in the object dictionary
 
-_LIVE = {0x6041, 0x6061, 0x6062, 0x6064, 0x60F4, 0x603F, 0x1001}
+_LIVE = {0x6041, 0x6061, 0x6062, 0x6064, 0x60F4, 0x603F, 0x1001, 0x60FD}
+
+#: 0x60FD bits (CiA 402)
+DI_NEGATIVE_LIMIT, DI_POSITIVE_LIMIT, DI_HOME, DI_INTERLOCK = 0x1, 0x2, 0x4, 0x8
 
 
 @dataclass
@@ -128,6 +137,8 @@ class SimDrive:
     def __init__(self, node_id: int, eds: str | Path = SHIPPED_EDS, *, lag_s: float = 0.002,
                  order: int = 1, damping: float = 0.8, boot_delay_s: float = 0.0,
                  home_switch_counts: int = 0, rpdo_timeout_syncs: int = 0,
+                 negative_limit_counts: int | None = None, positive_limit_counts: int | None = None,
+                 home_switch_window_counts: int = 0,
                  absent_objects: Iterable[int] = (), parameters: Mapping[tuple[int, int], int] | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
         if order not in (1, 2):
@@ -144,6 +155,10 @@ class SimDrive:
         self.damping = damping
         self.boot_delay_s = boot_delay_s
         self.home_switch_counts = home_switch_counts
+        # limit and home switches (0x60FD), by the actual position in counts; None / 0: not fitted
+        self.negative_limit_counts = negative_limit_counts
+        self.positive_limit_counts = positive_limit_counts
+        self.home_switch_window_counts = home_switch_window_counts
         # RPDO deadline monitoring, as EPOS4-style drives have: in Operation enabled (CSP), this many
         # SYNCs in a row without a target fault the drive with EMCY 0x8250 (0: off)
         self.rpdo_timeout_syncs = rpdo_timeout_syncs
@@ -389,6 +404,7 @@ class SimDrive:
         self._home_offset = self._value(0x607C)
         self._homing_method = self._value(0x6098)
         self._homing_speed = max(1, self._value(0x6099, 1))
+        self._homing_speed_zero = max(1, self._value(0x6099, 2))
 
     def _read_pdo(self, comm: int, mapping: int) -> PdoMap | None:
         if comm not in self.node.object_dictionary or mapping not in self.node.object_dictionary:
@@ -452,6 +468,8 @@ class SimDrive:
                 return round(self.demand - self.actual)
             if index == 0x603F:
                 return self.error_code
+            if index == 0x60FD:
+                return self.digital_inputs()
             return 1 if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE) else 0
 
     def _on_write(self, index: int, subindex: int, od: object, data: bytes) -> None:
@@ -523,6 +541,19 @@ class SimDrive:
         return cia402.statusword_for(self.state, extra)
 
     _window = 0xFFFFFFFF
+
+    def digital_inputs(self) -> int:
+        """0x60FD from the actual position: the limit and home switches this drive has."""
+        bits = 0
+        pos = round(self.actual)
+        if self.negative_limit_counts is not None and pos <= self.negative_limit_counts:
+            bits |= DI_NEGATIVE_LIMIT
+        if self.positive_limit_counts is not None and pos >= self.positive_limit_counts:
+            bits |= DI_POSITIVE_LIMIT
+        window = self.home_switch_window_counts
+        if window and abs(pos - self.home_switch_counts) <= window:
+            bits |= DI_HOME
+        return bits
 
     def _controlword(self, cw: int) -> None:
         if self.ignore_controlword:
@@ -720,7 +751,10 @@ class SimDrive:
             goal = self.actual
         else:
             goal = float(self.home_switch_counts)
-        step = self._homing_speed * dt
+        speed = self._homing_speed
+        if self.home_switch_window_counts and self.digital_inputs() & DI_HOME:
+            speed = self._homing_speed_zero  # on the home switch: the slow search for its zero
+        step = speed * dt
         d = goal - self.actual
         if abs(d) > step:
             self.actual += math.copysign(step, d)

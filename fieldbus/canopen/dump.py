@@ -14,7 +14,7 @@ from fieldbus.canopen.nmt_names import NMT_COMMANDS, NMT_STATES
 from fieldbus.canopen.pdo import PdoLayout, make_layout
 
 _OBJECT_NAMES = {0x607A: "target", 0x6040: "controlword", 0x6041: "statusword", 0x6064: "position",
-                 0x60F4: "following error"}
+                 0x60F4: "following error", 0x60FD: "digital inputs"}
 
 
 def _pdo_values(layout: PdoLayout, fn: int, data: bytes) -> str:

@@ -28,6 +28,9 @@ Design choices:
 * A drive that leaves Operation enabled by itself (its own quick stop, disabled, fault) is seen in the
   first statusword after it (every SYNC in ``standard``, on the change in ``compact``): the machine
   stops, the fault names node, state and reason, and the master never re-enables it.
+* Limit switches (0x60FD bits 0/1, in TPDO4 on change): a switch that becomes active while the drive
+  is streamed to, or a target that moves toward an active one, stops the machine (quick stop, as any
+  fault), naming axis, node and switch. After a reset the axis may move off the switch, not onto it.
 * Faults are reported once (the first, which caused the stop) in :attr:`fault`; later ones go to
   :attr:`fault_log`.
 """
@@ -58,12 +61,21 @@ from fieldbus.canopen.config import (
     DriveConfig,
     quick_stop_option,
 )
-from fieldbus.canopen.pdo import CONTROLWORD, TARGET_POSITION, Pdo, PdoLayout
+from fieldbus.canopen.pdo import CONTROLWORD, DIGITAL_INPUTS, TARGET_POSITION, Pdo, PdoLayout
 
 log = logging.getLogger(__name__)
 
 #: SDO abort codes a drive answers for an object (or sub-index) it does not have
 _NO_SUCH_OBJECT = (0x06020000, 0x06090011)
+
+#: 0x60FD digital inputs (CiA 402): bit -> name
+INPUT_BITS = {0: "negative limit switch", 1: "positive limit switch", 2: "home switch", 3: "interlock"}
+NEGATIVE_LIMIT, POSITIVE_LIMIT = 0x1, 0x2
+
+
+def input_names(bits: int) -> list[str]:
+    """The names of the active inputs in a 0x60FD value."""
+    return [name for bit, name in INPUT_BITS.items() if bits >> bit & 1]
 
 class CanopenError(Exception):
     """Boot, enable or homing failed; the message names the node, the axis and what went wrong."""
@@ -97,6 +109,7 @@ class DriveState:
     following_error: float  # machine units
     actual_counts: int
     commanded: float  # last commanded position, machine units
+    digital_inputs: int = 0  # 0x60FD: limit and home switches (:func:`input_names`)
 
 
 @dataclass(frozen=True)
@@ -108,6 +121,7 @@ class DriveFeedback:
     following_errors: tuple[float, ...]
     states: tuple[State, ...]
     fault: Fault | None
+    digital_inputs: tuple[int, ...] = ()  # 0x60FD per axis (:func:`input_names`); 0 without it
 
 
 class _Drive:
@@ -135,6 +149,9 @@ class _Drive:
         self.nmt_state = -1
         self.enabled_at = math.inf  # TPDOs older than this predate the enable
         self.active = False  # the cycle sends this drive its target every SYNC
+        self.inputs = 0  # 0x60FD, from TPDO4 (and read by SDO on enable)
+        self.has_inputs = False  # the drive has 0x60FD, mapped in TPDO4
+        self.limits_armed = 0  # limit switch bits active at the last check (a new one is an edge)
         self.missing: dict[int, int] = {}  # optional objects the drive lacks: their abort codes (boot)
         # what the drive said at boot: (index, sub) -> value, None where it lacks the object
         self.limits: dict[tuple[int, int], int | None] = {}
@@ -284,6 +301,8 @@ class CanopenMaster:
                     d.statusword = value
                 elif index == 0x60F4:
                     d.following_error = value
+                elif index == 0x60FD:
+                    d.inputs = value
         return on_tpdo
 
     # ------------------------------------------------------------------ SDO helpers
@@ -359,6 +378,19 @@ class CanopenMaster:
             self._sdo(d, f"{p.name} COB-ID (disable)", p.comm_index, 1, "I",
                       0x80000000 | p.cob_id(cfg.node_id), ok_aborts=_NO_SUCH_OBJECT)
         optional = optional_objects(self.layout.name)
+        d.has_inputs = self._read_optional(d, "digital inputs", 0x60FD, 0, "I") is not None
+        p = self.layout.carrying(DIGITAL_INPUTS, tpdo=True)
+        disable = (f"{p.name} COB-ID (disable)", p.comm_index, 1, "I", 0x80000000 | p.cob_id(cfg.node_id))
+        # a drive with fewer TPDOs has no room for its inputs: as a drive without 0x60FD
+        self._sdo(d, *disable, absent=d.missing, ok_aborts=() if d.has_inputs else _NO_SUCH_OBJECT)
+        if not d.has_inputs or p.comm_index in d.missing:
+            lacks = 0x60FD if not d.has_inputs else p.comm_index
+            d.has_inputs = False
+            steps = [s for s in steps if s[1] not in (p.comm_index, p.mapping_index)]
+            what = "digital inputs" if lacks == 0x60FD else p.name
+            self.warn(cfg.node_id, f"has no object 0x{lacks:04X} ({what}"
+                                   f"; SDO abort 0x{d.missing[lacks]:08X}): canon does not see its limit "
+                                   "switches (0x60FD), only the drive's own reaction to them stops the axis")
         for what, index, sub, fmt, value in steps:
             before = len(d.missing)
             self._sdo(d, what, index, sub, fmt, value, absent=d.missing if index in optional else None)
@@ -492,8 +524,11 @@ class CanopenMaster:
         """From now on the cycle sends ``d`` a target every SYNC: its actual position (read by SDO),
         held until the machine streams. Called just before the enable command reaches the drive."""
         actual = self._sdo(d, "position actual", 0x6064, 0, "i")
+        inputs = self._sdo(d, "digital inputs", 0x60FD, 0, "I") if d.has_inputs else 0
         with self._lock:
             d.target = d.actual = actual
+            d.inputs = inputs
+            d.limits_armed = inputs & (NEGATIVE_LIMIT | POSITIVE_LIMIT)  # on a switch: it may move off
             d.controlword = cia402.CW_ENABLE_OPERATION
             d.enabled_at = math.inf
             d.active_at = d.feedback_at = time.monotonic()
@@ -671,6 +706,11 @@ class CanopenMaster:
             except OverflowError as exc:
                 self.raise_fault(d.cfg.node_id, str(exc))
                 return
+            toward = ((NEGATIVE_LIMIT if counts < d.target else 0)
+                      | (POSITIVE_LIMIT if counts > d.target else 0))
+            if d.inputs & toward:
+                self._limit_fault(d, d.inputs & toward, "the target moves toward it")
+                return
             d.target = counts
 
     def _check(self, now: float, active: list[_Drive]) -> None:
@@ -698,6 +738,11 @@ class CanopenMaster:
                                                 f"(limit {1000 * conf.feedback_timeout_s:g} ms): "
                                                 "frames lost?")
                 return
+            limits = d.inputs & (NEGATIVE_LIMIT | POSITIVE_LIMIT)
+            if limits & ~d.limits_armed and not d.homing:
+                self._limit_fault(d, limits & ~d.limits_armed, "it became active while the axis is driven")
+                return
+            d.limits_armed = limits
             if d.feedback_at <= d.enabled_at:
                 continue  # no TPDO yet since enabling
             state = cia402.decode(d.statusword)
@@ -716,6 +761,11 @@ class CanopenMaster:
                                                 f"{d.cfg.following_error_window:g} (the drive reports it: "
                                                 f"statusword 0x{d.statusword:04X}, bit 13)")
                 return
+
+    def _limit_fault(self, d: _Drive, bits: int, why: str) -> None:
+        names = " and ".join(input_names(bits))
+        self.raise_fault(d.cfg.node_id, f"{names} active (0x60FD = 0x{d.inputs:08X}): {why}; "
+                                        "not re-enabled (reset, then move the axis off the switch)")
 
     def _stopped_itself(self, d: _Drive, state: State) -> str:
         """The fault text of a drive seen out of Operation enabled while streaming: the state and why a
@@ -742,13 +792,14 @@ class CanopenMaster:
             tuple(d.following_error / d.scale.scale for d in self.drives),
             tuple(cia402.decode(d.statusword) for d in self.drives),
             self.fault,
+            tuple(d.inputs for d in self.drives),
         )
 
     @property
     def state(self) -> list[DriveState]:
         return [DriveState(d.cfg.axis, d.cfg.node_id, cia402.decode(d.statusword), d.statusword,
                            d.scale.to_units(d.actual), d.following_error / d.scale.scale, d.actual,
-                           d.scale.to_units(d.target)) for d in self.drives]
+                           d.scale.to_units(d.target), d.inputs) for d in self.drives]
 
     def positions(self) -> tuple[float, ...]:
         """The commanded (held) position of every axis, machine units: where the planner resumes."""
@@ -789,6 +840,13 @@ class CanopenMaster:
         if cia402.decode(self._statusword(d)) != State.OPERATION_ENABLED:
             raise CanopenError(f"{d.describe()}: homing needs Operation enabled; enable() first")
         self._sdo(d, "homing method", 0x6098, 0, "b", d.cfg.homing_method)
+        per_unit = abs(d.scale.scale)
+        cfg = d.cfg
+        for what, index, sub, value in (("homing speed (search for switch)", 0x6099, 1, cfg.homing_speed),
+                                        ("homing speed (search for zero)", 0x6099, 2, cfg.homing_speed_zero),
+                                        ("homing acceleration", 0x609A, 0, cfg.homing_acceleration)):
+            if value is not None:  # from the machine file; else the drive's own setting
+                self._sdo(d, what, index, sub, "I", max(1, round(value * per_unit)))
         self._sdo(d, "home offset", 0x607C, 0, "i", 0)
         self._set_mode(d, cia402.MODE_HOMING)
         self._sdo(d, "controlword", 0x6040, 0, "H", cia402.CW_ENABLE_OPERATION)

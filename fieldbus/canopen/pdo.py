@@ -20,6 +20,10 @@ position actual and following error back.
     error check (0x6065) sets statusword bit 13, which the master sees at once, so a sparser
     following-error PDO delays only the reported value, never the fault. Six drives at 2 ms fit in
     70 % of 1 Mbit/s this way (with ``following_error_every = 4``); in ``standard`` they need 100 %.
+
+Both layouts add TPDO4 = digital inputs (0x60FD: limit and home switches), transmission type 255 with
+no event timer: the drive sends it when a switch changes (and on entering Operational), so it adds no
+cyclic load. A drive without 0x60FD keeps TPDO4 disabled (a warning at boot).
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ CONTROLWORD = (0x6040, 0, 16)
 STATUSWORD = (0x6041, 0, 16)
 POSITION_ACTUAL = (0x6064, 0, 32)
 FOLLOWING_ERROR = (0x60F4, 0, 32)
+DIGITAL_INPUTS = (0x60FD, 0, 32)
 
 _SIGNED = {0x607A, 0x6064, 0x60F4}
 #: transmission type 255: event-driven (device profile specific), acted on / sent on reception / change
@@ -163,14 +168,17 @@ def make_layout(name: str = "standard", following_error_every: int = 1,
         raise ValueError(f"following_error_every must be 1 to 240 SYNCs (a CiA 301 transmission "
                          f"type), got {following_error_every}")
     fe = Pdo(True, 2, (FOLLOWING_ERROR,), following_error_every)
+    # the limit and home switches: sent by the drive when they change (and on entering Operational);
+    # no event timer, so no cyclic load: a switch changes a few times per move at most
+    inputs = Pdo(True, 4, (DIGITAL_INPUTS,), EVENT)
     if name == "standard":
         return PdoLayout(name, (Pdo(False, 1, (TARGET_POSITION, CONTROLWORD)),),
-                         (Pdo(True, 1, (STATUSWORD, POSITION_ACTUAL)), fe), following_error_every, 0)
+                         (Pdo(True, 1, (STATUSWORD, POSITION_ACTUAL)), fe, inputs), following_error_every, 0)
     if name == "compact":
         if not 1 <= status_refresh_ms <= 65535:
             raise ValueError(f"status_refresh_ms must be 1 to 65535, got {status_refresh_ms}")
         return PdoLayout(name, (Pdo(False, 1, (TARGET_POSITION,)), Pdo(False, 2, (CONTROLWORD,), EVENT)),
                          (Pdo(True, 1, (POSITION_ACTUAL,)), fe,
-                          Pdo(True, 3, (STATUSWORD,), EVENT, status_refresh_ms)),
+                          Pdo(True, 3, (STATUSWORD,), EVENT, status_refresh_ms), inputs),
                          following_error_every, status_refresh_ms)
     raise ValueError(f"unknown PDO layout {name!r} (layouts: {', '.join(LAYOUTS)})")
