@@ -80,10 +80,21 @@ def test_signal_stops_names_the_line_and_saves_parameters(tmp_path: Path, sig: s
 
 
 def test_stop_is_jerk_limited_and_reaches_rest(tmp_path: Path) -> None:
-    config = load_machine(None)
+    m, prog = _cruising_machine(tmp_path)
+    try:
+        rc = _interrupted(m, str(prog))
+    finally:
+        m.shutdown()
+    assert rc == 130
+    _assert_stopped_within_limits(m)
+
+
+def _cruising_machine(tmp_path: Path) -> tuple[Machine, Path]:
+    """The demo machine running line 5 of PROGRAM at 100 mm/s on X (a stop cut at speed would show),
+    ``trace`` recording the setpoints; the caller shuts it down."""
     prog = tmp_path / "long.ngc"
-    prog.write_text(PROGRAM.replace("F600", "F6000"))  # 100 mm/s: a stop cut at speed would show
-    m = Machine(config, lc=None, var_file=tmp_path / "p.var")
+    prog.write_text(PROGRAM.replace("F600", "F6000"))
+    m = Machine(load_machine(None), lc=None, var_file=tmp_path / "p.var")
     try:
         m.start()
         m.bring_up()
@@ -93,20 +104,21 @@ def test_stop_is_jerk_limited_and_reaches_rest(tmp_path: Path) -> None:
         while time.monotonic() < deadline:  # wait for cruise: 100 mm/s on X
             tr = m.trace
             if len(tr) > 2 and abs(tr[-1][2][0] - tr[-2][2][0]) / m.T > 99.0:
-                break
+                return m, prog
             time.sleep(0.01)
-        else:
-            raise AssertionError("never reached 100 mm/s")
-        rc = _interrupted(m, str(prog))
-    finally:
+        raise AssertionError("never reached 100 mm/s")
+    except BaseException:
         m.shutdown()
-    assert rc == 130
+        raise
+
+
+def _assert_stopped_within_limits(m: Machine) -> None:
+    """The stream ended at rest, and X never braked harder than its acceleration limit."""
     xs = [t[2][0] for t in m.trace]
     v = [(b - a) / m.T for a, b in itertools.pairwise(xs)]
     acc = [(b - a) / m.T for a, b in itertools.pairwise(v)]
-    ax = config.limits.axes[0]
     assert abs(v[-1]) < 0.01, f"the stream ended moving at {v[-1]:.1f} mm/s"
-    assert max(abs(a) for a in acc) <= ax.max_acceleration * 1.01
+    assert max(abs(a) for a in acc) <= m.config.limits.axes[0].max_acceleration * 1.01
 
 
 def test_stop_report_words() -> None:
@@ -121,28 +133,9 @@ def test_daemon_sigterm_stops_on_the_path_before_shutting_down(tmp_path: Path) -
     rest within the acceleration limit before the drives are disabled, not cut off at speed."""
     from motiond.cmd_daemon import stop_then_shutdown
 
-    config = load_machine(None)
-    prog = tmp_path / "long.ngc"
-    prog.write_text(PROGRAM.replace("F600", "F6000"))
-    m = Machine(config, lc=None, var_file=tmp_path / "p.var")
+    m, _prog = _cruising_machine(tmp_path)
     try:
-        m.start()
-        m.bring_up()
-        m.trace = []
-        m.run(prog)
-        deadline = time.monotonic() + 30.0
-        while time.monotonic() < deadline:
-            tr = m.trace
-            if len(tr) > 2 and abs(tr[-1][2][0] - tr[-2][2][0]) / m.T > 99.0:
-                break
-            time.sleep(0.01)
-        else:
-            raise AssertionError("never reached 100 mm/s")
         assert stop_then_shutdown(m)
     finally:
         m.shutdown()
-    xs = [t[2][0] for t in m.trace]
-    v = [(b - a) / m.T for a, b in itertools.pairwise(xs)]
-    acc = [(b - a) / m.T for a, b in itertools.pairwise(v)]
-    assert abs(v[-1]) < 0.01, f"the stream ended moving at {v[-1]:.1f} mm/s"
-    assert max(abs(a) for a in acc) <= config.limits.axes[0].max_acceleration * 1.01
+    _assert_stopped_within_limits(m)
