@@ -63,6 +63,15 @@ class Piece:
         return None
 
 
+def forward_index(starts: list[float], i: int, s: float) -> int:
+    """The index of the part of a piece that holds ``s`` (``starts``: where each part begins), ``i``
+    being the last one found: the cycle loop samples forward, so it is almost always still right or
+    the next, and only a jump costs a bisection."""
+    if starts[i] <= s and (i + 1 == len(starts) or s < starts[i + 1]):
+        return i
+    return max(bisect_right(starts, s) - 1, 0)
+
+
 class Line(Piece):
     """A straight move from ``start`` to ``end``; ``s`` runs over ``length``."""
 
@@ -102,12 +111,8 @@ class MergedLine(Line):
         self._i = 0
 
     def cmd_at(self, s: float) -> Any:
-        i = self._i  # the cycle loop samples forward: the last index found is almost always right
-        st = self.starts
-        if not (st[i] <= s and (i + 1 == len(st) or s < st[i + 1])):
-            i = max(bisect_right(st, s) - 1, 0)
-            self._i = i
-        return self.cmds[i]
+        self._i = forward_index(self.starts, self._i, s)
+        return self.cmds[self._i]
 
     def part(self, s0: float, s1: float) -> Line:
         lo = max(bisect_right(self.starts, s0) - 1, 0)
@@ -472,12 +477,8 @@ class Chain(Piece):
         self.end, self.d1_end, self.d2_end = last.end, last.d1_end, last.d2_end
 
     def _index(self, s: float) -> int:
-        i = self._i  # the cycle loop samples forward: the last span found is almost always right
-        st = self.starts
-        if not (st[i] <= s and (i + 1 == len(st) or s < st[i + 1])):
-            i = max(bisect_right(st, s) - 1, 0)
-            self._i = i
-        return i
+        self._i = forward_index(self.starts, self._i, s)
+        return self._i
 
     def pos(self, s: float) -> list[float]:
         if s >= self.length:
