@@ -149,6 +149,12 @@ class _Cycling:
         self.runner.stop()
         assert self.runner.join(5.0) and self.runner.error is None
 
+    def __enter__(self) -> _Cycling:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
 
 def _sims(n: int, **kw) -> list:
     from fieldbus.canopen.drive_sim import SimDrive
@@ -163,12 +169,9 @@ def test_a_drive_with_rpdo_deadline_monitoring_enabled_first_among_six_does_not_
     while the cycle runs: it gets its held position every SYNC from the enable on."""
     r = rig(6, sims=_sims(6, rpdo_timeout_syncs=3), up=False, **layout)
     r.master.boot()
-    cycling = _Cycling(r.master)
-    try:
+    with _Cycling(r.master):
         r.master.enable()
         time.sleep(0.1)
-    finally:
-        cycling.stop()
     assert r.master.fault is None, r.master.fault
     assert r.sim(1).emcys == []
     start = r.master.positions()
@@ -177,12 +180,9 @@ def test_a_drive_with_rpdo_deadline_monitoring_enabled_first_among_six_does_not_
     # after a fault and its reset too
     r.master.quick_stop("test")
     r.master.reset_faults()
-    cycling = _Cycling(r.master)
-    try:
+    with _Cycling(r.master):
         r.master.enable()
         time.sleep(0.1)
-    finally:
-        cycling.stop()
     assert r.master.fault is None and r.sim(1).emcys == []
 
 
@@ -199,12 +199,8 @@ def test_the_simulated_rpdo_deadline_faults_with_0x8250_and_enable_names_that_em
             d.active = False
 
     monkeypatch.setattr(r.master, "_activate", without_targets)
-    cycling = _Cycling(r.master)
-    try:
-        with pytest.raises(Exception, match=r"node 1 \(axis x\): EMCY 0x8250"):
-            r.master.enable()
-    finally:
-        cycling.stop()
+    with _Cycling(r.master), pytest.raises(Exception, match=r"node 1 \(axis x\): EMCY 0x8250"):
+        r.master.enable()
     assert r.sim(1).emcys == [0x8250]
     assert r.sim(2).state != State.OPERATION_ENABLED  # the ones enabled were quick-stopped
 
