@@ -390,6 +390,19 @@ class WaitInput(Canon):
     timeout: float
 
 
+@dataclass(frozen=True, slots=True)
+class UserMCode(Canon):
+    """M100-M199, accepted only when the machine binds the code (``InterpreterSettings.user_mcodes``):
+    motion stops, the machine sets the code's outputs and waits for its input, then the program goes
+    on. ``p`` and ``q`` are the line's P and Q words (None when absent), as LinuxCNC passes them."""
+
+    NAME: ClassVar[str] = "USER_M_CODE"
+    SYNC: ClassVar[bool] = True
+    code: int
+    p: float | None = None
+    q: float | None = None
+
+
 # --- program flow and messages --------------------------------------------------------------------
 
 

@@ -105,6 +105,7 @@ from gcode_canon.commands import (
     StraightTraverse,
     ToolChange,
     UseLengthUnits,
+    UserMCode,
     UseToolLengthOffset,
     WaitInput,
     WaitMode,
@@ -191,6 +192,7 @@ class Interpreter(ModalStateMixin, Group0Mixin):
             self._step_state,
             self._step_coolant,
             self._step_overrides,
+            self._step_user_mcode,
             self._step_dwell,
             self._step_plane,
             self._step_units,
@@ -693,7 +695,7 @@ class Interpreter(ModalStateMixin, Group0Mixin):
             return self._drain_list()
         if block.g or block.m or block.words or block.assigns:
             self.seen_code = True
-        ml = sort_codes(block)
+        ml = sort_codes(block, self.settings.user_mcodes)
         self._check_words(block, ml)
         for key, _ in block.assigns:
             self.params.check_assignable(key)
@@ -726,6 +728,7 @@ class Interpreter(ModalStateMixin, Group0Mixin):
         "_step_state": ((), (7,), "", False),
         "_step_coolant": ((), (8,), "", False),
         "_step_overrides": ((), (9,), "", False),
+        "_step_user_mcode": ((), (10,), "", False),
         "_step_dwell": ((0,), (), "", False),
         "_step_plane": ((2,), (), "", False),
         "_step_units": ((6,), (), "", False),
@@ -837,10 +840,10 @@ class Interpreter(ModalStateMixin, Group0Mixin):
             raise GCodeError("R word with no G code that uses it")
         if "p" in w and not (arc or g0 in (40, 100) or ml.g.get(17) == 510 or ml.g.get(13) == 640
                              or motion in (740, 820, 840, 860, 880, 890) or orient
-                             or ms & {50, 51, 52, 53, 62, 63, 64, 65, 66, 98}):
+                             or ms & {50, 51, 52, 53, 62, 63, 64, 65, 66, 98} or 10 in ml.m):
             raise GCodeError("P word with no G or M code that uses it")
         if "q" in w and not (ml.g.get(13) == 640 or ms & {61, 66, 67, 68} or motion in (730, 830)
-                             or g0 == 100 or orient):
+                             or g0 == 100 or orient or 10 in ml.m):
             raise GCodeError("Q word with no G or M code that uses it")
         if orient:
             self._check_orient_words(w, ml)
@@ -1209,6 +1212,12 @@ class Interpreter(ModalStateMixin, Group0Mixin):
         key = {50: "feed", 51: "spindle", 52: "adaptive_feed", 53: "feed_hold"}[code]
         self.overrides[key] = on
         self._emit(SetOverrides(**{key: on}, file=self.file, line=self.line))
+
+    def _step_user_mcode(self, block: Block, ml: ModalLine) -> None:
+        """M100-M199 the machine binds (sort_codes refused the others): a sync point with P and Q."""
+        code = ml.m.get(10)
+        if code is not None:
+            self._emit(UserMCode(code, block.take("p"), block.take("q"), file=self.file, line=self.line))
 
     def _step_dwell(self, block: Block, ml: ModalLine) -> None:
         if ml.g.get(0) != 40:

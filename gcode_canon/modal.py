@@ -60,6 +60,7 @@ for _group, _codes in {
     7: (3, 4, 5, 19, 70, 71, 72, 73),  # LinuxCNC puts M19 and the modal-state codes in the spindle group
     8: (7, 8, 9),  # M7 and M8 may both be on, but not be set on one line
     9: (48, 49, 50, 51, 52, 53),
+    10: tuple(range(100, 200)),  # user M codes (LinuxCNC's group 10): only those the machine binds
 }.items():
     for _code in _codes:
         M_GROUPS[_code] = _group
@@ -87,8 +88,9 @@ class ModalLine:
         self.axis_user = False  # see AXIS_USER_CODES
 
 
-def sort_codes(block: Block) -> ModalLine:
-    """Group the line's codes; unknown codes, two of one group, and unsupported codes are errors."""
+def sort_codes(block: Block, user_mcodes: frozenset[int] = frozenset()) -> ModalLine:
+    """Group the line's codes; unknown codes, two of one group, and unsupported codes are errors.
+    ``user_mcodes``: the M100-M199 the machine binds (the others are refused)."""
     line = ModalLine()
     for code in block.g:
         group = G_GROUPS.get(code)
@@ -100,8 +102,9 @@ def sort_codes(block: Block) -> ModalLine:
             )
         line.g[group] = code
     for code in block.m:
-        if 100 <= code <= 199:
-            raise GCodeError(f"M{code}: user-defined M codes (M100-M199) are not supported")
+        if 100 <= code <= 199 and code not in user_mcodes:
+            raise GCodeError(f"M{code}: user-defined M code not bound on this machine (bind it in the "
+                             "machine file's [io.mcodes])")
         group = M_GROUPS.get(code)
         if group is None:
             raise GCodeError(f"Unknown M code used: M{code}")

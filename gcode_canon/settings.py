@@ -46,3 +46,5 @@ class InterpreterSettings:
     disable_g92_persistence: bool = False
     """G92/G52 offsets (#5210-#5219) are not kept from one program to the next: cleared when the
     parameter file is read and at M2/M30 (LinuxCNC's ``[RS274NGC] DISABLE_G92_PERSISTENCE``)."""
+    user_mcodes: frozenset[int] = frozenset()
+    """The user M codes (100-199) the machine binds (``[io.mcodes]``); any other M100-M199 is an error."""

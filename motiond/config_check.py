@@ -33,6 +33,7 @@ class CheckedMachine:
     bus_load: Any  # fieldbus.canopen.busload.BusLoad
     modbus: Any  # fieldbus.modbus.config.ModbusConfig | None
     telemetry: Any  # telemetry.config.TelemetryConfig
+    io: Any = None  # motiond.config_io.IoMap
 
 
 def validate_machine(path: str | None) -> CheckedMachine:
@@ -72,6 +73,14 @@ def validate_machine(path: str | None) -> CheckedMachine:
         modbus = modbus_for(config) if config is not None else read_modbus(Table(root.data, file))
     except ConfigError as exc:
         errors.append(exc)
+    io = None
+    if config is not None:
+        from motiond.config_io import io_for
+
+        try:
+            io = io_for(config, modbus)
+        except ConfigError as exc:
+            errors.append(exc)
     tele = None
     try:
         tele = TelemetryConfig.from_table(Table(root.data, file).table("telemetry"))
@@ -85,7 +94,7 @@ def validate_machine(path: str | None) -> CheckedMachine:
     if errors:
         raise ConfigErrors(errors)
     assert config is not None
-    return CheckedMachine(config, canopen, load, modbus, tele)
+    return CheckedMachine(config, canopen, load, modbus, tele, io)
 
 
 def load_checked(path: str | None) -> MachineConfig:
@@ -223,6 +232,18 @@ def describe(m: CheckedMachine) -> list[Any]:
             io.add_row(f"M66 E{i.index}", i.device, f"{i.source.value.replace('_', ' ')} {i.register}",
                        _conv(i.conversion))
         out.append(io)
+    if m.io is not None and not m.io.empty:
+        fn = RichTable(title="I/O map (docs/wiring.md)", box=box.SIMPLE_HEAD, title_justify="left")
+        for col in ("function", "in/out", "point", "active"):
+            fn.add_column(col)
+        for b in m.io.functions.values():
+            fn.add_row(b.name, b.direction, b.where, "low" if b.active_low else "high")
+        for mc in m.io.mcodes.values():
+            what = [f"set {b.where} = {v:g}" for b, v in mc.sets]
+            if mc.wait is not None:
+                what.append(f"wait for {mc.wait.where} (timeout {mc.timeout_s:g} s)")
+            fn.add_row(f"M{mc.code}", "out/in", "; ".join(what), "")
+        out.append(fn)
     it = config.interpreter
     out.append(f"interpreter: dialect {it.dialect}; tool table {it.tool_table or 'none'}; parameter file "
                f"{it.var_file or 'none'}; subroutine path "

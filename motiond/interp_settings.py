@@ -63,6 +63,8 @@ def build_settings(config: Any, *, var: str | None = None, tool_table: str | Non
         for directory in subroutine_path:
             if not Path(directory).is_dir():
                 raise UserError(f"--subroutine-path {directory}: no such directory")
+    from motiond.config_io import bound_mcodes
+
     axes = None
     if config.path is not None:  # words for axes the machine does not have are errors
         axes = "".join(axis.name for axis in config.limits.axes)
@@ -80,6 +82,7 @@ def build_settings(config: Any, *, var: str | None = None, tool_table: str | Non
         axes=axes,
         tool_change_with_spindle_on=ic.tool_change_with_spindle_on,
         disable_g92_persistence=ic.disable_g92_persistence,
+        user_mcodes=bound_mcodes(config),
     )
 
 

@@ -81,14 +81,18 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
     """Canonical commands in (:meth:`feed`), one :class:`Setpoint` per cycle out (:meth:`next_setpoint`).
 
     ``start`` is the position at rest when planning begins (machine zero by default), one value per
-    configured axis. With ``auto_release`` (previews), waits are released at once.
+    configured axis. With ``auto_release`` (previews), waits are released at once. ``waits``: sync
+    commands beyond :data:`WAIT_TYPES` that the machine completes before the motion goes on (M3/M4 on a
+    machine with an at-speed signal, M19 with an oriented signal): the stream stays at rest there until
+    :meth:`release`, as at an M66.
     """
 
     def __init__(self, machine: MachineLimits = DEMO_MACHINE, start: Sequence[float] | None = None,
-                 auto_release: bool = False) -> None:
+                 auto_release: bool = False, waits: tuple[type[C.Canon], ...] = ()) -> None:
         self.machine = machine
         self.T = machine.cycle_s
         self.auto_release = auto_release
+        self._wait_types = WAIT_TYPES + tuple(waits)
         n = len(machine.axes)
         self._n = n
         self._pose_index = machine.pose_index
@@ -720,7 +724,7 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
                 self._free_t = t
                 if isinstance(item.cmd, C.Dwell):
                     self._free_t = t + math.ceil(item.cmd.seconds / self.T - 1e-9) * self.T
-                elif isinstance(item.cmd, WAIT_TYPES) and not self.auto_release:
+                elif isinstance(item.cmd, self._wait_types) and not self.auto_release:
                     self.waiting_for = item.cmd
                 break
             if self._stops(item.ovr) and self._v_end <= 0.0:

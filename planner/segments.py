@@ -55,7 +55,8 @@ LOOP_CAP = 100_000  # pieces a single cycle may pass through before the planner 
 _TOL = 1e-9
 SLACK = 1.0 - 1e-6  # the lookahead plans with segments this much shorter, so profiles are never tight
 
-WAIT_TYPES: tuple[type[C.Canon], ...] = (C.WaitInput, C.ToolChange, C.ProgramStop, C.PalletShuttle, C.Probe)
+WAIT_TYPES: tuple[type[C.Canon], ...] = (C.WaitInput, C.ToolChange, C.ProgramStop, C.PalletShuttle, C.Probe,
+                                         C.UserMCode)
 """Sync commands after which the stream stays at rest until :meth:`Planner.release`. The others
 (dwell, spindle start/stop, spindle orient M19/G87, program end) continue at once: the machine acts on
 the event riding on the rest setpoint before it takes the next one."""

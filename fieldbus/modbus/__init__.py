@@ -11,6 +11,7 @@ from fieldbus.modbus.config import (
     DigitalSource,
     ModbusConfig,
     ModbusDevice,
+    NamedPoint,
     ValueType,
     WordOrder,
 )
@@ -38,6 +39,7 @@ __all__ = [
     "ModbusConnectError",
     "ModbusDevice",
     "ModbusFault",
+    "NamedPoint",
     "ValueType",
     "WaitAborted",
     "WordOrder",

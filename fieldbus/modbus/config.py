@@ -139,15 +139,49 @@ class AnalogInputMap:
     source: AnalogSource = AnalogSource.INPUT_REGISTER
 
 
+POINT_TABLES = ("coil", "discrete_input", "input_register", "holding_register")
+"""The four Modbus tables a named point can sit in."""
+
+
+@dataclass(frozen=True, slots=True)
+class NamedPoint:
+    """A point the daemon itself reads or writes under a name (the machine file's I/O map: the E-stop
+    input, the spindle-on coil ...), rather than under an M62-M68 number.
+
+    Inputs (``output`` False) are polled with the M66 inputs and appear in
+    :attr:`fieldbus.modbus.io_worker.InputSnapshot.named` by ``key``; a bit table gives 0.0/1.0, a
+    register table the value converted by ``conversion``. Outputs (``output`` True) sit in a writable
+    table (``coil``, ``holding_register``) and get ``safe`` (engineering units; 0/1 for a coil) at
+    start, after a lost link and at stop, like the mapped outputs.
+    """
+
+    key: str
+    device: str
+    table: str
+    address: int
+    output: bool = False
+    conversion: Conversion = field(default_factory=Conversion)
+    safe: float = 0.0
+
+    @property
+    def bit(self) -> bool:
+        return self.table in ("coil", "discrete_input")
+
+    @property
+    def registers(self) -> int:
+        return 1 if self.bit else self.conversion.type.registers
+
+
 @dataclass(frozen=True, slots=True)
 class ModbusConfig:
-    """Everything the Modbus side needs: the devices and the four maps."""
+    """Everything the Modbus side needs: the devices, the four maps and the named points."""
 
     devices: tuple[ModbusDevice, ...]
     digital_outputs: tuple[DigitalOutputMap, ...] = ()
     analog_outputs: tuple[AnalogOutputMap, ...] = ()
     digital_inputs: tuple[DigitalInputMap, ...] = ()
     analog_inputs: tuple[AnalogInputMap, ...] = ()
+    named: tuple[NamedPoint, ...] = ()
 
     def __post_init__(self) -> None:
         problems = self.problems()
@@ -180,4 +214,19 @@ class ModbusConfig:
                 if m.index in seen:
                     out.append(f"{what} {m.index} mapped twice")
                 seen.add(m.index)
+        keys: set[str] = set()
+        for p in self.named:
+            if p.device not in names:
+                out.append(f"point {p.key}: unknown device {p.device!r}")
+            if p.key in keys:
+                out.append(f"point {p.key} named twice")
+            if p.table not in POINT_TABLES or (p.output and p.table not in ("coil", "holding_register")):
+                out.append(f"point {p.key}: {'an output cannot be' if p.output else 'no'} table {p.table!r}")
+            keys.add(p.key)
         return out
+
+    def point(self, key: str) -> NamedPoint:
+        for p in self.named:
+            if p.key == key:
+                return p
+        raise KeyError(key)

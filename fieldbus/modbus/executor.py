@@ -26,13 +26,13 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from types import MappingProxyType
 
 from fieldbus.modbus.codec import CodecError, decode_output, encode
 from fieldbus.modbus.config import AnalogOutputMap, DigitalOutputMap, ModbusConfig
 from fieldbus.modbus.faults import FaultKind, IoError, LinkDownError, ModbusFault, WaitAborted
-from fieldbus.modbus.io_worker import InputSnapshot, IoWorker, WriteOp
+from fieldbus.modbus.io_worker import InputSnapshot, IoWorker, WriteOp, named_write
 from gcode_canon.commands import AnalogOutput, Canon, DigitalOutput, InputKind, WaitInput, WaitMode
 from planner.setpoints import Setpoint
 
@@ -57,6 +57,10 @@ class IoState:
     input_age_s: float
     links: MappingProxyType[str, bool]
     fault: str | None
+    named_inputs: MappingProxyType[str, float] = field(default_factory=lambda: MappingProxyType({}))
+    named_outputs: MappingProxyType[str, float] = field(default_factory=lambda: MappingProxyType({}))
+    """The named points (:class:`fieldbus.modbus.config.NamedPoint`): inputs as polled, outputs as
+    commanded last."""
 
     @property
     def io_ok(self) -> bool:
@@ -96,6 +100,8 @@ class IoExecutor:
         self._devices = {d.name: d for d in config.devices}
         self._by_coil = {(m.device, m.coil): m for m in config.digital_outputs}
         self._by_register = {(m.device, m.register): m for m in config.analog_outputs}
+        self._named_out = {p.key: p for p in config.named if p.output}
+        self._by_named = {(p.device, p.table, p.address): p for p in self._named_out.values()}
         for m in config.analog_outputs:  # a safe value that does not fit is a configuration error
             try:
                 encode(m.safe, m.conversion)
@@ -106,6 +112,8 @@ class IoExecutor:
         self._cmd_ao: dict[int, float] = {m.index: m.safe for m in config.analog_outputs}
         self._out_do: dict[int, bool] = dict(self._cmd_do)
         self._out_ao: dict[int, float] = dict(self._cmd_ao)
+        self._cmd_named: dict[str, float] = {k: p.safe for k, p in self._named_out.items()}
+        self._out_named: dict[str, float] = dict(self._cmd_named)
         self._cancel = threading.Event()
         self._lock = threading.Lock()
         self.worker = IoWorker(config, on_fault=self._on_fault, on_recover=self._on_recover,
@@ -167,6 +175,30 @@ class IoExecutor:
                 continue
             for ev, _op in items:
                 self._commanded(ev)
+
+    def write_point(self, key: str, value: float) -> concurrent.futures.Future[float]:
+        """Set the named output point ``key`` (a coil: 0/1) now; never blocks. Returns the future of
+        the device's confirmation (the ``time.monotonic()`` it came back). Raises :class:`IoError`
+        for an unknown key or a value that does not fit, :class:`LinkDownError` if the link is down."""
+        p = self._named_out.get(key)
+        if p is None:
+            raise IoError(f"no output point named {key!r}")
+        try:
+            op = named_write(p, value)
+        except CodecError as exc:
+            raise IoError(f"{key}: {exc}") from None
+        op.future = concurrent.futures.Future()
+        self.worker.post(p.device, op)
+        self._cmd_named[key] = float(value)
+        return op.future
+
+    def commanded_point(self, key: str) -> float:
+        """The value output point ``key`` was last commanded to (its safe value after a recovery)."""
+        return self._cmd_named[key]
+
+    def written_point(self, key: str) -> float:
+        """The value of output point ``key`` the device has confirmed last."""
+        return self._out_named[key]
 
     # --- the interpreter ------------------------------------------------------------------------
 
@@ -291,6 +323,8 @@ class IoExecutor:
             input_age_s=now - snap.t if snap.seq else float("inf"),
             links=MappingProxyType(dict(self.worker.link_up)),
             fault=str(fault) if fault is not None else None,
+            named_inputs=snap.named,
+            named_outputs=MappingProxyType(dict(self._cmd_named)),
         )
 
     # --- internals ------------------------------------------------------------------------------
@@ -360,7 +394,10 @@ class IoExecutor:
 
     def _on_written(self, op: WriteOp, t: float) -> None:
         """I/O thread: record what the device confirmed, for :meth:`state`."""
-        if op.table == "coil":
+        p = self._by_named.get((op.device, op.table, op.address))
+        if p is not None:
+            self._out_named[p.key] = float(op.values[0]) if p.bit else decode_output(op.values, p.conversion)
+        elif op.table == "coil":
             d = self._by_coil.get((op.device, op.address))
             if d is not None:
                 self._out_do[d.index] = bool(op.values[0])
@@ -389,6 +426,9 @@ class IoExecutor:
         for ma in self.config.analog_outputs:
             if ma.device == device:
                 self._cmd_ao[ma.index] = ma.safe
+        for p in self._named_out.values():
+            if p.device == device:
+                self._cmd_named[p.key] = p.safe
         if self.on_recover is not None:
             try:
                 self.on_recover(device)

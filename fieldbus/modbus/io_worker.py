@@ -51,6 +51,7 @@ from fieldbus.modbus.config import (
     DigitalSource,
     ModbusConfig,
     ModbusDevice,
+    NamedPoint,
 )
 from fieldbus.modbus.faults import (
     FaultKind,
@@ -86,14 +87,16 @@ class WriteOp:
 @dataclass(frozen=True, slots=True)
 class InputSnapshot:
     """The inputs as last polled. ``polls[device]`` is ``(count, start time of that poll)``; ``bad``
-    holds the ``("digital"|"analog", index)`` whose last read failed (their values are older)."""
+    holds the ``("digital"|"analog", index)`` and ``("named", key)`` whose last read failed (their
+    values are older). ``named``: the named input points (:class:`NamedPoint`), bits as 0.0/1.0."""
 
     seq: int
     t: float
     digital: MappingProxyType[int, bool]
     analog: MappingProxyType[int, float]
     polls: MappingProxyType[str, tuple[int, float]]
-    bad: frozenset[tuple[str, int]] = frozenset()
+    bad: frozenset[tuple[str, int | str]] = frozenset()
+    named: MappingProxyType[str, float] = field(default_factory=lambda: MappingProxyType({}))
 
 
 @dataclass(slots=True)
@@ -105,6 +108,7 @@ class _Chunk:
     count: int
     digital: list[DigitalInputMap] = field(default_factory=list)
     analog: list[AnalogInputMap] = field(default_factory=list)
+    named: list[NamedPoint] = field(default_factory=list)
 
 
 _READ = {"discrete_input": "read_discrete_inputs", "coil": "read_coils",
@@ -126,6 +130,12 @@ def _put_all(queue: asyncio.Queue[WriteOp | None], ops: tuple[WriteOp, ...]) -> 
         queue.put_nowait(op)
 
 
+def named_write(point: NamedPoint, value: float, note: str = "") -> WriteOp:
+    """The write that sets a named output point to ``value`` (engineering units; a coil: 0 or 1)."""
+    values = [1 if value else 0] if point.bit else encode(value, point.conversion)
+    return WriteOp(point.table, point.address, values, f"{point.key}{note}", point.device)
+
+
 def coalesce(ops: list[WriteOp]) -> list[list[WriteOp]]:
     """Split writes (in order) into groups that one request can carry: consecutive writes to one
     table whose addresses follow each other (M62 P0 and M62 P1 on one setpoint: one write-coils).
@@ -144,8 +154,10 @@ def coalesce(ops: list[WriteOp]) -> list[list[WriteOp]]:
     return groups
 
 
-def plan_reads(digital: list[DigitalInputMap], analog: list[AnalogInputMap]) -> list[_Chunk]:
-    """Group a device's inputs into as few read requests as the Modbus limits allow."""
+def plan_reads(digital: list[DigitalInputMap], analog: list[AnalogInputMap],
+               named: list[NamedPoint] | None = None) -> list[_Chunk]:
+    """Group a device's inputs (and named input points) into as few read requests as the Modbus
+    limits allow."""
     chunks: list[_Chunk] = []
     by_table: dict[str, list[tuple[int, int, Any]]] = {}
     for d in digital:
@@ -154,6 +166,8 @@ def plan_reads(digital: list[DigitalInputMap], analog: list[AnalogInputMap]) -> 
     for a in analog:
         table = "input_register" if a.source is AnalogSource.INPUT_REGISTER else "holding_register"
         by_table.setdefault(table, []).append((a.register, a.conversion.type.registers, a))
+    for p in named or ():
+        by_table.setdefault(p.table, []).append((p.address, p.registers, p))
     for table, items in by_table.items():
         limit = MAX_BITS_PER_READ if table in ("discrete_input", "coil") else MAX_REGS_PER_READ
         items.sort(key=lambda x: x[0])
@@ -163,7 +177,10 @@ def plan_reads(digital: list[DigitalInputMap], analog: list[AnalogInputMap]) -> 
                 cur = _Chunk(table, addr, n)
                 chunks.append(cur)
             cur.count = max(cur.count, addr + n - cur.start)
-            (cur.digital if isinstance(m, DigitalInputMap) else cur.analog).append(m)
+            if isinstance(m, NamedPoint):
+                cur.named.append(m)
+            else:
+                (cur.digital if isinstance(m, DigitalInputMap) else cur.analog).append(m)
     return chunks
 
 
@@ -206,7 +223,8 @@ class IoWorker:
         self._cond = threading.Condition()
         self._digital: dict[int, bool] = {m.index: False for m in config.digital_inputs}
         self._analog: dict[int, float] = {m.index: 0.0 for m in config.analog_inputs}
-        self._bad: set[tuple[str, int]] = set()
+        self._named: dict[str, float] = {p.key: 0.0 for p in config.named if not p.output}
+        self._bad: set[tuple[str, int | str]] = set()
         self._polls: dict[str, tuple[int, float]] = {}
         self._seq = 0
         self.link_up: dict[str, bool] = {d.name: False for d in config.devices}
@@ -284,11 +302,15 @@ class IoWorker:
             loop.close()
 
     def _plan(self, dev: ModbusDevice) -> list[_Chunk]:
+        mine = [p for p in self.config.named if p.device == dev.name]
         chunks = plan_reads([m for m in self.config.digital_inputs if m.device == dev.name],
-                            [m for m in self.config.analog_inputs if m.device == dev.name])
+                            [m for m in self.config.analog_inputs if m.device == dev.name],
+                            [p for p in mine if not p.output])
         if not chunks:  # outputs only: read one back as a keep-alive
             coils = [m.coil for m in self.config.digital_outputs if m.device == dev.name]
+            coils += [p.address for p in mine if p.output and p.table == "coil"]
             regs = [m.register for m in self.config.analog_outputs if m.device == dev.name]
+            regs += [p.address for p in mine if p.output and p.table == "holding_register"]
             if coils:
                 chunks = [_Chunk("coil", min(coils), 1)]
             elif regs:
@@ -301,6 +323,8 @@ class IoWorker:
         ops += [WriteOp("holding_register", m.register, encode(m.safe, m.conversion),
                         f"analog output {m.index} (safe state)", dev.name)
                 for m in self.config.analog_outputs if m.device == dev.name]
+        ops += [named_write(p, p.safe, " (safe state)")
+                for p in self.config.named if p.device == dev.name and p.output]
         return sorted(ops, key=lambda op: (op.table, op.address))  # in address order: fewer requests
 
     async def _spawn(self, link: _Link) -> list[asyncio.Task[None]]:
@@ -655,10 +679,12 @@ class IoWorker:
         t_start = time.monotonic()
         digital: dict[int, bool] = {}
         analog: dict[int, float] = {}
-        good: set[tuple[str, int]] = set()
-        bad: set[tuple[str, int]] = set()
+        named: dict[str, float] = {}
+        good: set[tuple[str, int | str]] = set()
+        bad: set[tuple[str, int | str]] = set()
         for ch in link.chunks:
-            keys = {("digital", m.index) for m in ch.digital} | {("analog", m.index) for m in ch.analog}
+            keys: set[tuple[str, int | str]] = {("digital", m.index) for m in ch.digital}
+            keys |= {("analog", m.index) for m in ch.analog} | {("named", p.key) for p in ch.named}
             what = f"read {ch.table.replace('_', ' ')} {ch.start}"
             method = _READ[ch.table]
             try:
@@ -680,11 +706,16 @@ class IoWorker:
             for m in ch.analog:
                 off = m.register - ch.start
                 analog[m.index] = decode(rr.registers[off:off + m.conversion.type.registers], m.conversion)
+            for p in ch.named:
+                off = p.address - ch.start
+                named[p.key] = (float(bool(rr.bits[off])) if p.bit
+                                else decode(rr.registers[off:off + p.registers], p.conversion))
         link.polls += 1
         self.counters["polls"] += 1
         with self._cond:
             self._digital.update(digital)
             self._analog.update(analog)
+            self._named.update(named)
             self._bad.difference_update(good)
             self._bad.update(bad)
             self._polls[link.dev.name] = (link.polls, t_start)
@@ -695,7 +726,7 @@ class IoWorker:
     def _make_snapshot(self, t: float) -> InputSnapshot:
         return InputSnapshot(self._seq, t, MappingProxyType(dict(self._digital)),
                              MappingProxyType(dict(self._analog)), MappingProxyType(dict(self._polls)),
-                             frozenset(self._bad))
+                             frozenset(self._bad), MappingProxyType(dict(self._named)))
 
     # --- for other threads ----------------------------------------------------------------------
 

@@ -387,6 +387,7 @@ def size_for(config: ModbusConfig, device: str, minimum: int = 256) -> int:
     addrs = [m.coil for m in config.digital_outputs if m.device == device]
     addrs += [m.address for m in config.digital_inputs if m.device == device]
     addrs += [m.register + m.conversion.type.registers - 1 for m in regs if m.device == device]
+    addrs += [p.address + p.registers - 1 for p in config.named if p.device == device]
     return min(max(minimum, max(addrs, default=0) + 1), 4096)
 
 
