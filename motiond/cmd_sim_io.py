@@ -8,8 +8,10 @@ port and unit). ``--port`` overrides the port when there is one module (0 picks 
 ``--serial PORT`` serves one module by Modbus RTU on that serial port instead (the other end of a
 null-modem cable or of a pty pair, whose first end the machine file's device names in ``serial``):
 the demo module's layout without ``--config``; with it, the file's one device that has ``serial``
-(its unit, line settings and map). ``--baudrate N`` overrides the baud rate. ``--script FILE`` gives
-the inputs a behaviour:
+(its unit, line settings and map). ``--baudrate N`` overrides the baud rate. The module is wired as
+the file's ``[io]`` map says (the demo machine's without ``--config``: :mod:`motiond.sim_wiring`):
+the E-stop chain and the door closed, the spindle at speed a while after it is switched on.
+``--script FILE`` gives the inputs a behaviour:
 
 ```toml
 [[rule]]                 # 0.3 s after coil 0 is written on, discrete input 0 goes on
@@ -80,12 +82,21 @@ def run(args: argparse.Namespace) -> int:
 def _serve(args: argparse.Namespace, say: Callable[[str], None]) -> int:
     from fieldbus.modbus.sim import SimIoModule, size_for
     from motiond.cli import UserError
+    from motiond.config_io import IoMap, demo_io, io_for, modbus_with_io
     from motiond.config_modbus import demo_modbus, read_modbus
     from motiond.configkit import Table, load_toml
+    from motiond.sim_wiring import apply, wiring_for
 
     cfg: ModbusConfig | None = None
+    io = IoMap()
     if args.config:
-        cfg = read_modbus(Table(load_toml(args.config), args.config))
+        raw = load_toml(args.config)
+        cfg = read_modbus(Table(raw, args.config))
+        if cfg is not None and "io" in raw:  # the module answers like the machine's wiring (sim_wiring)
+            from motiond.config import load_machine
+
+            io = io_for(load_machine(args.config), cfg)
+            cfg = modbus_with_io(cfg, io)
         if cfg is None:
             raise UserError(f"{args.config}: no [[modbus.devices]] to simulate")
         if args.serial:
@@ -97,6 +108,8 @@ def _serve(args: argparse.Namespace, say: Callable[[str], None]) -> int:
             devices = _devices_to_serve(cfg, args.config, say)
     else:
         devices = list(demo_modbus().devices)
+        io = demo_io(demo_modbus())
+    wiring = wiring_for(io)
     if args.serial is not None:
         if not args.serial.strip():
             raise UserError("--serial needs a port, e.g. /dev/ttyUSB0")
@@ -133,6 +146,7 @@ def _serve(args: argparse.Namespace, say: Callable[[str], None]) -> int:
                               parity=dev.parity, stopbits=dev.stopbits, bytesize=dev.bytesize)
         else:
             mod = SimIoModule(host="127.0.0.1", port=port, unit=dev.unit, size=size, rules=mine)
+        apply(mod, wiring.get(dev.name))
         modules.append((dev.name, mod))
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}

@@ -74,7 +74,7 @@ def validate_machine(path: str | None) -> CheckedMachine:
     except ConfigError as exc:
         errors.append(exc)
     io = None
-    if config is not None:
+    if config is not None and (modbus is not None or "modbus" not in root):  # else: [modbus] said why
         from motiond.config_io import io_for
 
         try:
@@ -237,7 +237,8 @@ def describe(m: CheckedMachine) -> list[Any]:
         for col in ("function", "in/out", "point", "active"):
             fn.add_column(col)
         for b in m.io.functions.values():
-            fn.add_row(b.name, b.direction, b.where, "low" if b.active_low else "high")
+            level = "" if b.kind == "analog" else "low" if b.active_low else "high"
+            fn.add_row(b.name, b.direction, b.where, level)
         for mc in m.io.mcodes.values():
             what = [f"set {b.where} = {v:g}" for b, v in mc.sets]
             if mc.wait is not None:

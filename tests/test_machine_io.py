@@ -311,3 +311,31 @@ def test_named_points_ride_with_the_modbus_configuration() -> None:
     mb, io = machine_io(load_machine(None))
     assert mb is not None and {p.key for p in mb.named} == {p.key for p in io.points}
     assert modbus_with_io(None, io) is None
+
+
+def test_the_simulated_module_is_wired_like_the_map() -> None:
+    from motiond.config_io import demo_io
+    from motiond.config_modbus import demo_modbus
+    from motiond.sim_wiring import apply, wiring_for
+
+    io = demo_io(demo_modbus())
+    wiring = wiring_for(io)
+    with SimIoModule(size=64) as sim:
+        apply(sim, wiring["io"])
+        assert sim.get("discrete_input", 8) == 1  # the NC E-stop chain reads closed
+        ex = IoExecutor(modbus_with_io(demo_modbus(port=sim.port), io)).start()
+        try:
+            t0 = time.monotonic()
+            ex.write_point("spindle_on", 1).result(2.0)
+            deadline = time.monotonic() + 3.0
+            while sim.get("discrete_input", 9) == 0 and time.monotonic() < deadline:
+                time.sleep(0.005)
+            assert sim.get("discrete_input", 9) == 1
+            assert time.monotonic() - t0 >= io.spindle.sim_delay_s - 0.01  # after the configured delay
+            ex.write_point("spindle_on", 0).result(2.0)
+            deadline = time.monotonic() + 3.0
+            while sim.get("discrete_input", 9) == 1 and time.monotonic() < deadline:
+                time.sleep(0.005)
+            assert sim.get("discrete_input", 9) == 0
+        finally:
+            ex.stop()

@@ -237,6 +237,28 @@ public final class status implements lcm.lcm.LCMEncodable
     public double analog_outputs[];
 
     /**
+     * the I/O map's functions ([io.functions], docs/wiring.md), in the map's order: inputs 1 active,
+     * 0 not, -1 unreadable (link down); outputs as commanded (1 on, 0 off; spindle_speed in rpm);
+     * spindle_speed_measured in rpm
+     */
+    public short num_io_functions;
+
+    /**
+     * LCM Type: string[num_io_functions]
+     */
+    public String io_function_names[];
+
+    /**
+     * LCM Type: double[num_io_functions]
+     */
+    public double io_function_values[];
+
+    /**
+     * what the program waits for at a sync point ("" nothing): "prog.ngc:4: M3 S1000: spindle at speed ..."
+     */
+    public String io_waiting;
+
+    /**
      * the last error in words ("" when none since the last reset)
      */
     public String last_error;
@@ -257,7 +279,7 @@ public final class status implements lcm.lcm.LCMEncodable
     }
  
     public static final long LCM_FINGERPRINT;
-    public static final long LCM_FINGERPRINT_BASE = 0xbd2538d6a748c37aL;
+    public static final long LCM_FINGERPRINT_BASE = 0x4d4a6bbd1ccc45c6L;
  
     static {
         LCM_FINGERPRINT = _hashRecursive(new ArrayList<Class<?>>());
@@ -404,6 +426,18 @@ public final class status implements lcm.lcm.LCMEncodable
         for (int a = 0; a < this.num_analog_outputs; a++) {
             outs.writeDouble(this.analog_outputs[a]); 
         }
+ 
+        outs.writeShort(this.num_io_functions); 
+ 
+        for (int a = 0; a < this.num_io_functions; a++) {
+            __strbuf = new char[this.io_function_names[a].length()]; this.io_function_names[a].getChars(0, this.io_function_names[a].length(), __strbuf, 0); outs.writeInt(__strbuf.length+1); for (int _i = 0; _i < __strbuf.length; _i++) outs.write(__strbuf[_i]); outs.writeByte(0); 
+        }
+ 
+        for (int a = 0; a < this.num_io_functions; a++) {
+            outs.writeDouble(this.io_function_values[a]); 
+        }
+ 
+        __strbuf = new char[this.io_waiting.length()]; this.io_waiting.getChars(0, this.io_waiting.length(), __strbuf, 0); outs.writeInt(__strbuf.length+1); for (int _i = 0; _i < __strbuf.length; _i++) outs.write(__strbuf[_i]); outs.writeByte(0); 
  
         __strbuf = new char[this.last_error.length()]; this.last_error.getChars(0, this.last_error.length(), __strbuf, 0); outs.writeInt(__strbuf.length+1); for (int _i = 0; _i < __strbuf.length; _i++) outs.write(__strbuf[_i]); outs.writeByte(0); 
  
@@ -569,6 +603,20 @@ public final class status implements lcm.lcm.LCMEncodable
             this.analog_outputs[a] = ins.readDouble();
         }
  
+        this.num_io_functions = ins.readShort();
+ 
+        this.io_function_names = new String[(int) num_io_functions];
+        for (int a = 0; a < this.num_io_functions; a++) {
+            __strbuf = new char[ins.readInt()-1]; for (int _i = 0; _i < __strbuf.length; _i++) __strbuf[_i] = (char) (ins.readByte()&0xff); ins.readByte(); this.io_function_names[a] = new String(__strbuf);
+        }
+ 
+        this.io_function_values = new double[(int) num_io_functions];
+        for (int a = 0; a < this.num_io_functions; a++) {
+            this.io_function_values[a] = ins.readDouble();
+        }
+ 
+        __strbuf = new char[ins.readInt()-1]; for (int _i = 0; _i < __strbuf.length; _i++) __strbuf[_i] = (char) (ins.readByte()&0xff); ins.readByte(); this.io_waiting = new String(__strbuf);
+ 
         __strbuf = new char[ins.readInt()-1]; for (int _i = 0; _i < __strbuf.length; _i++) __strbuf[_i] = (char) (ins.readByte()&0xff); ins.readByte(); this.last_error = new String(__strbuf);
  
         this.last_error_utime = ins.readLong();
@@ -689,6 +737,16 @@ public final class status implements lcm.lcm.LCMEncodable
         outobj.analog_outputs = new double[(int) num_analog_outputs];
         if (this.num_analog_outputs > 0)
             System.arraycopy(this.analog_outputs, 0, outobj.analog_outputs, 0, (int) this.num_analog_outputs); 
+        outobj.num_io_functions = this.num_io_functions;
+ 
+        outobj.io_function_names = new String[(int) num_io_functions];
+        if (this.num_io_functions > 0)
+            System.arraycopy(this.io_function_names, 0, outobj.io_function_names, 0, (int) this.num_io_functions); 
+        outobj.io_function_values = new double[(int) num_io_functions];
+        if (this.num_io_functions > 0)
+            System.arraycopy(this.io_function_values, 0, outobj.io_function_values, 0, (int) this.num_io_functions); 
+        outobj.io_waiting = this.io_waiting;
+ 
         outobj.last_error = this.last_error;
  
         outobj.last_error_utime = this.last_error_utime;

@@ -16,11 +16,11 @@ class status(object):
     (mm or inch; degrees for a, b, c), velocities in machine units per second.
     """
 
-    __slots__ = ["utime", "seq", "machine", "state", "mode", "estop", "enabled", "program", "line", "block", "single_block", "optional_stop", "block_delete", "num_axes", "axis_names", "homed", "commanded", "actual", "velocity", "following_error", "path_velocity", "feed_rate", "feed_override", "rapid_override", "spindle_override", "num_drives", "drives", "num_gcodes", "gcodes", "num_mcodes", "mcodes", "tool", "tool_prepared", "tool_length_offset", "spindle_direction", "spindle_speed", "mist", "flood", "io_ok", "num_digital_inputs", "digital_inputs", "num_digital_outputs", "digital_outputs", "num_analog_inputs", "analog_inputs", "num_analog_outputs", "analog_outputs", "last_error", "last_error_utime", "events_dropped"]
+    __slots__ = ["utime", "seq", "machine", "state", "mode", "estop", "enabled", "program", "line", "block", "single_block", "optional_stop", "block_delete", "num_axes", "axis_names", "homed", "commanded", "actual", "velocity", "following_error", "path_velocity", "feed_rate", "feed_override", "rapid_override", "spindle_override", "num_drives", "drives", "num_gcodes", "gcodes", "num_mcodes", "mcodes", "tool", "tool_prepared", "tool_length_offset", "spindle_direction", "spindle_speed", "mist", "flood", "io_ok", "num_digital_inputs", "digital_inputs", "num_digital_outputs", "digital_outputs", "num_analog_inputs", "analog_inputs", "num_analog_outputs", "analog_outputs", "num_io_functions", "io_function_names", "io_function_values", "io_waiting", "last_error", "last_error_utime", "events_dropped"]
 
-    __typenames__ = ["int64_t", "int64_t", "string", "string", "string", "boolean", "boolean", "string", "int32_t", "string", "boolean", "boolean", "boolean", "int16_t", "string", "boolean", "double", "double", "double", "double", "double", "double", "double", "double", "double", "int16_t", "telemetry.lcmtypes.canon.drive_status", "int16_t", "string", "int16_t", "string", "int32_t", "int32_t", "double", "int8_t", "double", "boolean", "boolean", "boolean", "int16_t", "boolean", "int16_t", "boolean", "int16_t", "double", "int16_t", "double", "string", "int64_t", "int64_t"]
+    __typenames__ = ["int64_t", "int64_t", "string", "string", "string", "boolean", "boolean", "string", "int32_t", "string", "boolean", "boolean", "boolean", "int16_t", "string", "boolean", "double", "double", "double", "double", "double", "double", "double", "double", "double", "int16_t", "telemetry.lcmtypes.canon.drive_status", "int16_t", "string", "int16_t", "string", "int32_t", "int32_t", "double", "int8_t", "double", "boolean", "boolean", "boolean", "int16_t", "boolean", "int16_t", "boolean", "int16_t", "double", "int16_t", "double", "int16_t", "string", "double", "string", "string", "int64_t", "int64_t"]
 
-    __dimensions__ = [None, None, None, None, None, None, None, None, None, None, None, None, None, None, ["num_axes"], ["num_axes"], ["num_axes"], ["num_axes"], ["num_axes"], ["num_axes"], None, None, None, None, None, None, ["num_drives"], None, ["num_gcodes"], None, ["num_mcodes"], None, None, None, None, None, None, None, None, None, ["num_digital_inputs"], None, ["num_digital_outputs"], None, ["num_analog_inputs"], None, ["num_analog_outputs"], None, None, None]
+    __dimensions__ = [None, None, None, None, None, None, None, None, None, None, None, None, None, None, ["num_axes"], ["num_axes"], ["num_axes"], ["num_axes"], ["num_axes"], ["num_axes"], None, None, None, None, None, None, ["num_drives"], None, ["num_gcodes"], None, ["num_mcodes"], None, None, None, None, None, None, None, None, None, ["num_digital_inputs"], None, ["num_digital_outputs"], None, ["num_analog_inputs"], None, ["num_analog_outputs"], None, ["num_io_functions"], ["num_io_functions"], None, None, None, None]
 
     def __init__(self):
         self.utime = 0
@@ -261,6 +261,24 @@ class status(object):
         LCM Type: double[num_analog_outputs]
         """
 
+        self.num_io_functions = 0
+        """
+        the I/O map's functions ([io.functions], docs/wiring.md), in the map's order: inputs 1 active,
+        0 not, -1 unreadable (link down); outputs as commanded (1 on, 0 off; spindle_speed in rpm);
+        spindle_speed_measured in rpm
+        LCM Type: int16_t
+        """
+
+        self.io_function_names = []
+        """ LCM Type: string[num_io_functions] """
+        self.io_function_values = []
+        """ LCM Type: double[num_io_functions] """
+        self.io_waiting = ""
+        """
+        what the program waits for at a sync point ("" nothing): "prog.ngc:4: M3 S1000: spindle at speed ..."
+        LCM Type: string
+        """
+
         self.last_error = ""
         """
         the last error in words ("" when none since the last reset)
@@ -345,6 +363,17 @@ class status(object):
         buf.write(struct.pack('>%dd' % self.num_analog_inputs, *self.analog_inputs[:self.num_analog_inputs]))
         buf.write(struct.pack(">h", self.num_analog_outputs))
         buf.write(struct.pack('>%dd' % self.num_analog_outputs, *self.analog_outputs[:self.num_analog_outputs]))
+        buf.write(struct.pack(">h", self.num_io_functions))
+        for i0 in range(self.num_io_functions):
+            __io_function_names_encoded = self.io_function_names[i0].encode('utf-8')
+            buf.write(struct.pack('>I', len(__io_function_names_encoded)+1))
+            buf.write(__io_function_names_encoded)
+            buf.write(b"\0")
+        buf.write(struct.pack('>%dd' % self.num_io_functions, *self.io_function_values[:self.num_io_functions]))
+        __io_waiting_encoded = self.io_waiting.encode('utf-8')
+        buf.write(struct.pack('>I', len(__io_waiting_encoded)+1))
+        buf.write(__io_waiting_encoded)
+        buf.write(b"\0")
         __last_error_encoded = self.last_error.encode('utf-8')
         buf.write(struct.pack('>I', len(__last_error_encoded)+1))
         buf.write(__last_error_encoded)
@@ -417,6 +446,14 @@ class status(object):
         self.analog_inputs = struct.unpack('>%dd' % self.num_analog_inputs, buf.read(self.num_analog_inputs * 8))
         self.num_analog_outputs = struct.unpack(">h", buf.read(2))[0]
         self.analog_outputs = struct.unpack('>%dd' % self.num_analog_outputs, buf.read(self.num_analog_outputs * 8))
+        self.num_io_functions = struct.unpack(">h", buf.read(2))[0]
+        self.io_function_names = []
+        for i0 in range(self.num_io_functions):
+            __io_function_names_len = struct.unpack('>I', buf.read(4))[0]
+            self.io_function_names.append(buf.read(__io_function_names_len)[:-1].decode('utf-8', 'replace'))
+        self.io_function_values = struct.unpack('>%dd' % self.num_io_functions, buf.read(self.num_io_functions * 8))
+        __io_waiting_len = struct.unpack('>I', buf.read(4))[0]
+        self.io_waiting = buf.read(__io_waiting_len)[:-1].decode('utf-8', 'replace')
         __last_error_len = struct.unpack('>I', buf.read(4))[0]
         self.last_error = buf.read(__last_error_len)[:-1].decode('utf-8', 'replace')
         self.last_error_utime, self.events_dropped = struct.unpack(">qq", buf.read(16))
@@ -426,7 +463,7 @@ class status(object):
     def _get_hash_recursive(parents):
         if status in parents: return 0
         newparents = parents + [status]
-        tmphash = (0xbd2538d6a748c37a+ telemetry.lcmtypes.canon.drive_status._get_hash_recursive(newparents)) & 0xffffffffffffffff
+        tmphash = (0x4d4a6bbd1ccc45c6+ telemetry.lcmtypes.canon.drive_status._get_hash_recursive(newparents)) & 0xffffffffffffffff
         tmphash  = (((tmphash<<1)&0xffffffffffffffff) + (tmphash>>63)) & 0xffffffffffffffff
         return tmphash
     _packed_fingerprint = None
