@@ -99,6 +99,7 @@ class MachineIO:
         self._spindle_dir = 0
         self._pending_futures: list[concurrent.futures.Future[float]] = []  # the last M3/M4/M19 writes
         self._drive_inputs: tuple[int, ...] = ()
+        self._unwritten: dict[str, float] = {}  # outputs whose write was refused (link down), warned once
         for name, b in self.f.items():
             if b.direction == "out":
                 self._values[name] = 0.0
@@ -132,19 +133,24 @@ class MachineIO:
         self._values[name] = float(value)
 
     def _write(self, b: Binding, value: float, cmd: C.Canon | None,
-               futures: list[concurrent.futures.Future[float]] | None = None) -> None:
+               futures: list[concurrent.futures.Future[float]] | None = None, force: bool = False) -> None:
+        """Write ``b``'s point: its logical ``value`` at the wired level. Unless ``force`` (a user M
+        code), a point already commanded to that level is not written again."""
         from fieldbus.modbus.faults import IoError
 
-        raw = (0.0 if value else 1.0) if b.kind == DIGITAL and b.active_low else float(value)
-        if b.kind == DIGITAL and not b.active_low:
-            raw = 1.0 if value else 0.0
+        raw = float(value) if b.kind != DIGITAL else 1.0 if bool(value) != b.active_low else 0.0
         if self.ex is None or b.point is None:
+            return
+        if not force and self.ex.commanded_point(b.point.key) == raw:
             return
         try:
             fut = self.ex.write_point(b.point.key, raw)
-        except IoError as exc:  # the link fault is reported by the executor; say what was lost
-            log.warning("%s not written: %s", b.name, exc)
+        except IoError as exc:  # the link fault is reported by the executor; say what was lost, once
+            if self._unwritten.get(b.point.key) != raw:
+                log.warning("%s not written: %s", b.name, exc)
+            self._unwritten[b.point.key] = raw
             return
+        self._unwritten.pop(b.point.key, None)
         if futures is not None:
             futures.append(fut)
         self.switched.append(Switched(b.name, float(value), cmd.file if cmd else "", cmd.line if cmd else 0))
@@ -227,7 +233,7 @@ class MachineIO:
                 self._wait = None
                 raise KeyError(f"{where}M{cmd.code} is not bound on this machine ([io.mcodes])")
             for b, value in mc.sets:
-                self._write(b, value, cmd, futures)
+                self._write(b, value, cmd, futures, force=True)
             w = mc.wait
             if w is None:
                 self._wait = _Wait(cmd, f"{where}M{cmd.code}", now + mc.timeout_s, futures, lambda: True, "",
@@ -361,21 +367,13 @@ class MachineIO:
         return out
 
     def _set_enable(self, on: bool) -> None:
-        b = self.f.get("machine_enable")
-        if b is None or b.point is None or self.ex is None:
-            return
-        raw = 1.0 if on != b.active_low else 0.0
-        if self.ex.commanded_point(b.point.key) != raw or self._values.get("machine_enable") != float(on):
-            self._set("machine_enable", on)
+        self._set("machine_enable", on)  # written when it changes (or was reset to safe by a recovery)
 
     def drop_outputs(self) -> None:
         """E-stop or fault: the spindle, coolant and machine enable off now (their safe values)."""
         for name in ("machine_enable", "spindle_on", "spindle_cw", "spindle_ccw", "spindle_orient",
-                     "coolant_mist", "coolant_flood"):
-            if self._values.get(name):
-                self._set(name, False)
-        if self._values.get("spindle_speed"):
-            self._set("spindle_speed", 0.0)
+                     "coolant_mist", "coolant_flood", "spindle_speed"):
+            self._set(name, 0.0)
         self._spindle_dir = 0
         self.cancel_wait()
 

@@ -1,0 +1,164 @@
+"""Where the machine's I/O map meets :class:`motiond.runtime.Machine`: the few calls the runtime makes
+into :class:`motiond.machine_io.MachineIO`, and what it does with the actions that come back.
+
+Kept apart from the runtime so that the runtime's part is a handful of one-line hooks:
+
+* :meth:`IoHooks.cycle` (cycle thread, at the start of each cycle, before the planner is stepped):
+  polls the functions and acts: an E-stop input (or an unreadable one) is :meth:`Machine.estop` now,
+  so the quick stop goes out before this cycle's setpoint; a Modbus limit switch faults the CANopen
+  master for that axis, exactly as a drive's own limit switch does (quick stop, the fault names axis and
+  switch); a timed-out wait is a fault naming the line; the door and the operator buttons pause,
+  resume and abort as the commands of the same names do;
+* :meth:`IoHooks.on_event` (cycle thread, each event on the setpoint): spindle, coolant outputs;
+* :meth:`IoHooks.on_wait` (cycle thread, the planner stands at a sync point): True when the I/O map
+  completes it (M3/M4 with at-speed, M19 with oriented, a user M code);
+* :meth:`IoHooks.refuse_estop_reset`, :meth:`IoHooks.refuse_resume`: the input-side refusals;
+* :meth:`IoHooks.stopped`: E-stop, fault or abort: the wait is gone; on E-stop and fault the spindle,
+  coolant and machine enable are switched off.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import time
+from typing import Any
+
+from gcode_canon import commands as C
+from motiond.config_io import IoMap
+from motiond.machine_io import ABORT, ESTOP, FAULT, LIMIT, PAUSE, RELEASE, RESUME, MachineIO, MachineState
+from motiond.states import CommandRefused, State
+
+log = logging.getLogger(__name__)
+
+
+class IoHooks:
+    """The I/O map's run-time side for one :class:`~motiond.runtime.Machine` (module docstring)."""
+
+    def __init__(self, machine: Any, io: IoMap) -> None:
+        self.m = machine
+        self.map = io
+        self.mio = MachineIO(io, None, tuple(machine.names))
+        self.drive_inputs: tuple[int, ...] = ()
+
+    def start(self, executor: Any) -> None:
+        """The Modbus executor is up: the functions on Modbus points can be read and written."""
+        self.mio = MachineIO(self.map, executor, tuple(self.m.names))
+
+    @property
+    def wait_types(self) -> tuple[type[C.Canon], ...]:
+        return self.mio.wait_types
+
+    # --- cycle thread -------------------------------------------------------------------------------
+
+    def cycle(self) -> None:
+        """Poll the functions and act on what they ask (module docstring)."""
+        if self.map.empty:
+            return
+        m = self.m
+        snap = m.states.snapshot()
+        st = MachineState(
+            estop=snap.state is State.ESTOP,
+            enabled=snap.enabled and snap.state in (State.IDLE, State.RUNNING, State.PAUSED),
+            running=snap.state is State.RUNNING, paused=snap.state is State.PAUSED,
+            velocity=tuple(m._velocity), drive_inputs=self.drive_inputs)
+        for act in self.mio.poll(st):
+            self._act(act)
+
+    def _act(self, act: Any) -> None:
+        m = self.m
+        if act.kind == ESTOP:
+            m.estop(act.reason)
+        elif act.kind == LIMIT:
+            node = next((d.node_id for d in m.canopen.drives if d.axis == act.axis), 0)
+            if m.master is not None:
+                m.master.raise_fault(node, act.reason)
+        elif act.kind == FAULT:
+            m._post_fault(act.reason, "modbus")
+        elif act.kind == RELEASE:
+            m._release_wait()
+        elif act.kind == PAUSE:
+            with contextlib.suppress(CommandRefused):
+                m.pause()
+                m.event("INFO", f"paused: {act.reason}", kind="io_pause", source="modbus")
+        elif act.kind == RESUME:
+            try:
+                m.resume()
+            except CommandRefused as exc:
+                m.event("WARNING", f"{act.reason}: {exc}", kind="io_refused", source="modbus")
+        elif act.kind == ABORT:
+            with contextlib.suppress(CommandRefused):
+                m.abort()
+                m.event("WARNING", f"aborted: {act.reason}", kind="io_abort", source="modbus")
+
+    def on_event(self, ev: C.Canon, job: Any) -> None:
+        """A setpoint event: switch the outputs it asks for; note them for the run summary."""
+        if self.map.empty or not isinstance(ev, C.SpindleOn | C.SpindleOff | C.SpindleOrient
+                                            | C.SetSpindleSpeed | C.Coolant):
+            return
+        switched = self.mio.on_event(ev)
+        self._note(switched, job)
+        if isinstance(ev, C.SpindleOn | C.SetSpindleSpeed):
+            sp = self.map.spindle
+            rpm = abs(ev.rpm)
+            if "spindle_speed" in self.map.functions and rpm and (
+                    rpm < sp.min_rpm or (sp.max_rpm is not None and rpm > sp.max_rpm)):
+                got = next((s.value for s in switched if s.name == "spindle_speed"), rpm)
+                self.m.event("WARNING", f"S{rpm:g} clamped to {got:g} rpm ([io.spindle] min_rpm "
+                             f"{sp.min_rpm:g}, max_rpm {sp.max_rpm if sp.max_rpm is not None else '-'})",
+                             kind="spindle_clamp", source="modbus", file=ev.file, line=ev.line)
+
+    def _note(self, switched: list[Any], job: Any) -> None:
+        if job is None:
+            return
+        from motiond.runtime import OutputSwitch
+
+        now = time.monotonic()
+        for s in switched:
+            job.outputs.append(OutputSwitch(self.m.cycle, now, "function", -1, s.value, True, s.file, s.line,
+                                            name=s.name))
+
+    def on_wait(self, w: C.Canon) -> bool:
+        """The planner stands at ``w``: True when the I/O map completes it."""
+        n0 = len(self.mio.switched)
+        try:
+            taken = self.mio.on_wait(w)
+        except KeyError as exc:
+            self.m._post_fault(str(exc.args[0]), "modbus")
+            return True
+        if taken:
+            self._note(self.mio.switched[n0:], self.m._job)
+        return taken
+
+    def handles_orient(self) -> bool:
+        return "spindle_oriented" in self.map.functions or "spindle_orient" in self.map.functions
+
+    def stopped(self, *, outputs_off: bool) -> None:
+        """The job ended early (E-stop, fault, abort): forget the wait; on E-stop and fault switch the
+        spindle, coolant and machine enable off."""
+        if outputs_off:
+            self.mio.drop_outputs()
+        else:
+            self.mio.cancel_wait()
+
+    # --- other threads ------------------------------------------------------------------------------
+
+    def refuse_estop_reset(self) -> None:
+        """Raise :class:`CommandRefused` while the E-stop input is active or cannot be read."""
+        why = self.mio.estop_problem()
+        if why and "not polled yet" in why:  # just started: give the first poll a moment
+            deadline = time.monotonic() + 2.0
+            while why and time.monotonic() < deadline:
+                time.sleep(0.01)
+                why = self.mio.estop_problem()
+        if why:
+            raise CommandRefused(f"cannot reset the estop: {why}")
+
+    def refuse_resume(self) -> None:
+        if self.mio.door_open:
+            raise CommandRefused("cannot resume: the door is open (door_open); close it, then cycle start")
+
+    def status(self, s: Any) -> None:
+        names, values = self.mio.status()
+        s.num_io_functions, s.io_function_names, s.io_function_values = len(names), names, values
+        s.io_waiting = self.mio.waiting
