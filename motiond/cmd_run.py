@@ -288,7 +288,7 @@ def run(args: argparse.Namespace) -> int:
     path = program_file(args.file)
     config = load_checked(args.config)
     settings = settings_from_args(config, args, dry_run=False)
-    lock = lock_machine(args.config, config.limits.name, args.state_dir)
+    lock = lock_machine(args.config, config, args.state_dir)
     try:
         return _run_locked(args, path, config, settings)
     finally:
