@@ -127,23 +127,22 @@ def test_two_machine_files_on_one_bus_are_refused(tmp_path: Path) -> None:
     from motiond.instance_lock import lock_machine
 
     state = str(tmp_path / "s")
+
+    def refused_while_held(first: str, second: str, holds: str) -> None:
+        held = lock_machine(first, load_machine(first), state)
+        with pytest.raises(UserError, match=rf"{holds} is in use by process {os.getpid()} \(for machine file "
+                                            rf"{first}; "):
+            lock_machine(second, load_machine(second), state)
+        held.release()
+
     a = _machine_file(tmp_path, "mill-a", "socketcan", modbus_simulated=True)
     b = _machine_file(tmp_path, "mill-b", "socketcan", modbus_simulated=True)
-    held = lock_machine(a, load_machine(a), state)
-    with pytest.raises(UserError, match=rf"CAN bus socketcan can0 is in use by process {os.getpid()} \(for "
-                                        rf"machine file {a}; "):
-        lock_machine(b, load_machine(b), state)
-    held.release()
-    lock_machine(b, load_machine(b), state).release()
-
-    # the same real Modbus module behind two machine files on different CAN channels
+    refused_while_held(a, b, "CAN bus socketcan can0")
+    lock_machine(b, load_machine(b), state).release()  # free once the first let go
+    # the same real Modbus module behind two machine files on the (in-process) virtual CAN bus
     c = _machine_file(tmp_path, "mill-c", "virtual", modbus_simulated=False)
     d = _machine_file(tmp_path, "mill-d", "virtual", modbus_simulated=False)
-    held = lock_machine(c, load_machine(c), state)
-    with pytest.raises(UserError, match=rf"Modbus TCP 127\.0\.0\.1:\d+ unit \d+ is in use by process "
-                                        rf"\d+ \(for machine file {c}; "):
-        lock_machine(d, load_machine(d), state)
-    held.release()
+    refused_while_held(c, d, r"Modbus TCP 127\.0\.0\.1:\d+ unit \d+")
     # simulated Modbus and the virtual CAN bus live inside each process: no conflict
     e = _machine_file(tmp_path, "mill-e", "virtual", modbus_simulated=True)
     f = _machine_file(tmp_path, "mill-f", "virtual", modbus_simulated=True)
