@@ -27,6 +27,7 @@ from gcode_canon.commands import (
     ArcFeed,
     Pose,
     Probe,
+    RigidTap,
     SetToolNumber,
     StraightFeed,
     StraightTraverse,
@@ -285,6 +286,8 @@ def run_canon(work: Path, case: Case) -> Result:
             if isinstance(cmd, (StraightTraverse, StraightFeed, Probe)):
                 kind = {StraightTraverse: "traverse", StraightFeed: "feed"}.get(type(cmd), "probe")
                 result.moves.append(Move(kind, tuple(cmd.end[:6])))
+            elif isinstance(cmd, RigidTap):
+                result.moves.append(Move("tap", tuple(cmd.end[:3])))
             elif isinstance(cmd, ArcFeed):
                 first, second, _ = cmd.plane.value
                 result.moves.append(Move("arc", tuple(cmd.end[:6]), (cmd.center[first], cmd.center[second]),
