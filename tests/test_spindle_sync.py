@@ -6,6 +6,7 @@ reversal, and a real machine's refusal without spindle feedback. The differentia
 from __future__ import annotations
 
 import itertools
+import json
 import math
 import subprocess
 import sys
@@ -205,3 +206,18 @@ def test_canon_run_threads_on_the_simulated_machine(tmp_path: Path) -> None:
     r = subprocess.run([sys.executable, "-m", "motiond.cli", "run", "--no-telemetry", str(prog)],
                        capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert r.returncode == 0, r.stderr
+
+
+def test_lathe_example_threads_within_the_limits() -> None:
+    """examples/lathe.toml (X and Z only) with examples/thread.ngc: every G76 pass planned, every
+    limit held (the planner's own checker), one spring pass at full depth."""
+    r = subprocess.run([sys.executable, "-m", "motiond.cli", "plan", "--json", "--config",
+                        "examples/lathe.toml", "examples/thread.ngc"],
+                       capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert summary["ok"] and summary["within_limits"] and summary["deviation_ok"]
+    out = list(Interpreter(InterpreterSettings(dry_run=True)).run_file(ROOT / "examples" / "thread.ngc"))
+    cuts = [next(c for c in ps if isinstance(c, C.StraightFeed)) for ps in _passes(out)]
+    full = [c for c in cuts if c.end.x == pytest.approx(12.0 - 2.0 - 1.53)]
+    assert len(full) == 2 and len(cuts) > 2
