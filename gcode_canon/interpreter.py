@@ -156,6 +156,7 @@ class Interpreter(ModalStateMixin, Group0Mixin, SpindleSyncMixin):
         self.settings = settings or InterpreterSettings()
         self.machine: MachineCallbacks = machine if machine is not None else DryRunMachine()
         self.params = Parameters()
+        self.params.ini = dict(self.settings.ini_values)
         self.reader = ExpressionReader(self.params, self.settings.max_expression_depth)
         self.frames = Frames()
         self.logs = LogFiles(self.settings.log_dir)
@@ -1011,6 +1012,8 @@ class Interpreter(ModalStateMixin, Group0Mixin, SpindleSyncMixin):
             self.probe_log.open(text, append=False)
         elif keyword == "probeclose":
             self.probe_log.close()
+        elif keyword == "abort":  # LinuxCNC: the program stops with the (expanded) text as its error
+            raise GCodeError(expand(text, self.params).strip() or "(ABORT) in the program")
 
     def _step_feed_mode(self, block: Block, ml: ModalLine) -> None:
         code = ml.g.get(5)
