@@ -38,6 +38,7 @@ class IoHooks:
     def __init__(self, machine: Any, io: IoMap) -> None:
         self.m = machine
         self.map = io
+        self.empty = io.empty  # no map: the hooks cost nothing per cycle
         self.mio = MachineIO(io, None, tuple(machine.names))
         self.drive_inputs: tuple[int, ...] = ()
 
@@ -53,7 +54,7 @@ class IoHooks:
 
     def cycle(self) -> None:
         """Poll the functions and act on what they ask (module docstring)."""
-        if self.map.empty:
+        if self.empty:
             return
         m = self.m
         snap = m.states.snapshot()
@@ -93,7 +94,7 @@ class IoHooks:
 
     def on_event(self, ev: C.Canon, job: Any) -> None:
         """A setpoint event: switch the outputs it asks for; note them for the run summary."""
-        if self.map.empty or not isinstance(ev, C.SpindleOn | C.SpindleOff | C.SpindleOrient
+        if self.empty or not isinstance(ev, C.SpindleOn | C.SpindleOff | C.SpindleOrient
                                             | C.SetSpindleSpeed | C.Coolant):
             return
         switched = self.mio.on_event(ev)
@@ -130,8 +131,12 @@ class IoHooks:
             self._note(self.mio.switched[n0:], self.m._job)
         return taken
 
-    def handles_orient(self) -> bool:
-        return "spindle_oriented" in self.map.functions or "spindle_orient" in self.map.functions
+    def orient_text(self) -> str:
+        """What M19 does on this machine's wiring, for its event ("" nothing wired: done at once)."""
+        f = self.map.functions
+        if "spindle_orient" not in f:
+            return ""
+        return "spindle_orient on" + (", waiting for spindle_oriented" if "spindle_oriented" in f else "")
 
     def stopped(self, *, outputs_off: bool) -> None:
         """The job ended early (E-stop, fault, abort): forget the wait; on E-stop and fault switch the

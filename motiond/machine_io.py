@@ -100,6 +100,9 @@ class MachineIO:
         self._pending_futures: list[concurrent.futures.Future[float]] = []  # the last M3/M4/M19 writes
         self._drive_inputs: tuple[int, ...] = ()
         self._unwritten: dict[str, float] = {}  # outputs whose write was refused (link down), warned once
+        self._read_key: tuple[Any, ...] = ()
+        self._digital_inputs = [(n, b) for n, b in self.f.items()
+                                if b.direction == "in" and b.kind == DIGITAL]
         for name, b in self.f.items():
             if b.direction == "out":
                 self._values[name] = 0.0
@@ -316,11 +319,18 @@ class MachineIO:
         out: list[Action] = []
         prev = self._inputs
         self._drive_inputs = st.drive_inputs
-        cur: dict[str, bool | None] = {}
-        for name, b in self.f.items():
-            if b.direction == "in" and b.kind == DIGITAL:
+        ex = self.ex
+        # the inputs change with a poll (every poll_ms), a link or the drives' inputs: read them again
+        # only then (most cycles fall between two polls)
+        key = (st.drive_inputs, ex.worker.snapshot.seq, tuple(ex.worker.link_up.values())) \
+            if ex is not None else (st.drive_inputs,)
+        if key != self._read_key:
+            self._read_key = key
+            cur: dict[str, bool | None] = {}
+            for name, b in self._digital_inputs:
                 cur[name] = self._read(b, st)
-        self._inputs = cur
+            self._inputs = cur
+        cur = self._inputs
 
         def rose(name: str) -> bool:
             return bool(cur.get(name)) and not prev.get(name)
