@@ -339,3 +339,19 @@ def test_the_simulated_module_is_wired_like_the_map() -> None:
             assert sim.get("discrete_input", 9) == 0
         finally:
             ex.stop()
+
+
+def test_the_interpreter_accepts_exactly_the_bound_user_mcodes() -> None:
+    from gcode_canon.errors import GCodeError
+    from gcode_canon.interpreter import Interpreter
+    from motiond.interp_settings import build_settings
+
+    settings = build_settings(load_machine(None), dry_run=True)
+    assert settings.user_mcodes == frozenset({101, 102})  # the demo machine's [io.mcodes]
+    settings.require_program_end = False
+    out = [c for c in Interpreter(settings).run_string("G0 X1\nM101 P2 Q0.5\nM102\n", "p.ngc")
+           if isinstance(c, C.UserMCode)]
+    assert out == [C.UserMCode(101, 2.0, 0.5, file="p.ngc", line=2), C.UserMCode(102, file="p.ngc", line=3)]
+    with pytest.raises(GCodeError, match="M150: user-defined M code not bound") as info:
+        list(Interpreter(settings).run_string("G0 X1\nM150\n", "p.ngc"))
+    assert info.value.line == 2
