@@ -355,3 +355,18 @@ def test_the_interpreter_accepts_exactly_the_bound_user_mcodes() -> None:
     with pytest.raises(GCodeError, match="M150: user-defined M code not bound") as info:
         list(Interpreter(settings).run_string("G0 X1\nM150\n", "p.ngc"))
     assert info.value.line == 2
+
+
+def test_a_limit_switch_on_a_drive_input_bit(tmp_path: Path) -> None:
+    _m, io = load(tmp_path, "[io.functions]\nlimit_z_min = { drive = \"z\", bit = 20 }\n")
+    mio = MachineIO(io, None, ("x", "z"))  # no Modbus needed: the master's 0x60FD words
+
+    def poll(word: int, vz: float) -> list[str]:
+        return kinds(mio.poll(MachineState(estop=False, enabled=True, running=True, paused=False,
+                                           velocity=(0.0, vz), drive_inputs=(0, word))))
+
+    assert poll(0, -3.0) == []
+    acts = mio.poll(MachineState(False, True, True, False, (0.0, -3.0), (0, 1 << 20)))
+    assert kinds(acts) == [LIMIT] and "axis z: negative limit switch limit_z_min" in acts[0].reason
+    assert "drive z 0x60FD bit 20" in acts[0].reason
+    assert poll(1 << 20, 3.0) == []  # moving off it
