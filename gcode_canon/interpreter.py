@@ -831,6 +831,8 @@ class Interpreter(ModalStateMixin, Group0Mixin, SpindleSyncMixin):
             if axis_user0 or g0 == 530:
                 raise GCodeError(f"Polar coordinates (@ ^) cannot be used with {_axis_user_name(ml)}")
         ms = set(block.m)
+        if self.settings.disable_fanuc_style_sub and ms & {98, 99}:  # LinuxCNC: when the line is read
+            raise GCodeError(f"DISABLE_FANUC_STYLE_SUB is set, but found M{min(ms & {98, 99})}")
         takes_ijk = g0 in (100, 120, 130) or ml.g.get(17) == 510
         for letter in "ijk":
             if letter in w and not arc and motion != 870 and not takes_ijk:
