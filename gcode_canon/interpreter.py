@@ -81,6 +81,7 @@ from gcode_canon import cutter_comp, cycles, transforms
 from gcode_canon.block_checks import BlockChecksMixin
 from gcode_canon.commands import Canon, FeedMode, MotionControlMode, Plane, Pose, SpindleDirection
 from gcode_canon.comp_steps import CutterCompMixin
+from gcode_canon.compiled import LineCache
 from gcode_canon.dialect import Dialect
 from gcode_canon.errors import GCodeError
 from gcode_canon.expressions import ExpressionReader, near_int
@@ -125,6 +126,7 @@ class Interpreter(ProgramLoopMixin, BlockChecksMixin, ModeStepsMixin, ToolSpindl
             else self.settings.dialect
         # LinuxCNC (and Grbl, which has no expressions) compare GT/GE/LT/LE strictly
         self.reader.tolerant_order = self.dialect is Dialect.GCODE_CANON
+        self._lines = LineCache(self.reader)
         self.flow = FlowControl(self)
         self.source: LineSource = LineSource.from_string("", "<none>")
         self.seen_code = False

@@ -21,7 +21,7 @@ from gcode_canon.commands import (
 )
 from gcode_canon.dialect import GRBL_JUNCTION_DEVIATION_MM, Dialect
 from gcode_canon.errors import GCodeError
-from gcode_canon.lexer import FAST_LINE, Block, parse_line
+from gcode_canon.lexer import FAST_LINE, Block
 from gcode_canon.machine import Resume
 from gcode_canon.modal import ModalLine, sort_codes
 from gcode_canon.source import LineSource
@@ -237,7 +237,7 @@ class ProgramLoopMixin:
 
     def _execute_line(self, raw: str) -> list[Canon | Resume]:
         self._out = []
-        block = parse_line(raw, self.reader)
+        block = self._lines.parse(raw)
         if block.deleted and self.settings.block_delete:
             return []
         if block.o_text is not None:
