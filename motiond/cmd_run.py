@@ -217,7 +217,8 @@ def _settle(machine: Any, timeout: float = SETTLE_S) -> None:
 
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        if all(abs(a - c) <= 2e-4 for a, c in zip(machine._actual, machine._commanded, strict=True)):
+        motion = machine.motion
+        if all(abs(a - c) <= 2e-4 for a, c in zip(motion.actual, motion.commanded, strict=True)):
             return
         time.sleep(0.01)
 
@@ -362,7 +363,7 @@ def _run_locked(args: argparse.Namespace, path: Any, config: Any, settings: Any)
             print(f"{err.file}: {err.message}", file=sys.stderr)
             return 1
         _settle(machine)
-        result.final_actual = tuple(machine._actual)
+        result.final_actual = tuple(machine.motion.actual)
         if args.json:
             import json
 
