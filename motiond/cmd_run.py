@@ -22,7 +22,6 @@ import sys
 from typing import Any
 
 SETTLE_S = 0.5  # after the last setpoint, wait this long at most for the drives to settle
-STOP_TIMEOUT_S = 10.0  # Ctrl-C: the jerk-limited stop must be at rest by then (a few 100 ms at most)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -257,6 +256,8 @@ def _interrupted(machine: Any, program: str) -> int:
     """Ctrl-C or SIGTERM while the program runs: a jerk-limited stop on the path (the planner's
     abort, the drives kept streaming until the motion is at rest), then the machine shut down (drives
     disabled, outputs safe, parameters written) and the place to resume from printed."""
+    from motiond.runtime import STOP_TIMEOUT_S
+
     at_rest = machine.stop_on_path(STOP_TIMEOUT_S)
     place = machine.motion_place
     var = machine.interp.settings.var_file

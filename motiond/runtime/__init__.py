@@ -22,6 +22,7 @@ from motiond.runtime.machine import (
     SIM_FEEDBACK_TIMEOUT_S,
     SIM_HEARTBEAT_CONSUMER_MS,
     SIM_LATE_FAULT_S,
+    STOP_TIMEOUT_S,
     Machine,
 )
 from motiond.runtime.motion import FEED_PER_CYCLE, LATE_LOG, LOOKAHEAD, QUEUE_MAX, MotionCore, MotionSnapshot
@@ -30,6 +31,6 @@ from motiond.runtime.service import SERVICE_JOIN_S
 
 __all__ = [
     "FEED_PER_CYCLE", "LATE_LOG", "LOOKAHEAD", "QUEUE_MAX", "SERVICE_JOIN_S", "SIM_FEEDBACK_TIMEOUT_S",
-    "SIM_HEARTBEAT_CONSUMER_MS", "SIM_LATE_FAULT_S", "AxisPeaks", "JobResult", "Machine",
+    "SIM_HEARTBEAT_CONSUMER_MS", "SIM_LATE_FAULT_S", "STOP_TIMEOUT_S", "AxisPeaks", "JobResult", "Machine",
     "MachineError", "ModalState", "MotionCore", "MotionSnapshot", "OutputSwitch",
 ]

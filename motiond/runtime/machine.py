@@ -63,6 +63,11 @@ SIM_FEEDBACK_TIMEOUT_S = 0.5
 SIM_HEARTBEAT_CONSUMER_MS = 1500
 """And a heartbeat this late (both ways): on a loaded PC the process can stall for a few 100 ms."""
 
+STOP_TIMEOUT_S = 10.0
+"""Ctrl-C (``canon run``) or SIGTERM (the daemon): the jerk-limited stop on the path
+(:meth:`Machine.stop_on_path`) must be at rest by then (it takes a few 100 ms at most); after it the
+drives are disabled whatever the motion."""
+
 _instance = itertools.count(1)
 
 
@@ -533,7 +538,7 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
         self.estop_reset()
         self.enable()
 
-    def stop_on_path(self, timeout: float) -> bool:
+    def stop_on_path(self, timeout: float = STOP_TIMEOUT_S) -> bool:
         """The jerk-limited stop on the path (:meth:`abort`: the drives keep streaming until the motion is
         at rest), waited for at most ``timeout`` seconds; True at rest. What Ctrl-C and SIGTERM do before
         :meth:`shutdown`, which alone would stop the stream with the axes at speed. A refused abort (a
