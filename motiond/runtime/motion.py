@@ -9,13 +9,18 @@ cycle thread touches: it is not thread-safe) and the ``canon-cycle`` thread (a
 feeding the planner from the command queue, one setpoint, one ``master.cycle``, ``io.on_setpoint``).
 Nothing the cycle thread does waits on a network.
 
-Its interface is narrow on purpose; the task side uses nothing else:
+Its interface is narrow on purpose; the task side uses nothing else (tests/test_runtime_boundary.py
+checks that every name it uses is one of those below):
+
+Life: :meth:`~MotionCore.open` (master up, drives booted), :meth:`~MotionCore.start_cycle`,
+:meth:`~MotionCore.stop_cycle`, :meth:`~MotionCore.close`.
 
 In (task -> motion)
   * canonical commands through one bounded queue (:data:`QUEUE_MAX`): :meth:`MotionCore.put` (the job
     thread; blocks while full, gives up when the job is cancelled), :data:`END` after a job's last
     command; :meth:`~MotionCore.begin_stream` / :meth:`~MotionCore.end_stream` around a job (its
-    :class:`~motiond.runtime.records.Stream` accounting), :meth:`~MotionCore.drop_commands`.
+    :class:`~motiond.runtime.records.Stream` accounting), :meth:`~MotionCore.drop_commands`,
+    :meth:`~MotionCore.wake_waiters` (a cancelled job thread waiting for a sync point looks again).
   * urgent calls, explicit methods that act within a cycle and never queue behind the commands:
     :meth:`~MotionCore.quick_stop` (any thread, at once), :meth:`~MotionCore.estop`,
     :meth:`~MotionCore.abort`, :meth:`~MotionCore.pause`, :meth:`~MotionCore.resume`,
@@ -29,8 +34,12 @@ Out (motion -> task)
   * :meth:`~MotionCore.snapshot`: a :class:`MotionSnapshot` (positions, velocities, following errors,
     the line, spindle / coolant / tool as the setpoints carried them, the modal state of the block
     being cut, the feed override, every drive's state), any thread, never blocking the cycle;
-    :meth:`~MotionCore.position` (where the motion stands, asked of the cycle thread), and the
-    counters ``cycle``, ``late_cycles``, ``worst_late_s``, ``late_log``.
+    :meth:`~MotionCore.position` (where the motion stands, asked of the cycle thread),
+    :meth:`~MotionCore.drained` (nothing queued, nothing left to run); the counters ``cycle``,
+    ``late_cycles``, ``worst_late_s``, ``late_log``; the last setpoint's ``commanded`` position, the
+    drives' ``actual`` one and its ``place`` (line, file); and the flags ``has_planner``,
+    ``is_moving``, ``aborting``, ``stopping`` (an abort's or a fault's stop not yet at rest),
+    ``fault_stopping``.
   * :class:`MotionHooks`, called on the cycle thread (they must not block): events, a fault to act
     on, the stream to cancel, the stream done, an abort finished, a program stop reached, the drives
     to disable after a fault's stop; and the planner's priming commands.
@@ -237,10 +246,6 @@ class MotionCore(Cycle):
             return p is None or (p.is_idle and p.queue_length == 0)
 
         return self._cmdq.empty() and bool(self.run_on_cycle(idle))
-
-    @property
-    def queue_empty(self) -> bool:
-        return self._cmdq.empty()
 
     def wait_sync_point(self, cmd: Any, cancel: threading.Event) -> bool:
         """Job thread: block until the planner stands at ``cmd``; False when ``cancel`` is set first."""
