@@ -190,7 +190,7 @@ def test_rigid_tap_reverses_the_spindle_at_the_bottom() -> None:
 
 
 def test_real_machine_refuses_synchronized_motion_without_spindle_feedback() -> None:
-    from motiond.runtime import refuse_unfollowed_sync
+    from motiond.runtime.cycle import refuse_unfollowed_sync
 
     cmd = C.SpindleSync(1.5, file="p.ngc", line=7)
     refuse_unfollowed_sync(cmd, simulated=True)
