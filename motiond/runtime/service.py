@@ -358,6 +358,9 @@ class ServiceMixin(MachinePart):
                     self.master.home(a)
                     if self._interrupts != since:
                         return  # _operation: failed, the axis not marked homed
+                    # the commanded position rebased to the homed drive before the status says homed,
+                    # so no status shows the axis homed at its old coordinate
+                    self.motion.new_planner(unless=lambda: self._interrupts != since)
                     self.homed[self.names.index(a)] = True
                     self.event("INFO", f"axis {a} homed", kind="homed", source="canopen")
             except CanopenError as exc:
