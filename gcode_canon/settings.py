@@ -48,6 +48,9 @@ class InterpreterSettings:
     parameter file is read and at M2/M30 (LinuxCNC's ``[RS274NGC] DISABLE_G92_PERSISTENCE``)."""
     user_mcodes: frozenset[int] = frozenset()
     """The user M codes (100-199) the machine binds (``[io.mcodes]``); any other M100-M199 is an error."""
+    disable_fanuc_style_sub: bool = False
+    """M98, M99 and bare ``O<n>`` program numbers are refused (LinuxCNC's ``[RS274NGC]
+    DISABLE_FANUC_STYLE_SUB``): only o-word subroutines."""
     ini_values: dict[str, float] = field(default_factory=dict)
     """What ``#<_ini[section]name>`` reads (LinuxCNC's INI variables), keyed ``"section]name"`` in
     lower case: the daemon fills it with the machine file's numbers. Read-only to programs."""

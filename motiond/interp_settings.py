@@ -83,6 +83,7 @@ def build_settings(config: Any, *, var: str | None = None, tool_table: str | Non
         tool_change_with_spindle_on=ic.tool_change_with_spindle_on,
         disable_g92_persistence=ic.disable_g92_persistence,
         user_mcodes=bound_mcodes(config),
+        disable_fanuc_style_sub=ic.disable_fanuc_style_sub,
         ini_values=ini_values(config.root.data if config.root is not None else {}),
     )
 

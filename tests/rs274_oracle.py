@@ -273,6 +273,7 @@ def run_canon(work: Path, case: Case) -> Result:
         axes="xyzabc",  # rs274 without [TRAJ] COORDINATES reads X Y Z A B C only
         disable_g92_persistence=_ini_flag(work, case, "DISABLE_G92_PERSISTENCE"),
         ini_values=_ini_values(work, case) if _ini_flag(work, case, "INI_VARS") else {},
+        disable_fanuc_style_sub=_ini_flag(work, case, "DISABLE_FANUC_STYLE_SUB"),
     )
     result = Result()
     machine = OracleMachine()

@@ -61,3 +61,30 @@ def test_canon_check_reads_the_machine_file(tmp_path: Path) -> None:
     assert r.returncode == 0, r.stderr
     move = json.loads(r.stdout.splitlines()[0])  # one command per line
     assert move["command"] == "STRAIGHT_TRAVERSE" and (move["x"], move["z"]) == (299.0, 50.0)
+
+
+@pytest.mark.parametrize(("program", "found"), [
+    ("G0 X1\nM98 P1\nM30\nO1\nG0 X2\nM99\n", "M98"),
+    ("O1\nG0 X2\nM99\n", "bare O-word O1"),
+])
+def test_disable_fanuc_style_sub(program: str, found: str) -> None:
+    """[interpreter] disable_fanuc_style_sub (LinuxCNC's DISABLE_FANUC_STYLE_SUB): numbered programs
+    are refused at the line that uses them; o-word subroutines still work."""
+    settings = InterpreterSettings(dry_run=True, require_program_end=False)
+    list(Interpreter(settings).run_string(program, "t.ngc"))  # allowed by default
+    settings.disable_fanuc_style_sub = True
+    with pytest.raises(GCodeError, match=f"DISABLE_FANUC_STYLE_SUB is set, but found {found}") as info:
+        list(Interpreter(settings).run_string(program, "t.ngc"))
+    assert info.value.line == (2 if found == "M98" else 1)
+    ok = "o100 sub\nG0 X3\no100 endsub\no100 call\nM2\n"
+    assert any(isinstance(c, StraightTraverse) for c in Interpreter(settings).run_string(ok, "t.ngc"))
+
+
+def test_disable_fanuc_style_sub_from_the_machine_file(tmp_path: Path) -> None:
+    from motiond.config import load_machine
+    from motiond.interp_settings import build_settings
+
+    text = (ROOT / "examples" / "canon.toml").read_text()
+    path = tmp_path / "m.toml"
+    path.write_text(text.replace("[interpreter]", "[interpreter]\ndisable_fanuc_style_sub = true", 1))
+    assert build_settings(load_machine(str(path)), dry_run=True).disable_fanuc_style_sub
