@@ -173,7 +173,7 @@ def summary_dict(machine: Any, result: Any) -> dict[str, Any]:
         "final_actual": {n: v["final_actual"] for n, v in axes.items()},
         "outputs_switched": [
             {"cycle": o.cycle - result.first_cycle, "kind": o.kind, "index": o.index,
-             "value": o.value, "synced": o.synced, "line": o.line}
+             "value": o.value, "synced": o.synced, "line": o.line, "name": o.name}
             for o in result.outputs],
     }
 
@@ -215,7 +215,8 @@ def print_summary(machine: Any, result: Any, console: Any) -> None:
     console.print(t)
     outs = d["outputs_switched"]
     if outs:
-        words = [f"{'D' if o['kind'] == 'digital' else 'A'}{o['index']}="
+        words = [f"{o['name']}={o['value']:g} (line {o['line']})" if o["kind"] == "function" else
+                 f"{'D' if o['kind'] == 'digital' else 'A'}{o['index']}="
                  f"{int(o['value']) if o['kind'] == 'digital' else o['value']:g} (line {o['line']}"
                  f"{', synced' if o['synced'] else ''})" for o in outs]
         console.print(f"outputs switched: {len(outs)}: " + ", ".join(words), highlight=False)

@@ -1,14 +1,16 @@
 """Where the machine's I/O map meets :class:`motiond.runtime.Machine`: the few calls the runtime makes
 into :class:`motiond.machine_io.MachineIO`, and what it does with the actions that come back.
 
-Kept apart from the runtime so that the runtime's part is a handful of one-line hooks:
+Kept apart from the runtime so that the runtime's part is a handful of one-line hooks (the motion
+side calls them through its ``MotionHooks``: ``io_cycle``, ``io_event``, ``io_wait``,
+``planner_waits``, ``orient_text``; all on the cycle thread):
 
 * :meth:`IoHooks.cycle` (cycle thread, at the start of each cycle, before the planner is stepped):
   polls the functions and acts: an E-stop input (or an unreadable one) is :meth:`Machine.estop` now,
-  so the quick stop goes out before this cycle's setpoint; a Modbus limit switch faults the CANopen
-  master for that axis, exactly as a drive's own limit switch does (quick stop, the fault names axis and
-  switch); a timed-out wait is a fault naming the line; the door and the operator buttons pause,
-  resume and abort as the commands of the same names do;
+  so the quick stop goes out before this cycle's setpoint; a Modbus limit switch stops the machine as
+  a drive's own limit switch does (CiA 402 quick stop on every drive at once, then FAULTED with the
+  axis and switch named); a timed-out wait is a fault naming the line; the door and the operator
+  buttons pause, resume and abort as the commands of the same names do;
 * :meth:`IoHooks.on_event` (cycle thread, each event on the setpoint): spindle, coolant outputs;
 * :meth:`IoHooks.on_wait` (cycle thread, the planner stands at a sync point): True when the I/O map
   completes it (M3/M4 with at-speed, M19 with oriented, a user M code);
@@ -40,7 +42,6 @@ class IoHooks:
         self.map = io
         self.empty = io.empty  # no map: the hooks cost nothing per cycle
         self.mio = MachineIO(io, None, tuple(machine.names))
-        self.drive_inputs: tuple[int, ...] = ()
 
     def start(self, executor: Any) -> None:
         """The Modbus executor is up: the functions on Modbus points can be read and written."""
@@ -52,17 +53,17 @@ class IoHooks:
 
     # --- cycle thread -------------------------------------------------------------------------------
 
-    def cycle(self) -> None:
-        """Poll the functions and act on what they ask (module docstring)."""
+    def cycle(self, drive_inputs: tuple[int, ...], velocity: tuple[float, ...]) -> None:
+        """Poll the functions and act on what they ask (module docstring). ``drive_inputs``: 0x60FD
+        per axis from the last feedback; ``velocity``: the commanded one per axis."""
         if self.empty:
             return
-        m = self.m
-        snap = m.states.snapshot()
+        snap = self.m.states.snapshot()
         st = MachineState(
             estop=snap.state is State.ESTOP,
             enabled=snap.enabled and snap.state in (State.IDLE, State.RUNNING, State.PAUSED),
             running=snap.state is State.RUNNING, paused=snap.state is State.PAUSED,
-            velocity=tuple(m._velocity), drive_inputs=self.drive_inputs)
+            velocity=velocity, drive_inputs=drive_inputs)
         for act in self.mio.poll(st):
             self._act(act)
 
@@ -70,14 +71,13 @@ class IoHooks:
         m = self.m
         if act.kind == ESTOP:
             m.estop(act.reason)
-        elif act.kind == LIMIT:
-            node = next((d.node_id for d in m.canopen.drives if d.axis == act.axis), 0)
-            if m.master is not None:
-                m.master.raise_fault(node, act.reason)
+        elif act.kind == LIMIT:  # as a drive's limit switch: every drive quick-stopped now, then FAULTED
+            m.motion.quick_stop(act.reason)
+            m._post_fault(act.reason, "modbus")
         elif act.kind == FAULT:
             m._post_fault(act.reason, "modbus")
         elif act.kind == RELEASE:
-            m._release_wait()
+            m.motion.release_wait()
         elif act.kind == PAUSE:
             with contextlib.suppress(CommandRefused):
                 m.pause()
@@ -109,15 +109,16 @@ class IoHooks:
                              f"{sp.min_rpm:g}, max_rpm {sp.max_rpm if sp.max_rpm is not None else '-'})",
                              kind="spindle_clamp", source="modbus", file=ev.file, line=ev.line)
 
-    def _note(self, switched: list[Any], job: Any) -> None:
-        if job is None:
+    def _note(self, switched: list[Any], stream: Any) -> None:
+        """The outputs switched, into the job's record (``stream.outputs``: the run summary)."""
+        if stream is None:
             return
-        from motiond.runtime import OutputSwitch
+        from motiond.runtime.records import OutputSwitch
 
         now = time.monotonic()
         for s in switched:
-            job.outputs.append(OutputSwitch(self.m.cycle, now, "function", -1, s.value, True, s.file, s.line,
-                                            name=s.name))
+            stream.outputs.append(OutputSwitch(self.m.cycle, now, "function", -1, s.value, True, s.file,
+                                               s.line, name=s.name))
 
     def on_wait(self, w: C.Canon) -> bool:
         """The planner stands at ``w``: True when the I/O map completes it."""
@@ -128,7 +129,7 @@ class IoHooks:
             self.m._post_fault(str(exc.args[0]), "modbus")
             return True
         if taken:
-            self._note(self.mio.switched[n0:], self.m._job)
+            self._note(self.mio.switched[n0:], self.m.motion.stream)
         return taken
 
     def orient_text(self) -> str:
@@ -148,10 +149,14 @@ class IoHooks:
 
     # --- other threads ------------------------------------------------------------------------------
 
-    def refuse_estop_reset(self) -> None:
-        """Raise :class:`CommandRefused` while the E-stop input is active or cannot be read."""
+    def refuse_estop_reset(self, wait: bool = True) -> None:
+        """Raise :class:`CommandRefused` while the E-stop input is active or cannot be read. Right
+        after start the first poll may not have come: ``wait`` gives it up to 2 s; without ``wait``
+        (the command thread, which never waits) that case passes, for the operation to decide."""
         why = self.mio.estop_problem()
-        if why and "not polled yet" in why:  # just started: give the first poll a moment
+        if not wait and "not polled yet" in why:
+            return
+        if why and "not polled yet" in why:
             deadline = time.monotonic() + 2.0
             while why and time.monotonic() < deadline:
                 time.sleep(0.01)

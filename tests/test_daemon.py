@@ -303,14 +303,15 @@ def test_io_server_stopped_faults_and_reset_waits_for_the_link(daemon: Daemon) -
     daemon.ready()
     module = daemon.machine.sim_io["io"]
     module.stop()
-    s = daemon.wait_status(lambda s: s.state == "fault", what="fault")
-    assert "Modbus" in s.last_error and not s.io_ok
-    refused = daemon.cmd("reset")
+    # the demo machine's E-stop input is on that module (docs/wiring.md): unreadable is an E-stop
+    # (a machine without an E-stop input faults instead: tests/test_end_to_end.py)
+    daemon.wait_status(lambda s: s.state == "estop" and not s.io_ok, what="E-stop")
+    refused = daemon.cmd("estop_reset")
     assert not refused.ok and "Modbus" in refused.error
     module.start()
     deadline = time.monotonic() + 10
     while True:
-        reply = daemon.cmd("reset")
+        reply = daemon.cmd("estop_reset")
         if reply.ok or time.monotonic() > deadline:
             break
         time.sleep(0.2)

@@ -157,5 +157,6 @@ def test_daemon_completes_it_at_once_with_an_event(tmp_path: Path) -> None:
         machine.shutdown()
     assert result is not None and result.ok, result and result.error
     orient = [(text, line) for kind, text, line in seen if kind == "spindle_orient"]
-    assert orient[0] == ("spindle orient to 30 deg (P2): done at once (simulated machine)", 3)
+    # the demo machine wires spindle_orient and spindle_oriented (docs/wiring.md): M19 waits for it
+    assert orient[0] == ("spindle orient to 30 deg (P2): spindle_orient on, waiting for spindle_oriented", 3)
     assert [line for _t, line in orient[1:]] == [6, 6]  # G87's two

@@ -97,6 +97,7 @@ class Cycle:
         self.actual = tuple(0.0 for _ in range(self.n))
         self.actual_t = 0.0
         self.following_error = tuple(0.0 for _ in range(self.n))
+        self.drive_inputs: tuple[int, ...] = ()  # 0x60FD per axis, from the last feedback
         self.place = (0, "")  # (line, file) of the last setpoint that carried a line
         self.spindle = (0, 0.0)
         self.coolant = (False, False)
@@ -147,6 +148,7 @@ class Cycle:
             fn()
         if self._pending_fault is not None:
             self._handle_fault()
+        self.hooks.io_cycle(self.drive_inputs, self.velocity)  # E-stop, limits, buttons, door, waits
         master = self.master
         p = self.planner
         sp = None
@@ -161,6 +163,7 @@ class Cycle:
         self.actual = fb.positions
         self.actual_t = time.monotonic()
         self.following_error = fb.following_errors
+        self.drive_inputs = fb.digital_inputs
         stream = self.stream
         if self.trace is not None and sp is not None:
             self.trace.append((self.cycle, time.monotonic(), sp.positions, sp.events))
@@ -245,6 +248,7 @@ class Cycle:
 
     def _events(self, sp: Any, stream: Stream | None) -> None:
         for ev in sp.events:
+            self.hooks.io_event(ev, stream)  # spindle, coolant: the I/O map's outputs
             if isinstance(ev, C.DigitalOutput | C.AnalogOutput):
                 if stream is not None:
                     digital = isinstance(ev, C.DigitalOutput)
@@ -263,8 +267,9 @@ class Cycle:
                 # here, before the next setpoint (no spindle drive is wired, as for tool changes)
                 self.spindle = (0, self.spindle[1])
                 how = "simulated machine" if self.simulated else "no spindle orientation configured"
-                self.hooks.event("INFO", f"spindle orient to {ev.angle:g} deg (P{ev.direction}): done at "
-                                 f"once ({how})",
+                wired = self.hooks.orient_text()  # the I/O map's orient output (and oriented input)
+                self.hooks.event("INFO", f"spindle orient to {ev.angle:g} deg (P{ev.direction}): "
+                                 f"{wired or f'done at once ({how})'}",
                                  kind="spindle_orient", source="motiond", file=ev.file, line=ev.line)
             elif isinstance(ev, C.SetSpindleSpeed):
                 self.spindle = (self.spindle[0], ev.rpm)
@@ -278,6 +283,8 @@ class Cycle:
     def _on_wait(self, w: Any) -> None:
         """Cycle thread: the planner stands at a sync point that waits for the machine."""
         p = self.planner
+        if self.hooks.io_wait(w):
+            return  # spindle at speed, oriented, a user M code: the I/O map completes it
         if isinstance(w, C.ToolChange):
             how = "simulated machine" if self.simulated else "no tool changer configured"
             self.hooks.event("INFO", f"tool change to T{w.tool}: done at once ({how})",

@@ -361,6 +361,7 @@ class JobsMixin(MachinePart):
             job.error = error
         job.aborted = job.aborted or aborted
         self.motion.drop_commands()
+        self.io_hooks.stopped(outputs_off=False)
         self._finish_job()
 
     def _finish_job(self) -> None:

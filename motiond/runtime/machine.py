@@ -111,6 +111,7 @@ class _TaskHooks:
         m.last_error = reason
         m.last_error_utime = time.time_ns() // 1000
         m._cancel_job(reason)
+        m.io_hooks.stopped(outputs_off=True)
         m.motion.fault_stop()
         m.states.fault(reason)
         kind = {"canopen": "drive_fault", "modbus": "io_fault"}.get(source, "fault")
@@ -141,6 +142,21 @@ class _TaskHooks:
     def planner_prime(self) -> list[C.Canon]:
         return self.m._planner_prime()
 
+    def planner_waits(self) -> tuple[type[C.Canon], ...]:
+        return self.m.io_hooks.wait_types
+
+    def io_cycle(self, drive_inputs: tuple[int, ...], velocity: tuple[float, ...]) -> None:
+        self.m.io_hooks.cycle(drive_inputs, velocity)
+
+    def io_event(self, ev: C.Canon, stream: Any) -> None:
+        self.m.io_hooks.on_event(ev, stream)
+
+    def io_wait(self, w: C.Canon) -> bool:
+        return self.m.io_hooks.on_wait(w)
+
+    def orient_text(self) -> str:
+        return self.m.io_hooks.orient_text()
+
 
 class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
     """A whole machine from a :class:`motiond.config.MachineConfig` (module docstring).
@@ -163,7 +179,8 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
                  interp_settings: Any = None) -> None:
         from fieldbus.canopen.config import CanopenConfig
         from motiond.config_canopen import canopen_for_machine
-        from motiond.config_modbus import modbus_for
+        from motiond.config_io import machine_io
+        from motiond.io_hooks import IoHooks
         from telemetry.config import TelemetryConfig
         from telemetry.publisher import EventPublisher, StatusPublisher
 
@@ -188,7 +205,7 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
         if feedback_timeout_s is not None:
             canopen = dataclasses.replace(canopen, feedback_timeout_s=feedback_timeout_s)
         self.canopen = canopen
-        modbus = modbus_for(config)
+        modbus, io_map = machine_io(config)  # [modbus] with the I/O map's points (motiond.config_io)
         if modbus is not None:
             port = modbus_port
             if port is None and config.path is None:
@@ -220,6 +237,7 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
         self.status_pub = StatusPublisher(lc, self.telemetry.status_hz)
         self.states = MachineStates()
         self.states.subscribe(self._on_state_change)
+        self.io_hooks = IoHooks(self, io_map)  # the I/O map at run time (docs/wiring.md)
 
         from gcode_canon.interpreter import Interpreter
         self.interp = Interpreter(interp_settings, Callbacks(self))
@@ -305,12 +323,16 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
     def _start_io(self) -> None:
         from fieldbus.modbus.executor import IoExecutor
         from fieldbus.modbus.faults import IoError
-        from fieldbus.modbus.sim import SimIoModule
+        from fieldbus.modbus.sim import SimIoModule, size_for
+        from motiond.sim_wiring import apply, wiring_for
 
         assert self.modbus is not None
+        wiring = wiring_for(self.io_hooks.map)
         for dev in self.modbus.devices:
             if dev.simulate:
-                mod = SimIoModule(host="127.0.0.1", port=dev.port, unit=dev.unit)
+                mod = SimIoModule(host="127.0.0.1", port=dev.port, unit=dev.unit,
+                                  size=size_for(self.modbus, dev.name))
+                apply(mod, wiring.get(dev.name))
                 try:
                     mod.start()
                 except OSError as exc:
@@ -327,6 +349,7 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
         except IoError as exc:
             self.io = None
             raise MachineError(f"Modbus: {exc}") from None
+        self.io_hooks.start(self.io)
 
     def shutdown(self) -> None:
         """Stop everything safely: the job cancelled, drives quick-stopped then disabled, outputs to
@@ -424,19 +447,23 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
                    kind="io_recovered", source="modbus")
 
     # ------------------------------------------------------------------ commands
-    def estop(self) -> None:
+    def estop(self, reason: str = "") -> None:
         """Always accepted: quick stop on every drive now, the job cancelled, ESTOP. A slow operation
-        running meanwhile (homing, enabling ...) fails (:meth:`_operation`)."""
+        running meanwhile (homing, enabling ...) fails (:meth:`_operation`). ``reason``: what pressed
+        it (the E-stop input, motiond.io_hooks), for the event; none: the operator's command."""
+        text = f"E-stop: {reason}" if reason else "E-stop"
         self._interrupt("E-stop")
         self.states.estop()
-        self.motion.estop("E-stop")
-        self.event("WARNING", "E-stop", kind="estop", source="motiond")
+        self.motion.estop(text)
+        self.io_hooks.stopped(outputs_off=True)
+        self.event("WARNING", text, kind="estop", source="modbus" if reason else "motiond")
 
     def pause(self) -> None:
         self.states.pause()
         self.motion.pause()
 
     def resume(self) -> None:
+        self.io_hooks.refuse_resume()
         self.states.resume()
         self.motion.resume()
 

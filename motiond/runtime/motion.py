@@ -107,6 +107,22 @@ class MotionHooks(Protocol):
     def planner_prime(self) -> list[C.Canon]:
         """The modal commands a new planner starts with (feed mode, feed, path control, speed)."""
 
+    def planner_waits(self) -> tuple[type[C.Canon], ...]:
+        """Sync commands beyond the planner's own waits that the machine completes (M3 with an
+        at-speed signal, M19 with an oriented one, user M codes): the planner stays at rest there."""
+
+    def io_cycle(self, drive_inputs: tuple[int, ...], velocity: tuple[float, ...]) -> None:
+        """Start of each cycle: the I/O map's inputs (E-stop, limits, buttons, door) and its waits."""
+
+    def io_event(self, ev: C.Canon, stream: Any) -> None:
+        """A setpoint event (spindle, coolant) for the I/O map's outputs."""
+
+    def io_wait(self, w: C.Canon) -> bool:
+        """The planner stands at ``w``: True when the I/O map completes it (then it releases)."""
+
+    def orient_text(self) -> str:
+        """What M19 does on this machine's wiring ("" nothing wired), for its event."""
+
 
 @dataclass(frozen=True, slots=True)
 class DriveView:
@@ -188,7 +204,8 @@ class MotionCore(Cycle):
         """Run ``fn`` on the cycle thread (which owns the planner) and return its result; inline when
         the cycle thread is not running or is the caller."""
         runner = self.runner
-        if runner is None or runner.join(0) or threading.get_ident() == self._cycle_ident:
+        # the cycle thread itself (the I/O map's E-stop, door, buttons): inline (join would raise)
+        if runner is None or threading.get_ident() == self._cycle_ident or runner.join(0):
             return fn()
         fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
 
@@ -297,7 +314,7 @@ class MotionCore(Cycle):
         from planner.core import Planner
 
         start = self.master.positions()
-        p = Planner(self.limits, start=start)
+        p = Planner(self.limits, start=start, waits=self.hooks.planner_waits())
         for cmd in self.hooks.planner_prime():
             p.feed(cmd)
         self.planner = p

@@ -39,6 +39,7 @@ class OutputSwitch:
     synced: bool
     file: str
     line: int
+    name: str = ""  # kind "function": the I/O map's function (spindle_on, coolant_flood ...)
 
 
 @dataclass

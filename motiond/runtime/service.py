@@ -140,6 +140,7 @@ class ServiceMixin(MachinePart):
             return self.disable, "disabling the drives"
         if verb == "estop_reset":
             self._refuse_unless(snap.state is State.ESTOP, self.states.estop_reset)
+            self.io_hooks.refuse_estop_reset(wait=False)
             if self.io is not None and self.io.fault is not None and not self.io.link_up:
                 raise CommandRefused(f"cannot reset the estop: a Modbus link is down ({self.io.fault})")
             return self.estop_reset, "leaving E-stop (resetting the drives)"
@@ -246,6 +247,7 @@ class ServiceMixin(MachinePart):
         with self._operation("leaving E-stop (resetting the drives)"):
             if self.states.state is not State.ESTOP:
                 self.states.estop_reset()  # raises the refusal
+            self.io_hooks.refuse_estop_reset()
             if self.io is not None and self.io.fault is not None and not self.io.acknowledge():
                 raise CommandRefused(f"cannot reset the estop: a Modbus link is down ({self.io.fault})")
             self._reset_drives()

@@ -147,6 +147,7 @@ class StatusMixin(MachinePart):
         s.num_digital_outputs, s.digital_outputs = len(do), [bool(v) for v in do]
         s.num_analog_inputs, s.analog_inputs = len(ai), [float(v) for v in ai]
         s.num_analog_outputs, s.analog_outputs = len(ao), [float(v) for v in ao]
+        self.io_hooks.status(s)
         s.last_error = self.last_error
         s.last_error_utime = self.last_error_utime
         s.events_dropped = self.events.dropped

@@ -1,0 +1,219 @@
+"""The I/O map end to end on the simulated demo machine (in this process: simulated drives, the
+simulated Modbus module wired as motiond.config_io.DEMO_FUNCTIONS says): spindle at speed, coolant,
+the E-stop chain, a Modbus limit switch, the door, a user M code. docs/wiring.md.
+
+Demo wiring: E-stop DI 8 (active low), machine enable coil 8, spindle on coil 9, at speed DI 9,
+flood coil 13, cycle start DI 11, door DI 14, limit_x_max DI 17, M101: coil 14 then DI 15.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from test_run_from_line import Recorder, wait_for
+
+from motiond.config import load_machine
+from motiond.runtime import Machine
+from motiond.states import CommandRefused, State
+
+
+class Rig(Recorder):
+    """test_run_from_line's started, enabled demo machine, with its setpoints traced and the cycle of
+    every state change kept."""
+
+    def __init__(self, tmp: Path) -> None:
+        super().__init__(tmp)
+        self.tmp = tmp
+        self.machine.trace = []
+        self.state_cycles: list[tuple[State, int, float]] = []
+        self.machine.states.subscribe(lambda b, a: self.state_cycles.append(
+            (a.state, self.machine.cycle, time.monotonic())) if a.state != b.state else None)
+        self.sim = self.machine.sim_io["io"]
+
+    def program(self, text: str) -> Path:
+        p = self.tmp / "part.ngc"
+        p.write_text(text)
+        return p
+
+    def x(self) -> float:
+        return self.machine.motion.commanded[0]
+
+
+@pytest.fixture
+def rig(tmp_path: Path) -> Iterator[Rig]:
+    r = Rig(tmp_path)
+    try:
+        yield r
+    finally:
+        r.machine.shutdown()
+
+
+def first_write(rig: Rig, table: str, address: int, value: int, since: int = 0) -> float:
+    """When the module got the first write of ``value`` to ``table[address]`` from record ``since``
+    on (the safe state written at start comes first: pass ``since``)."""
+    w = rig.sim.wait_write(table, address, value, since=since, timeout=10.0)
+    assert w is not None, f"{table} {address} never written {value}"
+    return w.t
+
+
+def after_start(rig: Rig) -> int:
+    """The record number after the start's safe-state writes (the job's writes come later)."""
+    return len(rig.sim.writes)
+
+
+def test_m3_waits_for_at_speed_before_the_next_feed_move_and_m5_stops_it(rig: Rig) -> None:
+    n = after_start(rig)
+    job = rig.machine.run(rig.program("%\nG21 G90 G94\nG1 X5 F3000\nM3 S1000\nG1 X10\nM5\nM2\n%\n"))
+    result = rig.machine.wait_job(job, 30.0)
+    assert result is not None and result.ok, result.error if result else "timeout"
+    t_on = first_write(rig, "coil", 9, 1, n)
+    assert rig.sim.get("holding_register", 8) == 1000  # the speed command, rpm (scale 1)
+    delay = rig.machine.io_hooks.map.spindle.sim_delay_s
+    # the first setpoint beyond X5 comes only after the simulated spindle reached speed
+    moved = [t for _c, t, pos, _ev in rig.machine.trace if pos[0] > 5.0 + 1e-6]
+    assert moved and moved[0] >= t_on + delay, (moved[0] - t_on, delay)
+    t_off = first_write(rig, "coil", 9, 0, n)
+    assert t_off > moved[0]
+    names = [(o.name, o.value, o.line) for o in result.outputs if o.kind == "function"]
+    assert ("spindle_on", 1.0, 4) in names and ("spindle_on", 0.0, 6) in names
+
+
+def test_m8_m9_switch_the_coolant_coil(rig: Rig) -> None:
+    n = after_start(rig)
+    job = rig.machine.run(rig.program("%\nG21 G90 G94\nM8\nG1 X2 F3000\nM9\nG1 X3\nM2\n%\n"))
+    result = rig.machine.wait_job(job, 30.0)
+    assert result is not None and result.ok
+    t_on = first_write(rig, "coil", 13, 1, n)
+    t_off = first_write(rig, "coil", 13, 0, n)
+    assert t_on < t_off
+    names = [(o.name, o.value, o.line) for o in result.outputs if o.kind == "function"]
+    assert names == [("coolant_flood", 1.0, 3), ("coolant_flood", 0.0, 5)]
+
+
+def test_estop_input_during_motion_stops_at_once_and_drops_machine_enable(rig: Rig) -> None:
+    wait_for(lambda: rig.sim.get("coil", 8) == 1, "machine enable on once enabled")
+    n = len(rig.sim.writes)
+    job = rig.machine.run(rig.program("%\nG21 G90 G94\nG1 X100 F6000\nM2\n%\n"))
+    wait_for(lambda: rig.x() > 5.0, "the axis moving")
+    rig.sim.set("discrete_input", 8, 0)  # the NC chain opens: E-stop pressed
+    t_pressed = time.monotonic()
+    wait_for(lambda: rig.machine.states.state is State.ESTOP, "ESTOP")
+    _state, cycle, t_estop = next(s for s in rig.state_cycles if s[0] is State.ESTOP)
+    poll_s = rig.machine.modbus.devices[0].poll_ms / 1000.0
+    # seen by the next poll, acted on in the next cycle (generous: the PC may be loaded)
+    assert t_estop - t_pressed < poll_s + 1.0
+    # no setpoint streamed after the cycle that saw it
+    assert max(c for c, _t, _p, _e in rig.machine.trace) <= cycle
+    assert rig.x() < 100.0
+    assert first_write(rig, "coil", 8, 0, since=n) > t_pressed  # machine enable dropped
+    assert any("E-stop input active" in e[1] and "discrete input 8" in e[1] for e in rig.events), rig.events
+    result = rig.machine.wait_job(job, 5.0)
+    assert result is not None and not result.ok
+    with pytest.raises(CommandRefused, match="E-stop input is active"):
+        rig.machine.estop_reset()
+    rig.sim.set("discrete_input", 8, 1)
+    wait_for(lambda: rig.machine.io_hooks.mio.estop_problem() == "", "the chain read closed")
+    rig.machine.bring_up()
+    wait_for(lambda: rig.sim.get("coil", 8) == 1, "machine enable raised on enable")
+
+
+def test_lost_io_link_with_an_estop_input_is_estop(rig: Rig) -> None:
+    rig.sim.stop()
+    wait_for(lambda: any("unreadable" in e[1] for e in rig.events if e[2] == "estop"), "the E-stop event",
+             timeout=20.0)
+    assert rig.machine.states.state is State.ESTOP
+
+
+def test_a_modbus_limit_switch_during_motion_stops_naming_axis_and_switch(rig: Rig) -> None:
+    rig.machine.run(rig.program("%\nG21 G90 G94\nG1 X100 F6000\nM2\n%\n"))
+    wait_for(lambda: rig.x() > 5.0, "the axis moving")
+    rig.sim.set("discrete_input", 17, 1)  # limit_x_max
+    wait_for(lambda: rig.machine.states.state is State.FAULTED, "FAULTED")
+    err = rig.machine.last_error
+    assert "axis x" in err and "limit_x_max" in err and "discrete input 17" in err, err
+    assert rig.machine.master.fault is not None  # stopped as a drive's limit switch stops it
+    assert rig.x() < 100.0
+
+
+def test_door_opened_mid_program_holds_and_resumes_on_close_and_cycle_start(rig: Rig) -> None:
+    job = rig.machine.run(rig.program("%\nG21 G90 G94\nG1 X100 F3000\nM2\n%\n"))
+    wait_for(lambda: rig.x() > 2.0, "the axis moving")
+    rig.sim.set("discrete_input", 14, 1)  # door open
+    wait_for(lambda: rig.machine.states.state is State.PAUSED, "PAUSED on the door")
+    wait_for(lambda: not any(rig.machine.motion.velocity), "motion held")
+    held = rig.x()
+    assert held < 100.0
+    rig.sim.set("discrete_input", 11, 1)  # cycle start with the door open: refused
+    wait_for(lambda: any(e[2] == "io_refused" for e in rig.events), "the refusal")
+    assert rig.machine.states.state is State.PAUSED
+    with pytest.raises(CommandRefused, match="door is open"):
+        rig.machine.resume()
+    rig.sim.set("discrete_input", 11, 0)
+    rig.sim.set("discrete_input", 14, 0)  # door closed: still held until cycle start
+    wait_for(lambda: not rig.machine.io_hooks.mio.door_open, "the door read closed")
+    time.sleep(0.1)
+    assert rig.machine.states.state is State.PAUSED and rig.x() == held
+    rig.sim.set("discrete_input", 11, 1)  # cycle start
+    result = rig.machine.wait_job(job, 30.0)
+    assert result is not None and result.ok
+    assert abs(rig.x() - 100.0) < 1e-9
+
+
+def test_m101_sets_its_output_and_waits_for_its_input(rig: Rig) -> None:
+    rig.sim.rules[:] = [r for r in rig.sim.rules if r.when_address != 14]  # nobody answers but us
+    job = rig.machine.run(rig.program("%\nG21 G90 G94\nG1 X2 F3000\nM101\nG1 X4\nM2\n%\n"))
+    first_write(rig, "coil", 14, 1)
+    wait_for(lambda: "M101" in rig.machine.io_hooks.mio.waiting, "the wait for M101's input")
+    time.sleep(0.2)
+    assert rig.x() == pytest.approx(2.0) and rig.machine.status().io_waiting.startswith(
+        f"{rig.tmp / 'part.ngc'}:4: M101")
+    t_in = time.monotonic()
+    rig.sim.set("discrete_input", 15, 1)
+    result = rig.machine.wait_job(job, 30.0)
+    assert result is not None and result.ok
+    moved = [t for _c, t, pos, _ev in rig.machine.trace if pos[0] > 2.0 + 1e-6]
+    assert moved and moved[0] > t_in
+
+
+def test_status_carries_every_function(rig: Rig) -> None:
+    wait_for(lambda: dict(zip(rig.machine.status().io_function_names, rig.machine.status().io_function_values,
+                              strict=True))["machine_enable"] == 1.0, "machine enable on in the status")
+    s = rig.machine.status()
+    assert s.num_io_functions == len(s.io_function_names) == len(s.io_function_values)
+    values = dict(zip(s.io_function_names, s.io_function_values, strict=True))
+    assert values["machine_enable"] == 1.0 and values["estop"] == 0.0 and values["spindle_on"] == 0.0
+
+
+def test_a_binding_error_in_the_machine_file_names_the_key(tmp_path: Path) -> None:
+    from motiond.configkit import ConfigError
+
+    text = (Path(__file__).resolve().parent.parent / "examples" / "canon.toml").read_text()
+    bad = tmp_path / "m.toml"
+    bad.write_text(text.replace('coolant_flood = { device = "io", coil = 13 }',
+                                'coolant_flood = { device = "io", coil = 9 }'))
+    with pytest.raises(ConfigError) as info:
+        Machine(load_machine(str(bad)), lc=None)
+    assert info.value.key == "io.functions.coolant_flood"
+    assert "already written by io.functions.spindle_on" in str(info.value)
+
+
+def test_canon_run_lists_the_functions_it_switched(tmp_path: Path) -> None:
+    import json
+    import subprocess
+    import sys
+
+    prog = tmp_path / "p.ngc"
+    prog.write_text("%\nG21 G90 G94\nM3 S1000 M8\nG1 X2 F3000\nM5 M9\nM2\n%\n")
+    r = subprocess.run([sys.executable, "-m", "motiond.cli", "run", "--json", "--no-telemetry", str(prog)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    outs = [(o["name"], o["value"], o["line"]) for o in json.loads(r.stdout)["outputs_switched"]
+            if o["kind"] == "function"]
+    assert ("spindle_on", 1.0, 3) in outs and ("coolant_flood", 1.0, 3) in outs
+    assert ("spindle_on", 0.0, 5) in outs and ("coolant_flood", 0.0, 5) in outs
+    r = subprocess.run([sys.executable, "-m", "motiond.cli", "run", "--no-telemetry", str(prog)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "spindle_on=1 (line 3)" in r.stdout.replace("\n", " "), r.stdout
