@@ -42,7 +42,11 @@ Out (motion -> task)
     ``fault_stopping``.
   * :class:`MotionHooks`, called on the cycle thread (they must not block): events, a fault to act
     on, the stream to cancel, the stream done, an abort finished, a program stop reached, the drives
-    to disable after a fault's stop; and the planner's priming commands.
+    to disable after a fault's stop; and the planner's priming commands; the I/O map's (docs/wiring.md:
+    ``io_cycle`` at the start of each cycle with the drives' 0x60FD inputs and the velocities,
+    ``io_event`` per setpoint event, ``io_wait`` at a sync point, ``planner_waits``, ``orient_text``).
+    The Modbus executor (``io``) is the motion side's too: the I/O map's outputs go out from the cycle
+    thread, never waiting on the network.
   * :meth:`~MotionCore.wait_sync_point`: the job thread waits until the planner stands at an M66 or
     a probe.
 
