@@ -38,7 +38,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from ruckig import InputParameter, Result, Ruckig, RuckigError, Trajectory
 
 from gcode_canon.commands import (
+    ArcFeed,
     MotionControlMode,
+    Plane,
     Pose,
     ProgramEnd,
     SetFeedRate,
@@ -263,6 +265,24 @@ def tiny(segments: int, step: float, feed: float) -> Iterator:
     yield ProgramEnd(file="tiny.ngc", line=segments + 1)
 
 
+def arc_chords(radius: float, pieces: int, step: float, feed: float, as_arc: bool = False) -> Iterator:
+    """``pieces`` chords of ``step`` mm on a circle of ``radius`` about the origin from (radius, 0),
+    4 decimals (G64 P0.01); with ``as_arc`` the same path as one G3."""
+    yield G64P
+    yield SetFeedRate(feed)
+    yield StraightFeed(Pose(radius, 0, 0), file="arc.ngc", line=1)
+    dth = step / radius
+    if as_arc:
+        th = pieces * dth
+        yield ArcFeed(Pose(_r(radius * math.cos(th), 4), _r(radius * math.sin(th), 4), 0), Pose(), Plane.XY,
+                      1 + int(th / (2 * math.pi)), file="arc.ngc", line=2)
+    else:
+        for k in range(1, pieces + 1):
+            yield StraightFeed(Pose(_r(radius * math.cos(k * dth), 4), _r(radius * math.sin(k * dth), 4), 0),
+                               file="arc.ngc", line=k + 1)
+    yield ProgramEnd(file="arc.ngc", line=pieces + 2)
+
+
 def square(size: float, feed: float) -> list:
     """A square in G64 without P."""
     prog = [G64, SetFeedRate(feed)]
@@ -368,6 +388,11 @@ def table(check: bool) -> None:
     bound = lower_bound(list(tiny(20000, 0.001, 6000)))
     _row("20,000 x 0.001 mm, F6000", _measure(lambda: tiny(20000, 0.001, 6000), check), bound,
          "acceleration bound", "<= 1.5")
+    for radius, pieces, step in ((20.0, 20000, 0.001), (10.0, 6000, 0.01)):
+        ref = _measure(lambda r=radius, n=pieces, h=step: arc_chords(r, n, h, 6000, as_arc=True), check)
+        _row(f"R{radius:g} arc as {pieces:,} x {step:g} mm chords, F6000",
+             _measure(lambda r=radius, n=pieces, h=step: arc_chords(r, n, h, 6000), check),
+             ref["cycles"] * T, "one G3", "<= 1.03")
     # the square: the largest distance from the programmed corners' lines, against v^2/a
     from planner.checker import _deviation, _program_geometry
 
