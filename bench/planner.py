@@ -25,6 +25,7 @@ when it starts), so the figures of one program do not hide in another's.
 from __future__ import annotations
 
 import argparse
+import itertools
 import math
 import multiprocessing
 import resource
@@ -283,6 +284,21 @@ def arc_chords(radius: float, pieces: int, step: float, feed: float, as_arc: boo
     yield ProgramEnd(file="arc.ngc", line=pieces + 2)
 
 
+def wave(seed: int, feed: float) -> list:
+    """A random CAM-like wave along X: 400 chords of 0.2 mm, 3 decimals, G64 P0.005 (two sines of
+    random amplitude and frequency, from ``seed``)."""
+    import random
+
+    rng = random.Random(seed)
+    a1, f1, a2, f2 = rng.uniform(2, 10), rng.uniform(0.03, 0.1), rng.uniform(0.5, 3), rng.uniform(0.15, 0.5)
+    prog: list = [SetMotionControlMode(MotionControlMode.CONTINUOUS, 0.005), SetFeedRate(feed)]
+    for k in range(1, 401):
+        x = 0.2 * k
+        prog.append(StraightFeed(Pose(_r(x, 3), _r(a1 * math.sin(f1 * x) + a2 * math.sin(f2 * x), 3), 0),
+                                 file="wave.ngc", line=k))
+    return [*prog, ProgramEnd(file="wave.ngc", line=401)]
+
+
 def square(size: float, feed: float) -> list:
     """A square in G64 without P."""
     prog = [G64, SetFeedRate(feed)]
@@ -413,6 +429,15 @@ def table(check: bool) -> None:
         _row(f"R{radius:g} arc as {pieces:,} x {step:g} mm chords, F6000",
              _measure(lambda r=radius, n=pieces, h=step: arc_chords(r, n, h, 6000), check),
              ref["cycles"] * T, "one G3", "<= 1.03")
+    feeds = (2000, 2500, 3000, 4000)
+    slower, worst = 0, 0.0
+    for seed in range(8):
+        times = [plan(wave(seed, f))[0] for f in feeds]
+        ratios = [b / a for a, b in itertools.pairwise(times)]
+        slower += max(ratios) > 1.0
+        worst = max(worst, *ratios)
+    print(f"  {'8 random waves, 0.2 mm, F2000/2500/3000/4000':<44} slower at a higher F: {slower} of 8, "
+          f"worst time ratio to the next lower F {worst:.3f}   target: 0 of 8 (<= 1.000)")
     # the square: the largest distance from the programmed corners' lines, against v^2/a
     from planner.checker import _deviation, _program_geometry
 
