@@ -34,6 +34,9 @@ QUEUE_MAX = 2000
 """Canonical commands the interpreter may run ahead of the planner."""
 LOOKAHEAD = 300
 """Items kept queued in the planner (its lookahead); more wait in the interpreter's queue."""
+LOOKAHEAD_MOVES = 5000
+"""... and programmed moves at most (``Planner.queued_moves``: a merged line or a smoothed chain is one
+item holding many moves), as ``plan_all`` keeps; below 2 items the planner is fed regardless."""
 FEED_PER_CYCLE = 40
 """At most this many commands move into the planner per cycle (bounds the cycle's work)."""
 LATE_LOG = 100_000
@@ -190,7 +193,8 @@ class Cycle:
         if stream is None:
             return
         n = 0
-        while p.queue_length < LOOKAHEAD and n < FEED_PER_CYCLE:
+        while n < FEED_PER_CYCLE and (p.queue_length < 2 or (
+                p.queue_length < LOOKAHEAD and p.queued_moves < LOOKAHEAD_MOVES)):
             try:
                 item = self._cmdq.get_nowait()
             except queue.Empty:
