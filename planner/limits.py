@@ -41,9 +41,9 @@ class LimitsMixin:
         The centripetal and cross terms are reserved at the piece's own speed cap, not at the fastest
         the feed (times the largest override) would run it: the limits then do not depend on the feed,
         so a higher feed only lifts speed caps. (Reserved at the feed, a higher feed left less path
-        acceleration on every curved piece: on some CAM waves F2500 took longer than F2000.) A piece
-        run slower than its cap keeps some acceleration unused (about 1 % of the cycle time on CAM
-        waves at F2000-F4000)."""
+        acceleration on every curved piece: on some CAM waves F3000 took a cycle longer than F2500.)
+        A piece run slower than its cap keeps some acceleration unused (no measurable cost on CAM
+        waves and the surfacing raster)."""
         if not any(d2) and not any(d3):
             return self._line_limits(d1, cmd)
         cap = self._speed_cap(d1, d2, d3)
