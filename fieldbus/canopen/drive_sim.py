@@ -90,6 +90,7 @@ from fieldbus.canopen.drive_sim_faults import (
 )
 from fieldbus.canopen.drive_sim_homing import HomingMixin
 from fieldbus.canopen.drive_sim_pdo import CyclicMixin, PdoMap
+from fieldbus.canopen.drive_sim_probe import PROBE_OBJECTS, TOUCH_PROBE_FUNCTION, TouchProbeMixin
 
 __all__ = [
     "DI_HOME", "DI_INTERLOCK", "DI_NEGATIVE_LIMIT", "DI_POSITIVE_LIMIT", "EMCY_FOLLOWING_ERROR",
@@ -102,7 +103,7 @@ log = logging.getLogger(__name__)
 
 NO_SUCH_OBJECT = 0x06020000  # SDO abort: object does not exist in the object dictionary
 
-_LIVE = {0x6041, 0x6061, 0x6062, 0x6064, 0x60F4, 0x603F, 0x1001, 0x60FD}
+_LIVE = {0x6041, 0x6061, 0x6062, 0x6064, 0x60F4, 0x603F, 0x1001, 0x60FD, *PROBE_OBJECTS}
 
 
 def motor_for(cfg: DriveConfig, eds: str | Path = SHIPPED_EDS) -> dict[tuple[int, int], int]:
@@ -130,14 +131,15 @@ def motor_for(cfg: DriveConfig, eds: str | Path = SHIPPED_EDS) -> dict[tuple[int
     return out
 
 
-class SimDrive(StateMachineMixin, CyclicMixin, HomingMixin, FaultInjectionMixin):
+class SimDrive(StateMachineMixin, CyclicMixin, HomingMixin, TouchProbeMixin, FaultInjectionMixin):
     """One simulated drive. Attach it to a ``canopen.Network``; call :meth:`tick` every few ms."""
 
     def __init__(self, node_id: int, eds: str | Path = SHIPPED_EDS, *, lag_s: float = 0.002,
                  order: int = 1, damping: float = 0.8, boot_delay_s: float = 0.0,
                  home_switch_counts: int = 0, rpdo_timeout_syncs: int = 0,
                  negative_limit_counts: int | None = None, positive_limit_counts: int | None = None,
-                 home_switch_window_counts: int = 0,
+                 home_switch_window_counts: int = 0, probe_trip_counts: int | None = None,
+                 probe_active_below: bool = True,
                  absent_objects: Iterable[int] = (), parameters: Mapping[tuple[int, int], int] | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
         if order not in (1, 2):
@@ -158,6 +160,10 @@ class SimDrive(StateMachineMixin, CyclicMixin, HomingMixin, FaultInjectionMixin)
         self.negative_limit_counts = negative_limit_counts
         self.positive_limit_counts = positive_limit_counts
         self.home_switch_window_counts = home_switch_window_counts
+        # the touch probe input (0x60B8-0x60BD), by the actual position in counts; None: not wired
+        self.probe_trip_counts = probe_trip_counts
+        self.probe_active_below = probe_active_below
+        self._probe_reset()
         # RPDO deadline monitoring, as EPOS4-style drives have: in Operation enabled (CSP), this many
         # SYNCs in a row without a target fault the drive with EMCY 0x8250 (0: off)
         self.rpdo_timeout_syncs = rpdo_timeout_syncs
@@ -299,6 +305,7 @@ class SimDrive(StateMachineMixin, CyclicMixin, HomingMixin, FaultInjectionMixin)
                 obj = self.node._find_object(index, sub)
                 store.setdefault(index, {})[sub] = obj.encode_raw(value)
         if application:
+            self._probe_reset()
             self.state = State.NOT_READY_TO_SWITCH_ON
             self.mode = 0
             self.controlword = 0
@@ -345,6 +352,7 @@ class SimDrive(StateMachineMixin, CyclicMixin, HomingMixin, FaultInjectionMixin)
                     self._next_hb = now + self._hb_ms / 1000.0
                 return
             self._load_params()
+            before = self.actual
             if self._last_tick is not None and self.state == State.OPERATION_ENABLED \
                     and self.mode == cia402.MODE_HOMING:
                 self._homing_step(now - self._last_tick)  # homing runs on the drive's own clock
@@ -352,6 +360,7 @@ class SimDrive(StateMachineMixin, CyclicMixin, HomingMixin, FaultInjectionMixin)
                   and self.state in (State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE)
                   and (self._last_sync is None or now - self._last_sync > 3 * (self._period or 0.01))):
                 self._decelerate(now - self._last_tick)  # no SYNC: the stop ramp runs on its own clock
+            self._probe_sample(before)
             self._last_tick = now
             if self._hb_ms > 0 and now >= self._next_hb:
                 self._send_heartbeat()
@@ -429,6 +438,8 @@ class SimDrive(StateMachineMixin, CyclicMixin, HomingMixin, FaultInjectionMixin)
                 return self.error_code
             if index == 0x60FD:
                 return self.digital_inputs()
+            if index in PROBE_OBJECTS:
+                return self._probe_read(index)
             return 1 if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE) else 0
 
     def _on_write(self, index: int, subindex: int, od: object, data: bytes) -> None:
@@ -440,6 +451,8 @@ class SimDrive(StateMachineMixin, CyclicMixin, HomingMixin, FaultInjectionMixin)
         with self.lock:
             if index == 0x6040:
                 self._controlword(struct.unpack_from("<H", data)[0])
+            elif index == TOUCH_PROBE_FUNCTION:
+                self._probe_function(struct.unpack_from("<H", data)[0])
             elif index == 0x607A:
                 self._pending_target = struct.unpack_from("<i", data)[0]
             elif index == 0x6060:

@@ -112,7 +112,9 @@ class CyclicMixin:
                 self.late_syncs += 1
             self._last_sync = now
             self.syncs += 1
+            before = self.actual
             self._step(period)
+            self._probe_sample(before)
             for p in self._tpdos:
                 if 1 <= p.transmission <= 240 and self.syncs % p.transmission == 0:
                     self._send(p.cob_id, self._encode(p))
