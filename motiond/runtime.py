@@ -264,6 +264,7 @@ class _Callbacks:
 
     def __init__(self, machine: Machine) -> None:
         self.m = machine
+        self._probed = False  # a drive's touch probe stopped the last probing move
 
     def _job(self) -> _Job:
         job = self.m._job
@@ -299,6 +300,9 @@ class _Callbacks:
             raise GCodeError(f"cannot start at line {job.run_from.line}: the probe at line {cmd.line} comes "
                              "before it, and its result (#5061-#5070) needs the probing move; start at or "
                              "before the probe", cmd.file, cmd.line)
+        if self.m.drive_probe is not None:
+            where, self._probed = self.m.drive_probe.answer(cmd, job)
+            return where, self._probed
         if not self.m.simulated:
             raise GCodeError("probing (G38.x) needs a probe input, and this machine has none configured",
                              cmd.file, cmd.line)
@@ -315,7 +319,8 @@ class _Callbacks:
         the machine went exactly where the interpreter sent it; also after an M6 before the start line
         of a run from line (nothing moved: the interpreter's own position is the program's)."""
         job = self.m._job
-        if job is None or job.queued or (job.run_from is not None and job.run_from.skipped):
+        probed, self._probed = self._probed, False  # stopped past the trip point: go on from there
+        if job is None or (job.queued and not probed) or (job.run_from is not None and job.run_from.skipped):
             return None
         return self.m._machine_pose()
 
@@ -405,6 +410,7 @@ class Machine:
         from gcode_canon.interpreter import Interpreter
         self.interp = Interpreter(interp_settings, _Callbacks(self))
         self.master: Any = None
+        self.drive_probe: Any = None  # motiond.drive_probe.DriveProbing: G38.x by a drive's touch probe
         self.sim_bus: Any = None
         self.sim_drives: list[Any] = []
         self.io: Any = None
@@ -499,6 +505,11 @@ class Machine:
                 self.master.add_warning_listener(self._on_master_warning)
                 self.master.open()
                 self.master.boot()
+                from fieldbus.canopen.touch_probe import TouchProbe
+                from motiond.drive_probe import DriveProbing
+
+                probe = TouchProbe.of(self.master)
+                self.drive_probe = None if probe is None else DriveProbing(self, probe)
             except CanopenError as exc:
                 raise MachineError(f"CANopen: {exc}") from None
             except Exception as exc:  # python-can: no such interface or channel
@@ -934,6 +945,8 @@ class Machine:
         self._actual = fb.positions
         self._actual_t = time.monotonic()
         self._fe = fb.following_errors
+        if self.drive_probe is not None:
+            self.drive_probe.on_cycle(self.planner)  # a touch probe trip stops the probing move
         job = self._job
         if self.trace is not None and sp is not None:
             self.trace.append((self.cycle, time.monotonic(), sp.positions, sp.events))
@@ -1737,6 +1750,9 @@ class Machine:
         return not job.cancel.is_set() and self.states.state is State.RUNNING
 
     def _put(self, item: Any, job: _Job) -> bool:
+        if isinstance(item, C.Probe) and self.drive_probe is not None \
+                and not self.drive_probe.before_move(item, job):  # at rest, the touch probe armed
+            return False
         while not job.cancel.is_set():
             try:
                 self._cmdq.put(item, timeout=0.05)

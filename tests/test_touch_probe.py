@@ -3,6 +3,10 @@ the cycle, the master arms it, sees the trip in TPDO4 and reads the latched posi
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
 import pytest
 from canopen_helpers import Rig, make_config, wait_for
 
@@ -80,3 +84,111 @@ def test_a_drive_without_touch_probe_objects_is_refused_naming_node_and_object()
             r.master.boot()
     finally:
         r.close()
+
+
+# ---------------------------------------------------------------------------------- G38.x end to end
+MACHINE = """
+[machine]
+name = "probe test"
+cycle_ms = 2.0
+[axes.x]
+max_velocity = 100.0
+max_acceleration = 1000.0
+max_jerk = 20000.0
+[axes.z]
+max_velocity = 50.0
+max_acceleration = 1000.0
+max_jerk = 20000.0
+[canopen]
+simulate = true
+channel = "{channel}"
+[canopen.axes.x]
+node_id = 1
+[canopen.axes.z]
+node_id = 2
+{probe}
+"""
+HEIGHT = -3.21237  # the surface the probe touches, mm: between two cycles' positions at any feed here
+
+
+def machine_file(tmp_path: Path, probe: str = "touch_probe = 1") -> Path:
+    from canopen_helpers import unique_channel
+
+    path = tmp_path / "probe.toml"
+    path.write_text(MACHINE.format(channel=unique_channel(), probe=probe))
+    return path
+
+
+@pytest.fixture
+def machine(tmp_path: Path) -> Iterator[Any]:
+    from motiond.config import load_machine
+    from motiond.runtime import Machine
+
+    m = Machine(load_machine(str(machine_file(tmp_path))), lc=None, var_file=tmp_path / "p.var").start()
+    try:
+        z = m.sim_drives[1]
+        with z.lock:  # the probe input trips at HEIGHT on the way down
+            z.probe_trip_counts = m.master.drives[1].scale.to_counts(HEIGHT)
+        m.bring_up()
+        yield m
+    finally:
+        m.shutdown()
+
+
+def run(m: Any, tmp_path: Path, text: str) -> Any:
+    from motiond.states import State
+
+    path = tmp_path / "p.ngc"
+    path.write_text(text)
+    result = m.wait_job(m.run(path), 30.0)
+    assert result is not None, "the program did not end within 30 s"
+    assert wait_for(lambda: m.states.state in (State.IDLE, State.FAULTED), 5.0)
+    return result
+
+
+def test_g38_2_stops_at_the_surface_and_stores_the_latched_height(machine: Any, tmp_path: Path) -> None:
+    m = machine
+    m.trace = []  # (cycle, time, setpoint, events) of every cycle
+    result = run(m, tmp_path, "G21 G90 G94\nG0 X2 Z0\nG38.2 X4 Z-10 F300\n#1 = [#5061]\n#3 = [#5063]\n"
+                              "G0 Z[#5063 + 2]\nM2\n")
+    assert result.ok, result.error
+    z = m.interp.parameter(3)
+    # the drive's latch: one count (0.1 µm); a cycle's travel at F300 is 10 µm, the stop's far more
+    assert abs(z - HEIGHT) <= 1.0001e-4
+    assert m.interp.parameter(5070) == 1.0
+    # X on the probing line where Z touched: X2 + (Z travelled / 10) * 2
+    assert m.interp.parameter(1) == pytest.approx(2 + 2 * (-z / 10.0), abs=1e-6)
+    assert m.planner.position[1] == pytest.approx(z + 2, abs=1e-9)  # #5063 in the next line
+    lowest = min(positions[1] for _, _, positions, _ in m.trace)
+    assert HEIGHT - 0.5 < lowest < HEIGHT  # stopped past the surface (a jerk-limited stop), not at Z-10
+
+
+def test_g38_3_without_contact_goes_on_and_g38_2_without_contact_is_an_error(machine: Any,
+                                                                             tmp_path: Path) -> None:
+    m = machine
+    result = run(m, tmp_path, "G21 G90 G94\nG0 Z0\nG38.3 Z-2 F600\n#3 = [#5063]\nM2\n")
+    assert result.ok, result.error
+    assert m.interp.parameter(5070) == 0.0 and m.interp.parameter(3) == pytest.approx(-2.0)
+    result = run(m, tmp_path, "G21 G90 G94\nG0 Z0\n\nG38.2 Z-2 F600\nM2\n")
+    assert not result.ok
+    assert "p.ngc:4:" in result.error and "without making contact" in result.error
+
+
+def test_touch_probe_key_is_checked_naming_it(tmp_path: Path) -> None:
+    from motiond.config import load_machine
+    from motiond.config_canopen import canopen_for_machine
+    from motiond.configkit import ConfigError
+
+    with pytest.raises(ConfigError, match=r"canopen\.axes\.z\.touch_probe.*must be one of 0, 1, 2"):
+        canopen_for_machine(load_machine(str(machine_file(tmp_path, "touch_probe = 3"))))
+    two = machine_file(tmp_path).read_text().replace("node_id = 1\n", "node_id = 1\ntouch_probe = 2\n")
+    path = tmp_path / "two.toml"
+    path.write_text(two)
+    with pytest.raises(ConfigError, match=r"canopen\.axes\.z\.touch_probe.*axis x has the machine's probe"):
+        canopen_for_machine(load_machine(str(path)))
+
+
+def test_g38_in_mdi_is_refused_with_a_drive_touch_probe(machine: Any) -> None:
+    result = machine.wait_job(machine.mdi("G38.2 Z-1 F300"), 10.0)
+    assert result is not None and not result.ok
+    assert result.error.startswith("<mdi>:1: G38.2 in MDI") and "program" in result.error
