@@ -45,6 +45,16 @@ def _limit(text: str) -> tuple[str, float | None, float | None]:
                                          "(e.g. y=-5:120 or x=:50)") from None
 
 
+def _probe(text: str) -> tuple[str, float]:
+    try:
+        axis, _, where = text.partition("=")
+        if not axis.strip():
+            raise ValueError
+        return axis.strip(), float(where)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not AXIS=POSITION: {text!r} (e.g. z=-3.2)") from None
+
+
 def limit_counts(scale: AxisScale, lo: float | None, hi: float | None) -> tuple[int | None, int | None]:
     """``(negative, positive)`` limit switch positions in the drive's counts for switches at machine
     positions ``lo``/``hi``: with a negative scale (direction -1) the machine's maximum is the drive's
@@ -52,6 +62,13 @@ def limit_counts(scale: AxisScale, lo: float | None, hi: float | None) -> tuple[
     lo_c = None if lo is None else scale.to_counts(lo)
     hi_c = None if hi is None else scale.to_counts(hi)
     return (lo_c, hi_c) if scale.scale > 0 else (hi_c, lo_c)
+
+
+def probe_counts(scale: AxisScale, position: float) -> tuple[int, bool]:
+    """``(probe_trip_counts, probe_active_below)`` of the simulated drive for a probe input active at
+    and below machine ``position``: below in machine units is the drive's positive side when the axis
+    counts the other way (a negative scale)."""
+    return scale.to_counts(position), scale.scale > 0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -75,6 +92,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--limit", type=_limit, action="append", default=[], metavar="AXIS=MIN:MAX",
                         help="limit switches of an axis at these machine positions (0x60FD bits 0/1, from "
                              "the actual position; the drive only reports them), e.g. y=-5:120; repeatable")
+    parser.add_argument("--probe", type=_probe, metavar="AXIS=POSITION",
+                        help="the probe input of that axis's drive (its touch probe, 0x60B8-0x60BD) is "
+                             "active at and below this machine position, e.g. z=-3.2 for a surface at Z-3.2")
     parser.add_argument("--strict", action="store_true",
                         help="take 'enable operation' in Quick stop active at once, during the stop ramp "
                              "(CiA 402 transition 16, as strict drives do)")
@@ -109,6 +129,10 @@ def run(args: argparse.Namespace) -> int:
             from motiond.cli import UserError
 
             raise UserError(f"--limit {axis}=...: {exc}") from None
+    if args.probe is not None and args.probe[0] not in axes:
+        from motiond.cli import UserError
+
+        raise UserError(f"--probe {args.probe[0]}=...: no axis {args.probe[0]!r} (axes: {', '.join(axes)})")
     drives = [SimDrive(d.node_id, d.eds_path, lag_s=args.lag_ms / 1000.0, order=args.order,
                        boot_delay_s=args.boot_delay_ms / 1000.0, rpdo_timeout_syncs=args.rpdo_timeout_syncs,
                        absent_objects=args.absent,
@@ -116,8 +140,10 @@ def run(args: argparse.Namespace) -> int:
                        positive_limit_counts=switches.get(d.axis, (None, None))[1],
                        parameters={**motor_for(d, d.eds_path), **dict(args.param)})
               for d in config.drives]
-    for d in drives:
+    for d, cfg in zip(drives, config.drives, strict=True):
         d.reenable_during_quick_stop_ramp = args.strict
+        if args.probe is not None and args.probe[0] == cfg.axis:
+            d.probe_trip_counts, d.probe_active_below = probe_counts(AxisScale(cfg), args.probe[1])
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

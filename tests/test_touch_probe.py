@@ -163,6 +163,13 @@ def test_g38_2_stops_at_the_surface_and_stores_the_latched_height(machine: Any, 
     assert HEIGHT - 0.5 < lowest < HEIGHT  # stopped past the surface (a jerk-limited stop), not at Z-10
 
 
+def test_g38_4_latches_where_contact_is_lost(machine: Any, tmp_path: Path) -> None:
+    result = run(machine, tmp_path, "G21 G90 G94\nG0 Z-4\nG38.4 Z0 F450\n#3 = [#5063]\nM2\n")
+    assert result.ok, result.error
+    assert abs(machine.interp.parameter(3) - HEIGHT) <= 1.0001e-4
+    assert machine.interp.parameter(5070) == 1.0
+
+
 def test_g38_3_without_contact_goes_on_and_g38_2_without_contact_is_an_error(machine: Any,
                                                                              tmp_path: Path) -> None:
     m = machine
@@ -192,3 +199,22 @@ def test_g38_in_mdi_is_refused_with_a_drive_touch_probe(machine: Any) -> None:
     result = machine.wait_job(machine.mdi("G38.2 Z-1 F300"), 10.0)
     assert result is not None and not result.ok
     assert result.error.startswith("<mdi>:1: G38.2 in MDI") and "program" in result.error
+
+
+def test_sim_drives_probe_option_puts_the_trip_point_on_the_drive_s_side() -> None:
+    import argparse
+
+    from fieldbus.canopen.config import AxisScale, DriveConfig
+    from motiond.cmd_sim_drives import _probe, probe_counts
+
+    assert _probe("z=-3.2") == ("z", -3.2)
+    with pytest.raises(argparse.ArgumentTypeError, match="AXIS=POSITION"):
+        _probe("-3.2")
+    up = AxisScale(DriveConfig("z", 3, counts_per_unit=1000.0))
+    down = AxisScale(DriveConfig("z", 3, counts_per_unit=1000.0, direction=-1))
+    assert probe_counts(up, -3.2) == (-3200, True)
+    counts, below = probe_counts(down, -3.2)
+    assert counts == 3200 and not below
+    sim = SimDrive(3, probe_trip_counts=counts, probe_active_below=below)
+    for z, touching in ((-3.0, False), (-3.2, True), (-3.5, True)):
+        assert sim.probe_input(down.to_counts(z)) is touching

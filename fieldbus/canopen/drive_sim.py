@@ -28,6 +28,8 @@ Behaviour a real drive has and the tests rely on:
   home switch (within ``home_switch_window_counts`` of ``home_switch_counts``; 0: no home input).
   The drive itself does not react to them (as a drive whose limit switch reaction is "report"): the
   master must.
+* A touch probe (0x60B8-0x60BD) on a probe input switched at ``probe_trip_counts``: the position is
+  latched where the motion crossed it inside the period (``drive_sim_probe``).
 * Optional objects absent (``absent_objects``): SDO access aborts 0x06020000 and the drive keeps its
   own defaults for them.
 * A small motor's limits, from the EDS (0x6080 3000 rpm, 0x608F 50000 counts/rev, 0x60C5/0x60C6,
@@ -45,8 +47,8 @@ ms, then sub 1 an EMCY code; the drive faults with that code exactly as :meth:`i
 
 The drive is one class, :class:`SimDrive`, written by concern: this module holds its wiring, NMT,
 heartbeat and dictionary; ``drive_sim_cia402`` the state machine and the CSP motion of a SYNC
-period; ``drive_sim_pdo`` the SYNC and the PDOs; ``drive_sim_homing`` homing mode; ``drive_sim_faults``
-fault injection.
+period; ``drive_sim_pdo`` the SYNC and the PDOs; ``drive_sim_homing`` homing mode;
+``drive_sim_probe`` the touch probe; ``drive_sim_faults`` fault injection.
 """
 
 from __future__ import annotations
