@@ -20,9 +20,10 @@ Behaviour a real drive has and the tests rely on:
   arriving late, is counted (``missed_setpoints``, ``late_syncs``).
 * Quick stop and fault reaction decelerate at 0x6085; quick stop option 0x605A 5/6 stays in Quick
   stop active holding the position, 1/2 ends in Switch on disabled.
-* Homing mode 6: methods 35/37 take the current position as home; others travel at 0x6099:1 to a
-  simulated home switch, at 0x6099:2 once on it (its 0x60FD bit 2, with ``home_switch_window_counts``);
-  either way the position then reads 0x607C.
+* Homing mode 6 by the method's direction and end (``drive_sim_homing``): limit switches (17/18), the
+  home switch (19-30, reversed by the limit switch in 23-30), the next index pulse (33/34), here
+  (35/37); travel at 0x6099:1, at 0x6099:2 on the home switch (its 0x60FD bit 2, with
+  ``home_switch_window_counts``); the position then reads 0x607C.
 * Digital inputs 0x60FD from the actual position: bit 0 negative limit switch (at or below
   ``negative_limit_counts``), bit 1 positive limit switch (at or above ``positive_limit_counts``), bit 2
   home switch (within ``home_switch_window_counts`` of ``home_switch_counts``; 0: no home input).
