@@ -175,6 +175,36 @@ class ArcFeed(Canon):
 
 
 @dataclass(frozen=True, slots=True)
+class RigidTap(Canon):
+    """G33.1: tap from the current position to ``end`` at ``pitch`` per spindle revolution, reverse the
+    spindle there and come back out (``scale`` times the spindle speed, LinuxCNC's I word, at least 1)
+    to where it started. Issued between :class:`SpindleSync` and :class:`SpindleSyncStop`."""
+
+    NAME: ClassVar[str] = "RIGID_TAP"
+    MOVES: ClassVar[bool] = True
+    end: Pose
+    scale: float = 1.0
+
+
+@dataclass(frozen=True, slots=True)
+class SpindleSync(Canon):
+    """The moves that follow are synchronized to the spindle: ``pitch`` program-independent machine
+    units of travel per spindle revolution (G33 K, G33.1 K, G76 P), until :class:`SpindleSyncStop`.
+    ``velocity_mode``: LinuxCNC's velocity (not position) synchronization, unused by the interpreter."""
+
+    NAME: ClassVar[str] = "START_SPEED_FEED_SYNCH"
+    pitch: float
+    velocity_mode: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class SpindleSyncStop(Canon):
+    """End of spindle-synchronized motion (G33, G33.1, a G76 pass): feed moves use F again."""
+
+    NAME: ClassVar[str] = "STOP_SPEED_FEED_SYNCH"
+
+
+@dataclass(frozen=True, slots=True)
 class Probe(Canon):
     """G38.x straight probe toward ``end``. The machine answers through the interpreter's callback."""
 

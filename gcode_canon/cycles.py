@@ -1,4 +1,4 @@
-"""Canned cycles (G73, G74, G81-G89; G76 refused) as a pure expansion into plane-local operations.
+"""Canned cycles (G73, G74, G81-G89; G76 in threading_cycle) as a pure expansion into plane-local operations.
 
 Why a separate, pure module: the cycles are the densest set of rules in RS274/NGC (sticky words,
 the G98 "initial level" that outlives a block, incremental R and Z, L repeats, the preliminary
@@ -94,8 +94,7 @@ departures marked *canon*:
   *canon*: G87 K must lie between Z and R (LinuxCNC does not check), so no feed leaves the hole.
 * *canon*: moves to the point the tool is already at are not emitted (LinuxCNC emits a few such
   zero-length rapids, e.g. G85's rapid to clear in G99).
-* G76 (threading) needs spindle-synchronised motion, which canon's canonical commands do not have:
-  it is refused with a GCodeError.
+* G76 (threading) is not a canned cycle here: :mod:`gcode_canon.threading_cycle` expands it.
 """
 
 from __future__ import annotations
@@ -354,11 +353,6 @@ def expand_cycle(
     """
     code10 = _code_number(code)
     name = _gname(code10)
-    if code10 == 760:
-        raise GCodeError(
-            "G76 threading is not supported: it needs spindle-synchronized motion, "
-            "which canon's canonical commands do not have"
-        )
     if code10 not in CYCLE_CODES:
         raise GCodeError(f"{name} is not a canned cycle")
     plane = ctx.plane

@@ -22,6 +22,10 @@ from gcode_canon.errors import GCodeError
 TOLERANCE_EQUAL = 0.0001
 """Values closer than this compare equal (LinuxCNC's TOLERANCE_EQUAL); also the near-integer rule."""
 
+TOLERANCE_GE_LE = 1e-6
+"""LinuxCNC's GE and LE also hold for values this close (interp_execute.cc execute_binary2, master's
+TOLERANCE_EQUAL); its GT and LT are strict."""
+
 MAX_PARAMETER = 5601
 """Highest parameter number: LinuxCNC's ``RS274NGC_MAX_PARAMETERS`` (5602, ``interp_parameter_def.hh``) is
 the size of its parameter array, and ``read_parameter`` / ``read_parameter_setting`` (``interp_read.cc``)
@@ -293,11 +297,11 @@ def _apply(op: str, a: float, b: float, tolerant: bool = False) -> float:
     if op == "gt":
         return 1.0 if a > b and (not tolerant or abs(a - b) >= TOLERANCE_EQUAL) else 0.0
     if op == "ge":
-        return 1.0 if a >= b or (tolerant and abs(a - b) < TOLERANCE_EQUAL) else 0.0
+        return 1.0 if a >= b or abs(a - b) < (TOLERANCE_EQUAL if tolerant else TOLERANCE_GE_LE) else 0.0
     if op == "lt":
         return 1.0 if a < b and (not tolerant or abs(a - b) >= TOLERANCE_EQUAL) else 0.0
     if op == "le":
-        return 1.0 if a <= b or (tolerant and abs(a - b) < TOLERANCE_EQUAL) else 0.0
+        return 1.0 if a <= b or abs(a - b) < (TOLERANCE_EQUAL if tolerant else TOLERANCE_GE_LE) else 0.0
     if op == "and":
         return 1.0 if (a != 0.0 and b != 0.0) else 0.0
     if op == "or":

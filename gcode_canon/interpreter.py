@@ -123,6 +123,7 @@ from gcode_canon.owords import FlowControl
 from gcode_canon.parameters import Parameters
 from gcode_canon.settings import InterpreterSettings
 from gcode_canon.source import LineSource
+from gcode_canon.spindle_sync import SYNC_MOTIONS, SYNC_WORDS, SpindleSyncMixin, check_sync_block
 
 log = logging.getLogger(__name__)
 
@@ -147,7 +148,7 @@ class _Resume:
         self.fn = fn
 
 
-class Interpreter(ModalStateMixin, Group0Mixin):
+class Interpreter(ModalStateMixin, Group0Mixin, SpindleSyncMixin):
     """One interpreter, one machine state; run programs one after another (state carries over)."""
 
     def __init__(self, settings: InterpreterSettings | None = None,
@@ -155,6 +156,7 @@ class Interpreter(ModalStateMixin, Group0Mixin):
         self.settings = settings or InterpreterSettings()
         self.machine: MachineCallbacks = machine if machine is not None else DryRunMachine()
         self.params = Parameters()
+        self.params.ini = dict(self.settings.ini_values)
         self.reader = ExpressionReader(self.params, self.settings.max_expression_depth)
         self.frames = Frames()
         self.logs = LogFiles(self.settings.log_dir)
@@ -817,6 +819,9 @@ class Interpreter(ModalStateMixin, Group0Mixin):
             if (not self.absolute and ml.g.get(3) != 900) or ml.g.get(3) == 910:
                 raise GCodeError("Cannot use G53 incremental (G91)")
         motion = self._effective_motion(ml)
+        if motion in SYNC_MOTIONS and (has_axes or g1 == motion):  # their own checks; their words used
+            check_sync_block(motion, w)
+            w = {k: v for k, v in w.items() if k not in SYNC_WORDS[motion]}
         arc = motion in (20, 30)
         if "@" in w or "^" in w:
             if self.plane is not Plane.XY:  # LinuxCNC enhance_block
@@ -826,6 +831,8 @@ class Interpreter(ModalStateMixin, Group0Mixin):
             if axis_user0 or g0 == 530:
                 raise GCodeError(f"Polar coordinates (@ ^) cannot be used with {_axis_user_name(ml)}")
         ms = set(block.m)
+        if self.settings.disable_fanuc_style_sub and ms & {98, 99}:  # LinuxCNC: when the line is read
+            raise GCodeError(f"DISABLE_FANUC_STYLE_SUB is set, but found M{min(ms & {98, 99})}")
         takes_ijk = g0 in (100, 120, 130) or ml.g.get(17) == 510
         for letter in "ijk":
             if letter in w and not arc and motion != 870 and not takes_ijk:
@@ -1007,6 +1014,8 @@ class Interpreter(ModalStateMixin, Group0Mixin):
             self.probe_log.open(text, append=False)
         elif keyword == "probeclose":
             self.probe_log.close()
+        elif keyword == "abort":  # LinuxCNC: the program stops with the (expanded) text as its error
+            raise GCodeError(expand(text, self.params).strip() or "(ABORT) in the program")
 
     def _step_feed_mode(self, block: Block, ml: ModalLine) -> None:
         code = ml.g.get(5)
@@ -1558,6 +1567,10 @@ class Interpreter(ModalStateMixin, Group0Mixin):
             return
         if self.cycle_state.motion is not None or self.cycle_state.initial_level is not None:
             self.cycle_state = cycles.cancel(self.cycle_state)
+        if motion in SYNC_MOTIONS:
+            if has_axes:
+                self._sync_motion(motion, block)
+            return
         if motion in (20, 30):
             # a G2/G3 written on the line is an arc even with no other word (LinuxCNC then refuses it:
             # "R, I, J or K words missing"); a line in G2/G3 mode with none of them moves nothing

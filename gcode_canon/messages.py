@@ -31,7 +31,7 @@ def classify(comment: str) -> tuple[str, str]:
     comma = comment.find(",")
     head = comment if comma < 0 else comment[:comma]
     folded = "".join(head.split()).lower()
-    if comma >= 0 and folded in ("msg", "debug", "print", "log", "logopen", "logappend"):
+    if comma >= 0 and folded in ("msg", "debug", "print", "log", "logopen", "logappend", "abort"):
         return folded, comment[comma + 1:]
     if comma < 0 and folded in ("logclose", "probeclose"):
         return folded, ""

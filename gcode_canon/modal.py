@@ -39,15 +39,12 @@ for _code in (110, 120, 130):  # gcode-canon G11 (end of G10 data), full circle 
 
 G_UNSUPPORTED: dict[int, str] = {
     52: "G5.2 (NURBS)",
-    330: "G33 (spindle-synchronized motion)",
-    331: "G33.1 (rigid tapping)",
     171: "G17.1 (UV plane)",
     181: "G18.1 (WU plane)",
     191: "G19.1 (VW plane)",
     960: "G96 (constant surface speed)",
     70: "G7 (lathe diameter mode)",
 }
-G_UNSUPPORTED[760] = "G76 (threading: it needs spindle-synchronized motion)"
 
 G_AXIS_USERS_GROUP0 = frozenset((100, 280, 300, 920, 520))
 """Group-0 codes that take axis words (the motion mode is suspended on their line)."""

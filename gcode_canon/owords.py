@@ -595,6 +595,8 @@ class FlowControl:
 
         self._rest_empty(rest, 0, f"program number {label.upper()}")
         interp = self.interp
+        if interp.settings.disable_fanuc_style_sub:
+            raise GCodeError(f"DISABLE_FANUC_STYLE_SUB is set, but found bare O-word {label.upper()}")
         meaning = resolve("O", interp.dialect)
         src = interp.source
         self.subs[label] = SubDef(src, src.mark(), interp.line, fanuc=True)

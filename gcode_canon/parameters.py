@@ -9,6 +9,8 @@
   the machine position; #5420-#5428, the current position) are computed on read by getters the
   interpreter registers; they and the tool parameters #5400-#5413 are read-only to programs. The
   interpreter writes system values with :meth:`set_system`.
+* ``#<_ini[section]name>`` reads a number of the machine's configuration (LinuxCNC reads its INI file;
+  canon the machine file's TOML tables, :attr:`Parameters.ini`); read-only.
 """
 
 from __future__ import annotations
@@ -24,9 +26,12 @@ READ_ONLY_NUMBERED = frozenset([*range(5021, 5030), *range(5400, 5414), *range(5
 
 Getter = Callable[[], float]
 
+INI_PREFIX = "_ini["
+"""``#<_ini[section]name>``: a value of the machine's configuration file (LinuxCNC's INI variables)."""
+
 
 class Parameters:
-    __slots__ = ("_globals", "_locals", "dynamic_numbered", "numbered", "predefined")
+    __slots__ = ("_globals", "_locals", "dynamic_numbered", "ini", "numbered", "predefined")
 
     def __init__(self) -> None:
         self.numbered: list[float] = [0.0] * (MAX_PARAMETER + 1)
@@ -34,6 +39,8 @@ class Parameters:
         self._locals: list[dict[str, float]] = [{}]
         self.predefined: dict[str, Getter] = {}
         self.dynamic_numbered: dict[int, Getter] = {}
+        #: ``#<_ini[section]name>`` values, keyed "section]name" (InterpreterSettings.ini_values)
+        self.ini: dict[str, float] = {}
         self.numbered[5599] = 1.0  # (DEBUG,...) output enabled
 
     # --- reading ----------------------------------------------------------------------------------
@@ -49,7 +56,7 @@ class Parameters:
             getter = self.predefined.get(name)
             if getter is not None:
                 return getter()
-            value = self._globals.get(name)
+            value = self.ini.get(name[5:]) if name.startswith(INI_PREFIX) else self._globals.get(name)
         else:
             value = self._locals[-1].get(name)
         if value is None:
@@ -58,6 +65,8 @@ class Parameters:
 
     def exists(self, name: str) -> bool:
         if name.startswith("_"):
+            if name.startswith(INI_PREFIX):
+                return name[5:] in self.ini
             return name in self.predefined or name in self._globals
         return name in self._locals[-1]
 
@@ -66,7 +75,7 @@ class Parameters:
     def check_assignable(self, key: int | str) -> None:
         """Refuse an assignment a program may not make (before any assignment of the line lands)."""
         if isinstance(key, str):
-            if key in self.predefined:
+            if key in self.predefined or key.startswith(INI_PREFIX):
                 raise GCodeError(f"Cannot assign to read-only parameter #<{key}>")
         elif key in READ_ONLY_NUMBERED:
             raise GCodeError(f"Cannot assign to read-only parameter #{key}")

@@ -46,3 +46,9 @@ class InterpreterSettings:
     disable_g92_persistence: bool = False
     """G92/G52 offsets (#5210-#5219) are not kept from one program to the next: cleared when the
     parameter file is read and at M2/M30 (LinuxCNC's ``[RS274NGC] DISABLE_G92_PERSISTENCE``)."""
+    disable_fanuc_style_sub: bool = False
+    """M98, M99 and bare ``O<n>`` program numbers are refused (LinuxCNC's ``[RS274NGC]
+    DISABLE_FANUC_STYLE_SUB``): only o-word subroutines."""
+    ini_values: dict[str, float] = field(default_factory=dict)
+    """What ``#<_ini[section]name>`` reads (LinuxCNC's INI variables), keyed ``"section]name"`` in
+    lower case: the daemon fills it with the machine file's numbers. Read-only to programs."""

@@ -176,7 +176,7 @@ def run(args: argparse.Namespace) -> int:
     from motiond.instance_lock import lock_machine
 
     config = load_machine(args.config)
-    lock = lock_machine(args.config, config.limits.name, args.state_dir)
+    lock = lock_machine(args.config, config, args.state_dir)
     try:
         return _run_locked(args, config)
     finally:

@@ -61,14 +61,16 @@ def _fmt(v: float) -> str:
 
 
 def timing_verdict(late_s: list[float], period_s: float, limit_s: float,
-                   heartbeat_consumer_ms: int) -> tuple[str, str]:
+                   heartbeat_consumer_ms: int, drive_timeout_ms: float = 0.0) -> tuple[str, str]:
     """Late cycles judged against what a real drive tolerates: ``("ok" | "rough" | "fault", words)``.
 
     A cycle late by less than a period still delivers its setpoint before the next SYNC. One late by
     more leaves a real drive a SYNC (or more) without a new target: it holds the last one, a velocity
-    step. Beyond ``limit_s`` (canon's late-cycle fault on real drives, ten cycles but at least 50 ms,
-    standing in for the drives' setpoint timeout) or the drives' heartbeat consumer time (a stall that
-    long silences the master's heartbeat too), real drives fault: the run would have stopped.
+    step. Real drives fault when the gap between two setpoints (a period plus the lateness) passes their
+    own setpoint timeout (``drive_timeout_ms``, ``[canopen] drive_setpoint_timeout_ms`` as commissioned
+    on the drives); when that is not configured, ``limit_s`` stands in for it (canon's late-cycle fault on
+    real drives, ten cycles but at least 50 ms). A stall beyond the drives' heartbeat consumer time
+    silences the master's heartbeat too: the drives fault on that as well.
     """
     period_ms = period_s * 1000
     n = len(late_s)
@@ -76,12 +78,22 @@ def timing_verdict(late_s: list[float], period_s: float, limit_s: float,
         return "ok", "every cycle on time: a real drive would have been happy"
     worst = max(late_s)
     missed = sum(1 for by in late_s if by > period_s)
-    over = [f"canon's late-cycle limit for real drives ({limit_s * 1000:g} ms)"] if worst > limit_s else []
+    if drive_timeout_ms > 0:
+        tolerance = f"the drives' setpoint timeout ({drive_timeout_ms:g} ms)"
+
+        def beyond(by: float) -> bool:
+            return (by + period_s) * 1000 > drive_timeout_ms
+    else:
+        tolerance = f"canon's late-cycle limit for real drives ({limit_s * 1000:g} ms)"
+
+        def beyond(by: float) -> bool:
+            return by > limit_s
+    over = [tolerance] if beyond(worst) else []
     if heartbeat_consumer_ms and worst * 1000 > heartbeat_consumer_ms:
         over.append(f"the drives' heartbeat consumer time ({heartbeat_consumer_ms} ms)")
     if over:
-        k = sum(1 for by in late_s
-                if by > limit_s or (heartbeat_consumer_ms and by * 1000 > heartbeat_consumer_ms))
+        silent = heartbeat_consumer_ms / 1000 if heartbeat_consumer_ms else float("inf")
+        k = sum(1 for by in late_s if beyond(by) or by > silent)
         return "fault", (f"NOT fit for a real machine: the worst cycle started {worst * 1000:.1f} ms late, "
                          f"beyond {' and '.join(over)}; on real drives the run would have stopped with a "
                          f"fault ({k} such cycle{'s' if k != 1 else ''})")
@@ -91,8 +103,8 @@ def timing_verdict(late_s: list[float], period_s: float, limit_s: float,
                       "would not have noticed")
     return "rough", (f"{missed} cycles late by more than one period ({period_ms:g} ms, worst "
                      f"{worst * 1000:.1f} ms): a real drive would have held its last setpoint for a SYNC or "
-                     "more each time (a velocity step, a jolt), within its tolerance "
-                     f"({limit_s * 1000:g} ms): no fault, but rough motion")
+                     f"more each time (a velocity step, a jolt), within {tolerance}: no fault, but rough "
+                     "motion")
 
 
 def time_breakdown(result: Any, period_s: float) -> dict[str, float]:
@@ -110,14 +122,15 @@ def time_breakdown(result: Any, period_s: float) -> dict[str, float]:
     }
 
 
-def _tolerances(machine: Any) -> tuple[float, int]:
-    """What a real machine of this configuration tolerates: canon's late-cycle limit for real drives
-    and the drives' heartbeat consumer time as configured (not the simulation's relaxed values)."""
+def _tolerances(machine: Any) -> tuple[float, int, float]:
+    """What a real machine of this configuration tolerates: canon's late-cycle limit for real drives,
+    the drives' heartbeat consumer time and their setpoint timeout as configured (not the simulation's
+    relaxed values; 0: not configured)."""
     from motiond.config_canopen import canopen_for_machine
 
     configured = canopen_for_machine(machine.config)
     hb = configured.heartbeat_consumer_ms if configured.heartbeat_producer_ms else 0
-    return max(10 * machine.T, 0.050), hb
+    return max(10 * machine.T, 0.050), hb, configured.drive_setpoint_timeout_ms
 
 
 def summary_dict(machine: Any, result: Any) -> dict[str, Any]:
@@ -135,11 +148,11 @@ def summary_dict(machine: Any, result: Any) -> dict[str, Any]:
             "final_actual": result.final_actual[i] if result.final_actual else None,
             "program_final": result.expected_final[i] if result.expected_final else None,
         }
-    limit_s, hb = _tolerances(machine)
-    verdict, words = timing_verdict(result.late_s, machine.T, limit_s, hb)
+    limit_s, hb, drive_timeout_ms = _tolerances(machine)
+    verdict, words = timing_verdict(result.late_s, machine.T, limit_s, hb, drive_timeout_ms)
     return {
         "timing": {"verdict": verdict, "text": words, "real_late_limit_ms": limit_s * 1000,
-                   "heartbeat_consumer_ms": hb,
+                   "heartbeat_consumer_ms": hb, "drive_setpoint_timeout_ms": drive_timeout_ms,
                    "late_by_more_than_a_period": sum(1 for by in result.late_s if by > machine.T)},
         "time": time_breakdown(result, machine.T),
         "program": result.program,
@@ -288,7 +301,7 @@ def run(args: argparse.Namespace) -> int:
     path = program_file(args.file)
     config = load_checked(args.config)
     settings = settings_from_args(config, args, dry_run=False)
-    lock = lock_machine(args.config, config.limits.name, args.state_dir)
+    lock = lock_machine(args.config, config, args.state_dir)
     try:
         return _run_locked(args, path, config, settings)
     finally:

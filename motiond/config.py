@@ -41,6 +41,7 @@ class InterpreterConfig:
     program_path: tuple[Path, ...] = ()  # the daemon runs programs from these directories only
     tool_change_with_spindle_on: bool = False  # LinuxCNC's [EMCIO] TOOL_CHANGE_WITH_SPINDLE_ON
     disable_g92_persistence: bool = False  # LinuxCNC's [RS274NGC] DISABLE_G92_PERSISTENCE
+    disable_fanuc_style_sub: bool = False  # LinuxCNC's [RS274NGC] DISABLE_FANUC_STYLE_SUB
 
 
 @dataclass(frozen=True)
@@ -126,13 +127,14 @@ def _interpreter(t: Table, base: Path) -> InterpreterConfig:
     block_delete = t.get("block_delete", bool, default=False)
     spindle_on = t.get("tool_change_with_spindle_on", bool, default=False)
     no_g92 = t.get("disable_g92_persistence", bool, default=False)
+    no_fanuc = t.get("disable_fanuc_style_sub", bool, default=False)
     tool_table = path_key("tool_table", False)
     var_file = path_key("var_file", None)  # may not exist yet: it is written at program end
     if var_file is not None and var_file.is_dir():
         raise t.error("var_file", f"is a directory: {var_file}")
     t.check_unknown()
     return InterpreterConfig(dialect, dirs, depth, loops, log_dir, block_delete, tool_table, var_file,
-                             programs, spindle_on, no_g92)
+                             programs, spindle_on, no_g92, no_fanuc)
 
 
 def load_machine(path: str | None) -> MachineConfig:

@@ -3,20 +3,24 @@
 
 :func:`validate_machine` reads every section with its own reader (``[machine]``/``[axes]``/
 ``[interpreter]``, ``[canopen]`` with the drives' 32-bit ranges and the bus budget, ``[modbus]`` with
-its I/O bindings, ``[telemetry]``) and the files they name (tool table, EDS files), and collects one
-error per section rather than stopping at the first, so that a machine builder sees every bad key in
-one go (:class:`~motiond.configkit.ConfigErrors`). :func:`describe` renders the machine it describes
-as rich tables.
+its I/O bindings, ``[telemetry]``) and the files they name (tool table, EDS files), and collects every
+bad key rather than stopping at the first (a bad optional value is recorded and its default used, so
+the section's reader goes on: :func:`~motiond.configkit.collect_errors`), so that a machine builder
+sees every mistake in one go (:class:`~motiond.configkit.ConfigErrors`). :func:`describe` renders the
+machine it describes as rich tables.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from motiond.config import MachineConfig, load_machine
-from motiond.configkit import ConfigError, ConfigErrors, Table, load_toml
+from motiond.configkit import ConfigError, ConfigErrors, Table, collect_errors, load_toml
+
+T = TypeVar("T")
 
 # the objects the master reads or writes on every drive (fieldbus.canopen.master): an EDS without them
 # describes a drive the master cannot run in cyclic synchronous position mode
@@ -37,27 +41,45 @@ class CheckedMachine:
 
 def validate_machine(path: str | None) -> CheckedMachine:
     """Every table of the machine file (None: the demo machine); raises
-    :class:`~motiond.configkit.ConfigErrors` naming each bad key found (at most one per section)."""
+    :class:`~motiond.configkit.ConfigErrors` naming each bad key found."""
     from motiond.config_canopen import canopen_for_machine, canopen_from_file
     from motiond.config_modbus import modbus_for, read_modbus
     from telemetry.config import TelemetryConfig
 
     errors: list[ConfigError] = []
+
+    def read(fn: Callable[[], T]) -> T | None:
+        """One section's reader run to its end, every bad optional key recorded on the way."""
+        with collect_errors() as found:
+            try:
+                result: T | None = fn()
+            except ConfigErrors as exc:
+                found.extend(exc.errors)
+                result = None
+            except ConfigError as exc:
+                found.append(exc)
+                result = None
+        seen = {str(e) for e in errors}
+        errors.extend(e for e in found if str(e) not in seen)
+        return result
+
     config: MachineConfig | None = None
-    try:
-        config = load_machine(path)
-    except ConfigError as exc:
-        if path is None or not exc.key:  # no file, not TOML: nothing more to read
-            raise ConfigErrors([exc]) from None
-        errors.append(exc)
+    with collect_errors() as found:
+        try:
+            config = load_machine(path)
+        except ConfigError as exc:
+            if path is None or not exc.key:  # no file, not TOML: nothing more to read
+                raise ConfigErrors([exc]) from None
+            found.extend(exc.errors if isinstance(exc, ConfigErrors) else [exc])
+    errors.extend(found)
     root = config.root if config is not None and config.root is not None else \
         Table(load_toml(path) if path else {}, path or "")
     file = path or ""
     if config is None:
         errors.extend(e for e in _axis_errors(root) if str(e) not in {str(x) for x in errors})
 
-    canopen = load = None
-    try:
+    def read_canopen() -> tuple[Any, Any]:
+        canopen = load = None
         if config is not None:
             canopen = canopen_for_machine(config)
         elif isinstance(root.data.get("axes"), dict):  # [axes] itself was bad: read [canopen] anyway
@@ -65,23 +87,13 @@ def validate_machine(path: str | None) -> CheckedMachine:
         if canopen is not None:
             load = _bus_budget(canopen, file)
             _eds_files(canopen, root)
-    except ConfigError as exc:
-        errors.append(exc)
-    modbus = None
-    try:
-        modbus = modbus_for(config) if config is not None else read_modbus(Table(root.data, file))
-    except ConfigError as exc:
-        errors.append(exc)
-    tele = None
-    try:
-        tele = TelemetryConfig.from_table(Table(root.data, file).table("telemetry"))
-    except ConfigError as exc:
-        errors.append(exc)
+        return canopen, load
+
+    canopen, load = read(read_canopen) or (None, None)
+    modbus = read(lambda: modbus_for(config) if config is not None else read_modbus(Table(root.data, file)))
+    tele = read(lambda: TelemetryConfig.from_table(Table(root.data, file).table("telemetry")))
     if config is not None:
-        try:
-            _tool_table(config)
-        except ConfigError as exc:
-            errors.append(exc)
+        read(lambda: _tool_table(config))
     if errors:
         raise ConfigErrors(errors)
     assert config is not None

@@ -7,6 +7,8 @@ TOML tables into them with these helpers, so that every mistake reads like
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
 import tomllib
 from collections.abc import Callable, Iterator
@@ -39,6 +41,25 @@ class ConfigErrors(ConfigError):
 
     def __str__(self) -> str:
         return "\n".join(str(e) for e in self.errors)
+
+
+# While a reader runs under collect_errors(), a bad value of an optional key is recorded here and its
+# default used, so that the reader goes on to the section's other keys: ``canon config check`` then
+# names every bad key of a section at once. Required keys still raise (there is nothing to go on with).
+_collected: contextvars.ContextVar[list[ConfigError] | None] = contextvars.ContextVar("_collected",
+                                                                                        default=None)
+
+
+@contextlib.contextmanager
+def collect_errors() -> Iterator[list[ConfigError]]:
+    """Within the block, :meth:`Table.get` records a bad optional value and returns its default, and
+    :meth:`Table.check_unknown` records every unknown key; the list holds what was recorded."""
+    errors: list[ConfigError] = []
+    token = _collected.set(errors)
+    try:
+        yield errors
+    finally:
+        _collected.reset(token)
 
 
 def load_toml(path: str | Path) -> dict[str, Any]:
@@ -88,24 +109,38 @@ class Table:
 
     def get(self, name: str, kind: type[T], default: Any = _MISSING,
             check: Callable[[T], str | None] | None = None) -> T:
-        """Value of ``name`` as ``kind`` (int accepted for float); ``check`` returns a complaint."""
+        """Value of ``name`` as ``kind`` (int accepted for float); ``check`` returns a complaint.
+
+        Under :func:`collect_errors` a bad value of a key with a default is recorded and the default
+        returned."""
         self._seen.add(name)
         if name not in self.data:
             if default is _MISSING:
                 raise self.error(name, "missing (required)")
             return default
+        complaint = self._complaint(name, kind, check)
+        if complaint is None:
+            value = self.data[name]
+            return float(value) if kind is float else value  # type: ignore[return-value]
+        errors = _collected.get()
+        if errors is None or default is _MISSING:
+            raise self.error(name, complaint)
+        errors.append(self.error(name, complaint))
+        return default
+
+    def _complaint(self, name: str, kind: type, check: Callable[[Any], str | None] | None) -> str | None:
         value = self.data[name]
         if kind is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
         if not isinstance(value, kind) or (kind is not bool and isinstance(value, bool)):
-            raise self.error(name, f"must be {kind.__name__}, got {type(value).__name__} {value!r}")
+            return f"must be {kind.__name__}, got {type(value).__name__} {value!r}"
         if kind is float and not math.isfinite(value):
-            raise self.error(name, f"must be a finite number, got {value!r}")
+            return f"must be a finite number, got {value!r}"
         if check is not None:
             complaint = check(value)
             if complaint:
-                raise self.error(name, f"{complaint}, got {value!r}")
-        return value
+                return f"{complaint}, got {value!r}"
+        return None
 
     def table(self, name: str, required: bool = False) -> Table:
         self._seen.add(name)
@@ -129,9 +164,14 @@ class Table:
         return [Table(item, self.file, f"{self.key(name)}[{i}]") for i, item in enumerate(items)]
 
     def check_unknown(self) -> None:
+        """Any key nobody read is a mistake (under :func:`collect_errors`, each one is recorded)."""
         unknown = sorted(set(self.data) - self._seen)
-        if unknown:
+        if not unknown:
+            return
+        errors = _collected.get()
+        if errors is None:
             raise self.error(unknown[0], "unknown key (misspelt?)")
+        errors.extend(self.error(k, "unknown key (misspelt?)") for k in unknown)
 
 
 def positive(v: float) -> str | None:

@@ -80,7 +80,22 @@ def build_settings(config: Any, *, var: str | None = None, tool_table: str | Non
         axes=axes,
         tool_change_with_spindle_on=ic.tool_change_with_spindle_on,
         disable_g92_persistence=ic.disable_g92_persistence,
+        disable_fanuc_style_sub=ic.disable_fanuc_style_sub,
+        ini_values=ini_values(config.root.data if config.root is not None else {}),
     )
+
+
+def ini_values(data: dict[str, Any], section: str = "") -> dict[str, float]:
+    """The machine file's numbers as ``#<_ini[section]name>`` reads them: ``[axes.x] max_velocity``
+    is ``#<_ini[axes.x]max_velocity>`` (LinuxCNC reads its INI file the same way); booleans read 1 and
+    0; names in lower case, as the interpreter folds them. Strings and arrays are not numbers."""
+    out: dict[str, float] = {}
+    for key, value in data.items():
+        if isinstance(value, dict):
+            out.update(ini_values(value, f"{section}.{key}" if section else key))
+        elif isinstance(value, bool | int | float) and section:
+            out[f"{section}]{key}".lower().replace(" ", "")] = float(value)
+    return out
 
 
 def settings_from_args(config: Any, args: argparse.Namespace, *, dry_run: bool) -> InterpreterSettings:

@@ -85,6 +85,17 @@ _END = object()  # end of a job's commands in the queue
 _instance = itertools.count(1)
 
 
+def refuse_unfollowed_sync(cmd: C.SpindleSync, simulated: bool) -> None:
+    """Spindle-synchronized motion (G33, G33.1, G76) is planned at the commanded spindle speed: right
+    for the simulated spindle, which turns exactly as commanded. A real spindle lags, slips and speeds
+    up; following it needs its position in the cycle (a spindle drive or encoder), which canon does not
+    read yet. Rather than cut a thread whose pitch drifts, a real machine refuses the move."""
+    if not simulated:
+        raise GCodeError("spindle-synchronized motion (G33, G33.1, G76) needs the spindle's position, and "
+                         "this machine has no spindle feedback configured: canon would cut at the commanded "
+                         "speed, not the spindle's", cmd.file, cmd.line)
+
+
 class MachineError(Exception):
     """The machine could not be brought up (boot, I/O, telemetry); the message says what and where."""
 
@@ -993,6 +1004,8 @@ class Machine:
             elif self.io is None and isinstance(item, C.DigitalOutput | C.AnalogOutput):
                 raise GCodeError(f"{item.NAME}: this machine has no Modbus I/O configured ([modbus])",
                                  item.file, item.line)
+            elif isinstance(item, C.SpindleSync):
+                refuse_unfollowed_sync(item, self.simulated)
             p.feed(item)
 
     def _track(self, sp: Any, job: _Job | None) -> None:

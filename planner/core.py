@@ -73,11 +73,12 @@ from planner.segments import (
 )
 from planner.setpoints import Setpoint
 from planner.smoothing import SmoothingMixin
+from planner.spindle_sync import SpindleSyncMixin
 
 log = logging.getLogger(__name__)
 
 
-class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, ProfilesMixin):
+class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, ProfilesMixin, SpindleSyncMixin):
     """Canonical commands in (:meth:`feed`), one :class:`Setpoint` per cycle out (:meth:`next_setpoint`).
 
     ``start`` is the position at rest when planning begins (machine zero by default), one value per
@@ -130,6 +131,8 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
         self._run: _Run | None = None  # lines being merged, not yet queued (planner.merging)
         self._exact_next = False
         self._spindle_rpm = 0.0
+        self._spindle_dir = C.SpindleDirection.CW
+        self._sync_pitch: float | None = None  # spindle-synchronized feed (G33, G33.1, G76): per rev
         self._pending: list[C.Canon] = []  # ride on the start of the next motion
         # direction and length of the last line fed (a hint for where a smoothed chain may start)
         self._last_chord: tuple[tuple[float, ...], float] | None = None
@@ -225,6 +228,8 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
             self._close_tail()
             self._q.append(SyncItem(cmd, self._pending, emit=False))
             self._pending = []
+        elif isinstance(cmd, C.RigidTap | C.SpindleSync | C.SpindleSyncStop):
+            self._spindle_sync(cmd)
         elif isinstance(cmd, C.SetFeedRate):
             if cmd.rate < 0:
                 raise PlannerError(f"feed rate must be >= 0, got {cmd.rate:g}", cmd.file, cmd.line)
@@ -252,6 +257,7 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
                 raise PlannerError(f"dwell must be >= 0 s, got {cmd.seconds:g}", cmd.file, cmd.line)
             if isinstance(cmd, C.SpindleOn):
                 self._spindle_rpm = abs(cmd.rpm)
+                self._spindle_dir = cmd.direction
             elif isinstance(cmd, C.SpindleOff | C.SpindleOrient):
                 self._spindle_rpm = 0.0
             if isinstance(cmd, C.SpindleOrient):
@@ -335,6 +341,8 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
     def _feed_speed(self, cmd: C.Canon, length: float) -> float:
         if isinstance(cmd, C.StraightTraverse):
             return math.inf
+        if self._sync_pitch is not None:  # G33, G33.1, G76: the spindle sets the pace, not F
+            return self._synced_speed(cmd)
         rate, mode = self._feed_rate, self._feed_mode
         if mode is C.FeedMode.INVERSE_TIME:
             if rate <= 0:
@@ -378,11 +386,12 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
             self.stats["segments"] += 1
             if self._try_merge(cmd, start, end, length, feed, rapid, exact):
                 return
-            seg = self._new_line_seg(None, cmd, start, end, length, feed, rapid, self._ovr, blend_tol)
+            ovr = self._seg_ovr(rapid)
+            seg = self._new_line_seg(None, cmd, start, end, length, feed, rapid, ovr, blend_tol)
         else:
             self._emit_run()
             self._last_chord = None
-            seg = Seg(piece, "arc", cmd, self._feed_speed(cmd, piece.length), rapid, self._ovr)
+            seg = Seg(piece, "arc", cmd, self._feed_speed(cmd, piece.length), rapid, self._seg_ovr(rapid))
             seg.blend_tol = blend_tol
             self._limits(seg)
             self._exact_next = False

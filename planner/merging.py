@@ -82,7 +82,7 @@ class MergingMixin:
             self._emit_run()
             return False
         tol_mode = self._tolerance if mode is C.MotionControlMode.CONTINUOUS else -1.0
-        key = (feed, rapid, self._ovr, tol_mode)
+        key = (feed, rapid, self._seg_ovr(rapid), tol_mode)
         run = self._run
         end_t = tuple(end)
         if run is not None and run.key == key and not self._pending and self._extend(run, end_t, cmd):

@@ -14,6 +14,7 @@ points agree when every coordinate is within the rounding of the printed values.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
@@ -27,6 +28,7 @@ from gcode_canon.commands import (
     ArcFeed,
     Pose,
     Probe,
+    RigidTap,
     SetToolNumber,
     StraightFeed,
     StraightTraverse,
@@ -270,6 +272,8 @@ def run_canon(work: Path, case: Case) -> Result:
         block_delete=case.block_delete, max_loop_iterations=100_000, log_dir=work,
         axes="xyzabc",  # rs274 without [TRAJ] COORDINATES reads X Y Z A B C only
         disable_g92_persistence=_ini_flag(work, case, "DISABLE_G92_PERSISTENCE"),
+        ini_values=_ini_values(work, case) if _ini_flag(work, case, "INI_VARS") else {},
+        disable_fanuc_style_sub=_ini_flag(work, case, "DISABLE_FANUC_STYLE_SUB"),
     )
     result = Result()
     machine = OracleMachine()
@@ -285,6 +289,8 @@ def run_canon(work: Path, case: Case) -> Result:
             if isinstance(cmd, (StraightTraverse, StraightFeed, Probe)):
                 kind = {StraightTraverse: "traverse", StraightFeed: "feed"}.get(type(cmd), "probe")
                 result.moves.append(Move(kind, tuple(cmd.end[:6])))
+            elif isinstance(cmd, RigidTap):
+                result.moves.append(Move("tap", tuple(cmd.end[:3])))
             elif isinstance(cmd, ArcFeed):
                 first, second, _ = cmd.plane.value
                 result.moves.append(Move("arc", tuple(cmd.end[:6]), (cmd.center[first], cmd.center[second]),
@@ -303,6 +309,21 @@ def _ini_flag(work: Path, case: Case, key: str) -> bool:
         return False
     m = re.search(rf"(?im)^\s*{key}\s*=\s*(\S+)", (work / case.ini).read_text(errors="replace"))
     return bool(m) and m.group(1).lower() in ("1", "true", "yes", "on")
+
+
+def _ini_values(work: Path, case: Case) -> dict[str, float]:
+    """The case INI's numbers as #<_ini[section]name> reads them (LinuxCNC: strtod of the value)."""
+    import configparser
+
+    parser = configparser.ConfigParser(strict=False, interpolation=None, comment_prefixes=("#", ";"))
+    assert case.ini is not None
+    parser.read_string((work / case.ini).read_text(errors="replace"))
+    out: dict[str, float] = {}
+    for section in parser.sections():
+        for name, value in parser.items(section):
+            with contextlib.suppress(ValueError, IndexError):
+                out[f"{section}]{name}".lower()] = float(value.split()[0])
+    return out
 
 
 def _ini_subroutine_path(work: Path, case: Case) -> list[str]:

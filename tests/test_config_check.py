@@ -131,3 +131,22 @@ def test_each_bad_axis_is_named(tmp_path: Path) -> None:
         validate_machine(str(bad))
     keys = [e.key for e in info.value.errors]
     assert keys[:2] == ["axes.x.max_velocity", "axes.z.max_jerk"]
+
+
+def test_every_bad_key_of_one_section_is_named(tmp_path: Path) -> None:
+    """Two bad values and two misspelt keys in [canopen], two bad values in one axis: all six named,
+    not just the first of each section."""
+    bad = machine(tmp_path,
+                  ("heartbeat_producer_ms = 100", "heartbeat_producer_ms = \"fast\""),
+                  ("boot_timeout_s = 5.0", "boot_timeout_s = -5.0\nbitrat = 500000\nsimulat = false"),
+                  ("following_error_window = 1.0   # mm", "following_error_window = -1.0"),
+                  ("direction = 1\n", "direction = 2\n"))
+    with pytest.raises(ConfigErrors) as info:
+        validate_machine(str(bad))
+    keys = sorted(e.key for e in info.value.errors)
+    assert keys == sorted(["canopen.heartbeat_producer_ms", "canopen.boot_timeout_s", "canopen.bitrat",
+                           "canopen.simulat", "canopen.axes.x.following_error_window",
+                           "canopen.axes.x.direction"]), keys
+    r = canon("config", "check", "--config", str(bad))
+    assert r.returncode == 1 and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 6, r.stderr

@@ -522,7 +522,7 @@ def test_code_spellings(code: int | str) -> None:
         (840, Plane.XY, {"z": -1, "r": 1, "spindle": None}, "Spindle not turning in G84"),
         (840, Plane.XY, {"z": -1, "r": 1, "spindle": CCW}, "Spindle turning counterclockwise in G84"),
         (740, Plane.XY, {"z": -1, "r": 1, "spindle": CW}, "Spindle turning clockwise in G74"),
-        (760, Plane.XZ, {"z": -1, "r": 1}, "G76 threading is not supported"),
+        (760, Plane.XZ, {"z": -1, "r": 1}, "G76 is not a canned cycle"),
         (800, Plane.XY, {"z": -1, "r": 1}, "G80 is not a canned cycle"),
         ("G8x", Plane.XY, {"z": -1, "r": 1}, "is not a G code"),
         (830, Plane.XY, {"z": -1000, "r": 0, "q": 0.001}, "more than"),

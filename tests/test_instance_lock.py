@@ -102,3 +102,50 @@ def test_lock_is_per_machine_file_and_released(tmp_path: Path) -> None:
     InstanceLock(lock_path(b_cfg, "mill", tmp_path / "s"), "b").acquire().release()
     first.release()
     InstanceLock(la, "machine file a.toml").acquire().release()
+
+
+def _machine_file(tmp_path: Path, name: str, interface: str, modbus_simulated: bool) -> str:
+    text = (ROOT / "examples" / "canon.toml").read_text()
+    text = text.replace('name = "example mill"', f'name = "{name}"', 1)
+    text = text.replace('interface = "virtual"', f'interface = "{interface}"', 1)
+    text = text.replace('channel = "canon"', 'channel = "can0"', 1)
+    text = text.replace("simulate = true                # simulated drives", "simulate = false  # drives", 1)
+    if not modbus_simulated:
+        assert "simulate = true" in text.split("[[modbus.devices]]", 1)[1]
+        head, tail = text.split("[[modbus.devices]]", 1)
+        text = head + "[[modbus.devices]]" + tail.replace("simulate = true", "simulate = false", 1)
+    path = tmp_path / f"{name}.toml"
+    path.write_text(text)
+    return str(path)
+
+
+def test_two_machine_files_on_one_bus_are_refused(tmp_path: Path) -> None:
+    """A second machine file naming the same CAN channel (or the same real Modbus module) is refused
+    while the first holds it; python-can's in-process virtual bus is not a shared resource."""
+    from motiond.cli import UserError
+    from motiond.config import load_machine
+    from motiond.instance_lock import lock_machine
+
+    state = str(tmp_path / "s")
+
+    def refused_while_held(first: str, second: str, holds: str) -> None:
+        held = lock_machine(first, load_machine(first), state)
+        with pytest.raises(UserError, match=rf"{holds} is in use by process {os.getpid()} \(for machine file "
+                                            rf"{first}; "):
+            lock_machine(second, load_machine(second), state)
+        held.release()
+
+    a = _machine_file(tmp_path, "mill-a", "socketcan", modbus_simulated=True)
+    b = _machine_file(tmp_path, "mill-b", "socketcan", modbus_simulated=True)
+    refused_while_held(a, b, "CAN bus socketcan can0")
+    lock_machine(b, load_machine(b), state).release()  # free once the first let go
+    # the same real Modbus module behind two machine files on the (in-process) virtual CAN bus
+    c = _machine_file(tmp_path, "mill-c", "virtual", modbus_simulated=False)
+    d = _machine_file(tmp_path, "mill-d", "virtual", modbus_simulated=False)
+    refused_while_held(c, d, r"Modbus TCP 127\.0\.0\.1:\d+ unit \d+")
+    # simulated Modbus and the virtual CAN bus live inside each process: no conflict
+    e = _machine_file(tmp_path, "mill-e", "virtual", modbus_simulated=True)
+    f = _machine_file(tmp_path, "mill-f", "virtual", modbus_simulated=True)
+    both = [lock_machine(e, load_machine(e), state), lock_machine(f, load_machine(f), state)]
+    for lock in both:
+        lock.release()

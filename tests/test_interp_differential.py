@@ -22,13 +22,6 @@ NOT_BUILT = f"rs274 is not built in {oracle.rs274_dir()}: run tools/build-rs274 
 
 # Known differences, by case: the reason (docs/interpreter.md says more). "canon:" where canon is right.
 KNOWN_INTERP = {
-    "abort-hot-comment/test.ngc [test.ini]": "INI variables #<_ini[...]> are not supported",
-    "iniparam/test.ngc [test.ini]": "INI variables #<_ini[...]> are not supported",
-    "iniparam-failassign/test.ngc [test.ini]": "INI variables #<_ini[...]> are not supported",
-    "m98m99/09-disable-fanuc-subs/test-fanuc.ngc [test-no-fanuc.ini]":
-        "[RS274NGC] DISABLE_FANUC_STYLE_SUB is not supported",
-    "g33.1/g33.1.ngc": "G33.1 rigid tapping is not implemented (spindle-synchronized motion)",
-    "g76/g76only.ngc": "G76 threading is not implemented (spindle-synchronized motion)",
     "g71-endless-loop/g71-endless-loop.ngc": "lathe G70-G72 cycles are not implemented",
     "g71-endless-loop2/g71-endless-loop2.ngc": "G96 constant surface speed is not implemented",
     "g71-endless-loop_2/g71-endless-loop_2.ngc": "lathe G7/G8 diameter mode is not implemented",

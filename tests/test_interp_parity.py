@@ -118,7 +118,7 @@ def test_m73_in_the_main_program_restores_nothing_and_levels_are_separate() -> N
     assert last_end("M70\no<s> sub\nM73\nG20\no<s> endsub\no<s> call\nG91\nM72\nG0 X1\nG0 X1\n") == xyz(1)
 
 
-# --- comparisons: tolerance on EQ/NE only in the LinuxCNC dialect (interp_execute.cc execute_binary2) ---
+# --- comparisons: LinuxCNC's tolerance on EQ/NE (0.0001) and GE/LE (1e-6) (interp_execute.cc) ---
 
 
 def _value(expr: str, dialect: str = "linuxcnc") -> float:
@@ -137,6 +137,9 @@ def _value(expr: str, dialect: str = "linuxcnc") -> float:
     ("[1.00001 LE 1]", 0.0, 1.0),
     ("[1 LE 1]", 1.0, 1.0),
     ("[1 GE 1]", 1.0, 1.0),
+    ("[0.9999999 GE 1]", 1.0, 1.0),  # LinuxCNC's GE and LE take its own 1e-6 (nc_files/threading.ngc)
+    ("[1.0000001 LE 1]", 1.0, 1.0),
+    ("[0.9999999 GT 1]", 0.0, 0.0),
     ("[0.99999 EQ 1]", 1.0, 1.0),
     ("[0.99999 NE 1]", 0.0, 0.0),
     ("[0.9998 EQ 1]", 0.0, 0.0),

@@ -66,3 +66,30 @@ def test_summary_of_a_real_run_has_verdict_and_time(tmp_path: Path) -> None:
     assert tb["standing_s"] + tb["before_first_setpoint_s"] >= 1.9  # the dwell
     parts = tb["moving_s"] + tb["before_first_setpoint_s"] + tb["standing_s"] + tb["skipped_s"]
     assert parts == pytest.approx(tb["total_s"], abs=0.05)
+
+
+def test_the_drives_own_setpoint_timeout_is_the_limit_when_configured() -> None:
+    """With the drives' setpoint timeout configured (8 ms) a 7 ms late cycle (a 9 ms gap between
+    setpoints) is a fault that canon's 50 ms limit would have called rough; a 5 ms one (7 ms gap) is not."""
+    verdict, words = timing_verdict([0.007], T, 0.05, 300, drive_timeout_ms=8.0)
+    assert verdict == "fault" and "the drives' setpoint timeout (8 ms)" in words
+    assert timing_verdict([0.007], T, 0.05, 300)[0] == "rough"
+    verdict, words = timing_verdict([0.005], T, 0.05, 300, drive_timeout_ms=8.0)
+    assert verdict == "rough" and "within the drives' setpoint timeout (8 ms)" in words
+
+
+def test_drive_setpoint_timeout_is_read_and_checked(tmp_path: Path) -> None:
+    from motiond.config import load_machine
+    from motiond.config_canopen import canopen_for_machine
+    from motiond.config_check import validate_machine
+    from motiond.configkit import ConfigErrors
+
+    text = (ROOT / "examples" / "canon.toml").read_text()
+    good = tmp_path / "good.toml"
+    good.write_text(text.replace("steer_gc = true", "steer_gc = true\ndrive_setpoint_timeout_ms = 6", 1))
+    assert canopen_for_machine(load_machine(str(good))).drive_setpoint_timeout_ms == 6.0
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text.replace("steer_gc = true", "steer_gc = true\ndrive_setpoint_timeout_ms = -1", 1))
+    with pytest.raises(ConfigErrors) as info:
+        validate_machine(str(bad))
+    assert [e.key for e in info.value.errors] == ["canopen.drive_setpoint_timeout_ms"]

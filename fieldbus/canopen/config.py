@@ -153,6 +153,9 @@ class CanopenConfig:
     cpu_affinity: tuple[int, ...] = ()
     #: garbage collection kept out of the cycle (clock.PeriodicRunner's ``steer_gc``)
     steer_gc: bool = True
+    #: the drives' own setpoint (RPDO) timeout as commissioned on them, in ms (0: not known); the run
+    #: summary judges late cycles against it
+    drive_setpoint_timeout_ms: float = 0.0
 
     @property
     def layout(self) -> PdoLayout:
