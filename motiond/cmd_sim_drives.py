@@ -64,13 +64,6 @@ def limit_counts(scale: AxisScale, lo: float | None, hi: float | None) -> tuple[
     return (lo_c, hi_c) if scale.scale > 0 else (hi_c, lo_c)
 
 
-def probe_counts(scale: AxisScale, position: float) -> tuple[int, bool]:
-    """``(probe_trip_counts, probe_active_below)`` of the simulated drive for a probe input active at
-    and below machine ``position``: below in machine units is the drive's positive side when the axis
-    counts the other way (a negative scale)."""
-    return scale.to_counts(position), scale.scale > 0
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", metavar="machine.toml", help="machine configuration file (demo: x y z)")
     parser.add_argument("--interface", help="python-can interface, instead of the file's canopen.interface")
@@ -94,7 +87,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "the actual position; the drive only reports them), e.g. y=-5:120; repeatable")
     parser.add_argument("--probe", type=_probe, metavar="AXIS=POSITION",
                         help="the probe input of that axis's drive (its touch probe, 0x60B8-0x60BD) is "
-                             "active at and below this machine position, e.g. z=-3.2 for a surface at Z-3.2")
+                             "active at and below this machine position, e.g. z=-3.2 for a surface at Z-3.2 "
+                             "(instead of the file's canopen.axes.<a>.sim_probe_position)")
     parser.add_argument("--strict", action="store_true",
                         help="take 'enable operation' in Quick stop active at once, during the stop ramp "
                              "(CiA 402 transition 16, as strict drives do)")
@@ -106,6 +100,7 @@ def run(args: argparse.Namespace) -> int:
     import threading
 
     from fieldbus.canopen.drive_sim import SimDrive, motor_for
+    from fieldbus.canopen.drive_sim_probe import sim_probe
     from fieldbus.canopen.sim_process import SimBus
     from motiond.config_canopen import canopen_for_tool
 
@@ -138,12 +133,12 @@ def run(args: argparse.Namespace) -> int:
                        absent_objects=args.absent,
                        negative_limit_counts=switches.get(d.axis, (None, None))[0],
                        positive_limit_counts=switches.get(d.axis, (None, None))[1],
-                       parameters={**motor_for(d, d.eds_path), **dict(args.param)})
+                       parameters={**motor_for(d, d.eds_path), **dict(args.param)},
+                       **sim_probe(d, args.probe[1] if args.probe is not None and args.probe[0] == d.axis
+                                   else None))
               for d in config.drives]
-    for d, cfg in zip(drives, config.drives, strict=True):
+    for d in drives:
         d.reenable_during_quick_stop_ramp = args.strict
-        if args.probe is not None and args.probe[0] == cfg.axis:
-            d.probe_trip_counts, d.probe_active_below = probe_counts(AxisScale(cfg), args.probe[1])
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

@@ -111,7 +111,7 @@ node_id = 2
 HEIGHT = -3.21237  # the surface the probe touches, mm: between two cycles' positions at any feed here
 
 
-def machine_file(tmp_path: Path, probe: str = "touch_probe = 1") -> Path:
+def machine_file(tmp_path: Path, probe: str = f"touch_probe = 1\nsim_probe_position = {HEIGHT}") -> Path:
     from canopen_helpers import unique_channel
 
     path = tmp_path / "probe.toml"
@@ -120,15 +120,15 @@ def machine_file(tmp_path: Path, probe: str = "touch_probe = 1") -> Path:
 
 
 @pytest.fixture
-def machine(tmp_path: Path) -> Iterator[Any]:
+def machine(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Any]:
+    """The probe machine; parametrized indirectly with z's ``direction`` (default 1)."""
     from motiond.config import load_machine
     from motiond.runtime import Machine
 
-    m = Machine(load_machine(str(machine_file(tmp_path))), lc=None, var_file=tmp_path / "p.var").start()
+    path = machine_file(tmp_path, f"touch_probe = 1\nsim_probe_position = {HEIGHT}\n"
+                                  f"direction = {getattr(request, 'param', 1)}")
+    m = Machine(load_machine(str(path)), lc=None, var_file=tmp_path / "p.var").start()
     try:
-        z = m.sim_drives[1]
-        with z.lock:  # the probe input trips at HEIGHT on the way down
-            z.probe_trip_counts = m.master.drives[1].scale.to_counts(HEIGHT)
         m.bring_up()
         yield m
     finally:
@@ -146,6 +146,7 @@ def run(m: Any, tmp_path: Path, text: str) -> Any:
     return result
 
 
+@pytest.mark.parametrize("machine", [1, -1], indirect=True, ids=["z up", "z counts down"])
 def test_g38_2_stops_at_the_surface_and_stores_the_latched_height(machine: Any, tmp_path: Path) -> None:
     m = machine
     m.trace = []  # (cycle, time, setpoint, events) of every cycle
@@ -193,6 +194,8 @@ def test_touch_probe_key_is_checked_naming_it(tmp_path: Path) -> None:
     path.write_text(two)
     with pytest.raises(ConfigError, match=r"canopen\.axes\.z\.touch_probe.*axis x has the machine's probe"):
         canopen_for_machine(load_machine(str(path)))
+    with pytest.raises(ConfigError, match=r"canopen\.axes\.z\.sim_probe_position.*set touch_probe = 1"):
+        canopen_for_machine(load_machine(str(machine_file(tmp_path, "sim_probe_position = -1.0"))))
 
 
 def test_g38_in_mdi_is_refused_with_a_drive_touch_probe(machine: Any) -> None:
@@ -201,20 +204,22 @@ def test_g38_in_mdi_is_refused_with_a_drive_touch_probe(machine: Any) -> None:
     assert result.error.startswith("<mdi>:1: G38.2 in MDI") and "program" in result.error
 
 
-def test_sim_drives_probe_option_puts_the_trip_point_on_the_drive_s_side() -> None:
+def test_the_simulated_probe_position_is_on_the_drive_s_side() -> None:
     import argparse
 
     from fieldbus.canopen.config import AxisScale, DriveConfig
-    from motiond.cmd_sim_drives import _probe, probe_counts
+    from fieldbus.canopen.drive_sim_probe import sim_probe
+    from motiond.cmd_sim_drives import _probe
 
     assert _probe("z=-3.2") == ("z", -3.2)
     with pytest.raises(argparse.ArgumentTypeError, match="AXIS=POSITION"):
         _probe("-3.2")
-    up = AxisScale(DriveConfig("z", 3, counts_per_unit=1000.0))
-    down = AxisScale(DriveConfig("z", 3, counts_per_unit=1000.0, direction=-1))
-    assert probe_counts(up, -3.2) == (-3200, True)
-    counts, below = probe_counts(down, -3.2)
-    assert counts == 3200 and not below
-    sim = SimDrive(3, probe_trip_counts=counts, probe_active_below=below)
+    up = DriveConfig("z", 3, counts_per_unit=1000.0, sim_probe_position=-3.2)
+    down = DriveConfig("z", 3, counts_per_unit=1000.0, direction=-1)
+    assert sim_probe(up) == {"probe_trip_counts": -3200, "probe_active_below": True}
+    assert sim_probe(down) == {}
+    kw = sim_probe(down, -3.2)
+    assert kw == {"probe_trip_counts": 3200, "probe_active_below": False}
+    sim = SimDrive(3, **kw)  # type: ignore[arg-type]
     for z, touching in ((-3.0, False), (-3.2, True), (-3.5, True)):
-        assert sim.probe_input(down.to_counts(z)) is touching
+        assert sim.probe_input(AxisScale(down).to_counts(z)) is touching

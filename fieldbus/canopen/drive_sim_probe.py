@@ -17,6 +17,10 @@ latched is the one at the edge, interpolated inside the period; never a sample's
 from __future__ import annotations
 
 import logging
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from fieldbus.canopen.config import DriveConfig
 
 log = logging.getLogger("fieldbus.canopen.drive_sim")
 
@@ -26,6 +30,19 @@ TOUCH_PROBE_POSITIONS = {1: (0x60BA, 0x60BB), 2: (0x60BC, 0x60BD)}
 TP_ENABLE, TP_CONTINUOUS, TP_SOURCE, TP_POSITIVE, TP_NEGATIVE = 0x01, 0x02, 0x0C, 0x10, 0x20
 TP_STATUS_ENABLED, TP_STATUS_POSITIVE, TP_STATUS_NEGATIVE = 0x01, 0x02, 0x04
 PROBE_OBJECTS = frozenset({TOUCH_PROBE_STATUS, *(i for pair in TOUCH_PROBE_POSITIONS.values() for i in pair)})
+
+
+def sim_probe(cfg: DriveConfig, position: float | None = None) -> dict[str, int | bool]:
+    """``SimDrive`` keyword arguments for a probe input active at and below machine ``position``
+    (default the axis's ``sim_probe_position``; none: no arguments). Below in machine units is the
+    drive's positive side when the axis counts the other way (a negative scale)."""
+    from fieldbus.canopen.config import AxisScale
+
+    position = cfg.sim_probe_position if position is None else position
+    if position is None:
+        return {}
+    scale = AxisScale(cfg)
+    return {"probe_trip_counts": scale.to_counts(position), "probe_active_below": scale.scale > 0}
 
 
 class TouchProbeMixin:
