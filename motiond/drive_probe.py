@@ -47,6 +47,7 @@ class DriveProbing:
         self.pose_index = machine.limits.pose_index[machine.master.drives.index(probe.drive)]
         self._armed: C.Probe | None = None  # the probing move being watched (cycle thread reads)
         self._stopping = False
+        self._held = False
         self._start: C.Pose | None = None
 
     def before_move(self, cmd: C.Probe, job: Any) -> bool:
@@ -82,9 +83,12 @@ class DriveProbing:
         if not self._stopping:
             if self.probe.tripped and planner.waiting_for is not cmd:
                 self._stopping = True
+                self._held = planner.holding
                 planner.abort()  # the rest of the move (and its sync point) is dropped at rest
         elif planner.is_idle:
             self._armed = None
+            if self._held:
+                planner.hold()  # a feed hold during the move outlives the planner's stop (it clears it)
             m = self.m
             with m._sync_cond:
                 m._sync_reached = cmd

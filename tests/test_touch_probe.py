@@ -223,3 +223,43 @@ def test_the_simulated_probe_position_is_on_the_drive_s_side() -> None:
     sim = SimDrive(3, **kw)  # type: ignore[arg-type]
     for z, touching in ((-3.0, False), (-3.2, True), (-3.5, True)):
         assert sim.probe_input(AxisScale(down).to_counts(z)) is touching
+
+
+def test_a_trip_during_a_feed_hold_leaves_the_planner_holding() -> None:
+    """The trip stops the move with the planner's abort, which ends a hold at rest: a hold the operator
+    asked for during the probing move is put back (the machine stays PAUSED until resume)."""
+    import threading
+    from types import SimpleNamespace
+
+    from gcode_canon.commands import Pose, Probe, ProbeMode
+    from motiond.drive_probe import DriveProbing
+
+    class Planner:
+        def __init__(self) -> None:
+            self.holding, self.waiting_for, self.is_idle = True, None, False
+            self.calls: list[str] = []
+
+        def abort(self) -> None:
+            self.calls.append("abort")
+            self.holding = False
+
+        def hold(self) -> None:
+            self.calls.append("hold")
+            self.holding = True
+
+    drive = object()
+    probe = SimpleNamespace(drive=drive, tripped=False)
+    m = SimpleNamespace(limits=SimpleNamespace(pose_index=(2,)), master=SimpleNamespace(drives=[drive]),
+                        _sync_cond=threading.Condition(), _sync_reached=None)
+    dp = DriveProbing(m, probe)  # type: ignore[arg-type]
+    cmd = Probe(Pose(0, 0, -5), ProbeMode.TOWARD_ERROR)
+    dp._armed = cmd
+    p = Planner()
+    dp.on_cycle(p)
+    assert p.calls == []  # no trip yet
+    probe.tripped = True
+    dp.on_cycle(p)
+    assert p.calls == ["abort"]
+    p.is_idle = True
+    dp.on_cycle(p)
+    assert p.calls == ["abort", "hold"] and p.holding and m._sync_reached is cmd
