@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import math
 import re
-from typing import Protocol
+from collections.abc import Callable
+from typing import Protocol, TypeVar
 
 from gcode_canon.errors import GCodeError
 
@@ -117,15 +118,7 @@ class ExpressionReader:
         """The parameter named at ``s[i] == '#'``: an index 1..MAX_PARAMETER or a folded name."""
         i += 1
         if i < len(s) and s[i] == "<":
-            end = s.find(">", i + 1)
-            if end < 0:
-                raise GCodeError("Named parameter not terminated by '>'")
-            name = s[i + 1:end]
-            if not name:
-                raise GCodeError("Named parameter with an empty name")
-            if "(" in name:
-                raise GCodeError("Comment inside a parameter name")
-            return name, end + 1
+            return named_key(s, i)
         index, j = self._parameter_number(s, i, depth)
         if not 1 <= index <= MAX_PARAMETER:
             raise GCodeError(f"{PARAMETER_OUT_OF_RANGE}: #{index} (1 to {MAX_PARAMETER})")
@@ -145,64 +138,18 @@ class ExpressionReader:
         """``[ value (op value)* ]`` at ``s[i] == '['``, evaluated with LinuxCNC precedence."""
         if depth > self.max_depth:
             raise GCodeError(f"Expression nested too deeply (more than {self.max_depth} levels)")
-        n = len(s)
-        i += 1
-        values: list[float] = []
-        ops: list[str] = []
-        while True:
-            value, i = self.real_value(s, i, depth + 1)
-            values.append(value)
-            if i >= n:
-                raise GCodeError("Unclosed expression: missing ']'")
-            c = s[i]
-            if c == "]":
-                i += 1
-                break
-            op, i = self._operator(s, i)
-            prec = _PRECEDENCE[op]
-            while ops and _PRECEDENCE[ops[-1]] >= prec:
-                b = values.pop()
-                values[-1] = _apply(ops.pop(), values[-1], b, self.tolerant_order)
-            ops.append(op)
-        while ops:
-            b = values.pop()
-            values[-1] = _apply(ops.pop(), values[-1], b, self.tolerant_order)
-        return values[0], i
+        return bracketed(s, i, depth, self.real_value, self._combine)
 
-    @staticmethod
-    def _operator(s: str, i: int) -> tuple[str, int]:
-        c = s[i]
-        if c == "*":
-            if s.startswith("**", i):
-                return "**", i + 2
-            return "*", i + 1
-        if c in "/+-":
-            return c, i + 1
-        for op in _WORD_OPS:
-            if s.startswith(op, i):
-                return op, i + len(op)
-        if c == "(":
-            raise GCodeError("Unclosed expression: a comment before the closing ']'")
-        raise GCodeError(f"Unknown operation at {s[i:i + 12]!r}")
+    def _combine(self, op: str, a: float, b: float) -> float:
+        return _apply(op, a, b, self.tolerant_order)
 
     def function(self, s: str, i: int, depth: int) -> tuple[float, int]:
-        for name in _FUNCTIONS:
-            if s.startswith(name, i):
-                break
-        else:
-            raise GCodeError(f"Unknown function or word at {s[i:i + 12]!r}")
-        j = i + len(name)
-        if j >= len(s) or s[j] != "[":
-            raise GCodeError(f"Left bracket missing after function name {name.upper()}")
+        name, j = function_name(s, i)
         if name == "exists":
             return self._exists(s, j, depth)
         arg, j = self.expression(s, j, depth + 1)
         if name == "atan":
-            if j >= len(s) or s[j] != "/":
-                raise GCodeError("Slash missing after first ATAN argument: ATAN[y]/[x]")
-            if j + 1 >= len(s) or s[j + 1] != "[":
-                raise GCodeError("Left bracket missing after slash with ATAN: ATAN[y]/[x]")
-            x, j = self.expression(s, j + 1, depth + 1)
+            x, j = self.expression(s, atan_divisor(s, j), depth + 1)
             return math.degrees(math.atan2(arg, x)), j
         return _unary(name, arg), j
 
@@ -211,17 +158,113 @@ class ExpressionReader:
         ``read_bracketed_parameter``: a name exists when defined (predefined ones always); a number
         ``n`` (any integer expression: ``#5``, ``#[2+3]``, ``##2``) when 1 <= n <= MAX_PARAMETER,
         whatever value the parameter holds. Neither reads the parameter's value."""
-        if not s.startswith("#", j + 1):
-            raise GCodeError("EXISTS takes one parameter: EXISTS[#<name>] or EXISTS[#n]")
-        if s.startswith("#<", j + 1):
-            end = s.find(">", j + 3)
-            if end < 0 or end + 1 >= len(s) or s[end + 1] != "]":
-                raise GCodeError("EXISTS takes one parameter: EXISTS[#<name>] or EXISTS[#n]")
-            return (1.0 if self.params.exists(s[j + 3:end]) else 0.0), end + 2
+        name, end = exists_name(s, j)
+        if name is not None:
+            return (1.0 if self.params.exists(name) else 0.0), end
         index, k = self._parameter_number(s, j + 2, depth)
-        if k >= len(s) or s[k] != "]":
-            raise GCodeError("Expected ] reading bracketed parameter (EXISTS[#n] takes one parameter)")
-        return (1.0 if 1 <= index <= MAX_PARAMETER else 0.0), k + 1
+        return (1.0 if 1 <= index <= MAX_PARAMETER else 0.0), exists_close(s, k)
+
+
+T = TypeVar("T")
+
+
+def bracketed(s: str, i: int, depth: int, read: Callable[[str, int, int], tuple[T, int]],
+              combine: Callable[[str, T, T], T]) -> tuple[T, int]:
+    """``[ value (op value)* ]`` at ``s[i] == '['``: values from ``read``, reduced by ``combine`` in
+    LinuxCNC's order (operators of one level left to right, each reduction as soon as the next
+    operator shows it may be done, i.e. before the value after that operator is read)."""
+    n = len(s)
+    i += 1
+    values: list[T] = []
+    ops: list[str] = []
+    while True:
+        value, i = read(s, i, depth + 1)
+        values.append(value)
+        if i >= n:
+            raise GCodeError("Unclosed expression: missing ']'")
+        c = s[i]
+        if c == "]":
+            i += 1
+            break
+        op, i = _operator(s, i)
+        prec = _PRECEDENCE[op]
+        while ops and _PRECEDENCE[ops[-1]] >= prec:
+            b = values.pop()
+            values[-1] = combine(ops.pop(), values[-1], b)
+        ops.append(op)
+    while ops:
+        b = values.pop()
+        values[-1] = combine(ops.pop(), values[-1], b)
+    return values[0], i
+
+
+def _operator(s: str, i: int) -> tuple[str, int]:
+    c = s[i]
+    if c == "*":
+        if s.startswith("**", i):
+            return "**", i + 2
+        return "*", i + 1
+    if c in "/+-":
+        return c, i + 1
+    for op in _WORD_OPS:
+        if s.startswith(op, i):
+            return op, i + len(op)
+    if c == "(":
+        raise GCodeError("Unclosed expression: a comment before the closing ']'")
+    raise GCodeError(f"Unknown operation at {s[i:i + 12]!r}")
+
+
+def named_key(s: str, i: int) -> tuple[str, int]:
+    """The folded name of ``#<name>`` with ``s[i] == '<'``, and where it ends."""
+    end = s.find(">", i + 1)
+    if end < 0:
+        raise GCodeError("Named parameter not terminated by '>'")
+    name = s[i + 1:end]
+    if not name:
+        raise GCodeError("Named parameter with an empty name")
+    if "(" in name:
+        raise GCodeError("Comment inside a parameter name")
+    return name, end + 1
+
+
+def function_name(s: str, i: int) -> tuple[str, int]:
+    """The function named at ``s[i]`` and where its ``[`` is."""
+    for name in _FUNCTIONS:
+        if s.startswith(name, i):
+            break
+    else:
+        raise GCodeError(f"Unknown function or word at {s[i:i + 12]!r}")
+    j = i + len(name)
+    if j >= len(s) or s[j] != "[":
+        raise GCodeError(f"Left bracket missing after function name {name.upper()}")
+    return name, j
+
+
+def atan_divisor(s: str, j: int) -> int:
+    """Where the ``[x]`` of ``ATAN[y]/[x]`` starts, ``j`` just after ``[y]``."""
+    if j >= len(s) or s[j] != "/":
+        raise GCodeError("Slash missing after first ATAN argument: ATAN[y]/[x]")
+    if j + 1 >= len(s) or s[j + 1] != "[":
+        raise GCodeError("Left bracket missing after slash with ATAN: ATAN[y]/[x]")
+    return j + 1
+
+
+def exists_name(s: str, j: int) -> tuple[str | None, int]:
+    """For ``EXISTS[`` at ``s[j]``: the name of ``EXISTS[#<name>]`` and the end, or None (a number)."""
+    if not s.startswith("#", j + 1):
+        raise GCodeError("EXISTS takes one parameter: EXISTS[#<name>] or EXISTS[#n]")
+    if s.startswith("#<", j + 1):
+        end = s.find(">", j + 3)
+        if end < 0 or end + 1 >= len(s) or s[end + 1] != "]":
+            raise GCodeError("EXISTS takes one parameter: EXISTS[#<name>] or EXISTS[#n]")
+        return s[j + 3:end], end + 2
+    return None, j
+
+
+def exists_close(s: str, k: int) -> int:
+    if k >= len(s) or s[k] != "]":
+        raise GCodeError("Expected ] reading bracketed parameter (EXISTS[#n] takes one parameter)")
+    return k + 1
 
 
 def _unary(name: str, x: float) -> float:

@@ -99,8 +99,9 @@ def check_characters(raw: str) -> None:
                 raise GCodeError("Line is not valid UTF-8 text")
 
 
-def parse_line(raw: str, reader: ExpressionReader) -> Block:
-    """Parse (and evaluate the values of) one line without its end-of-line characters."""
+def fold(raw: str) -> tuple[str, list[str]]:
+    """The line as the reader reads it (comments cut to ``(`` markers, no spaces, lower case) and its
+    comments."""
     check_characters(raw)
     if "(" in raw or ";" in raw:
         code, comments = split_comments(raw)
@@ -110,20 +111,56 @@ def parse_line(raw: str, reader: ExpressionReader) -> Block:
     if not s.isascii():
         bad = next(ch for ch in s if not ch.isascii())
         raise GCodeError(f"Bad character used: {bad!r} (only comments may hold non-ASCII text)")
-    s = s.lower()
-    block = Block()
-    block.comments = comments
+    return s.lower(), comments
+
+
+def read_prefix(s: str) -> tuple[bool, float | None, int]:
+    """Block delete ``/`` and the N word at the start of a folded line: (deleted, number, where next)."""
+    deleted = False
+    number = None
     n = len(s)
     i = 0
     if i < n and s[i] == "/":
-        block.deleted = True
+        deleted = True
         i += 1
     if i < n and s[i] == "n":
         m = _LINE_NUMBER.match(s, i)
         if m is None:
             raise GCodeError("Bad format of line number (N word)")
-        block.line_number = float(m.group()[1:])
+        number = float(m.group()[1:])
         i = m.end()
+    return deleted, number, i
+
+
+def g_code(value: float) -> int:
+    """A G word's value as its code times ten (G38.2 -> 382), or the reader's error."""
+    tenths = value * 10.0
+    if tenths - tenths != 0.0:  # G1e308: no integer to round to
+        raise GCodeError(f"G code out of range: G{value:g}")
+    code10 = round(tenths)
+    if abs(tenths - code10) > TOLERANCE_EQUAL * 10.0:
+        raise GCodeError(f"Unknown G code used: G{value:g}")
+    if not 0 <= code10 < 1000:
+        raise GCodeError(f"G code out of range: G{value:g}")
+    return int(code10)
+
+
+def m_code(value: float) -> int:
+    mcode = round(value)
+    if abs(value - mcode) > TOLERANCE_EQUAL:
+        raise GCodeError(f"Unknown M code used: M{value:g}")
+    if not 0 <= mcode <= 199:
+        raise GCodeError(f"M code out of range: M{value:g}")
+    return int(mcode)
+
+
+def parse_line(raw: str, reader: ExpressionReader) -> Block:
+    """Parse (and evaluate the values of) one line without its end-of-line characters."""
+    s, comments = fold(raw)
+    block = Block()
+    block.comments = comments
+    block.deleted, block.line_number, i = read_prefix(s)
+    n = len(s)
     if i < n and s[i] == "o":
         block.o_text = s[i:]
         return block
@@ -140,23 +177,13 @@ def parse_line(raw: str, reader: ExpressionReader) -> Block:
             block.assigns.append((key, value))
         elif c == "g":
             value, i = reader.real_value(s, i + 1)
-            tenths = value * 10.0
-            code10 = round(tenths)
-            if abs(tenths - code10) > TOLERANCE_EQUAL * 10.0:
-                raise GCodeError(f"Unknown G code used: G{value:g}")
-            if not 0 <= code10 < 1000:
-                raise GCodeError(f"G code out of range: G{value:g}")
-            block.g.append(int(code10))
+            block.g.append(g_code(value))
         elif c == "m":
             value, i = reader.real_value(s, i + 1)
-            mcode = round(value)
-            if abs(value - mcode) > TOLERANCE_EQUAL:
-                raise GCodeError(f"Unknown M code used: M{value:g}")
-            if not 0 <= mcode <= 199:
-                raise GCodeError(f"M code out of range: M{value:g}")
+            mcode = m_code(value)
             if len(block.m) == 4:
                 raise GCodeError("Too many M codes on line (at most four)")
-            block.m.append(int(mcode))
+            block.m.append(mcode)
         elif c in WORD_LETTERS:
             if c in words:
                 raise GCodeError(f"Multiple {c.upper()} words on one line")

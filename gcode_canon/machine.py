@@ -9,6 +9,7 @@ before it. The answer is stored in the parameters (#5399, #5061-#5070) or the cu
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 from typing import Protocol, runtime_checkable
 
 from gcode_canon.commands import Pose, Probe, WaitInput
@@ -53,3 +54,13 @@ class DryRunMachine:
     def print_text(self, text: str) -> None:
         stream = self.print_stream if self.print_stream is not None else sys.stderr
         print(text, file=stream)
+
+
+class Resume:
+    """Placeholder in the interpreter's output for a line: run ``fn`` (ask the machine, store its
+    answer) when the consumer asks for what follows; never handed to the consumer."""
+
+    __slots__ = ("fn",)
+
+    def __init__(self, fn: Callable[[], None]) -> None:
+        self.fn = fn

@@ -156,13 +156,12 @@ def root_warning() -> str | None:
     return ROOT_WARNING if hasattr(os, "geteuid") and os.geteuid() == 0 else None
 
 
-STOP_TIMEOUT_S = 10.0  # SIGTERM: the jerk-limited stop must be at rest by then (a few 100 ms at most)
-
-
 def stop_then_shutdown(machine: Any) -> bool:
     """SIGTERM or SIGINT: a moving program (or jog) first comes to rest on its path, jerk-limited, then
     the machine shuts down (drives disabled, outputs safe, parameters saved). True when the motion was
     at rest before the drives were disabled."""
+    from motiond.runtime import STOP_TIMEOUT_S
+
     at_rest = machine.stop_on_path(STOP_TIMEOUT_S)
     if not at_rest:
         print(f"canon daemon: the motion was not at rest after {STOP_TIMEOUT_S:g} s: the drives were "

@@ -22,7 +22,6 @@ import sys
 from typing import Any
 
 SETTLE_S = 0.5  # after the last setpoint, wait this long at most for the drives to settle
-STOP_TIMEOUT_S = 10.0  # Ctrl-C: the jerk-limited stop must be at rest by then (a few 100 ms at most)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -230,7 +229,8 @@ def _settle(machine: Any, timeout: float = SETTLE_S) -> None:
 
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        if all(abs(a - c) <= 2e-4 for a, c in zip(machine._actual, machine._commanded, strict=True)):
+        motion = machine.motion
+        if all(abs(a - c) <= 2e-4 for a, c in zip(motion.actual, motion.commanded, strict=True)):
             return
         time.sleep(0.01)
 
@@ -269,6 +269,8 @@ def _interrupted(machine: Any, program: str) -> int:
     """Ctrl-C or SIGTERM while the program runs: a jerk-limited stop on the path (the planner's
     abort, the drives kept streaming until the motion is at rest), then the machine shut down (drives
     disabled, outputs safe, parameters written) and the place to resume from printed."""
+    from motiond.runtime import STOP_TIMEOUT_S
+
     at_rest = machine.stop_on_path(STOP_TIMEOUT_S)
     place = machine.motion_place
     var = machine.interp.settings.var_file
@@ -375,7 +377,7 @@ def _run_locked(args: argparse.Namespace, path: Any, config: Any, settings: Any)
             print(f"{err.file}: {err.message}", file=sys.stderr)
             return 1
         _settle(machine)
-        result.final_actual = tuple(machine._actual)
+        result.final_actual = tuple(machine.motion.actual)
         if args.json:
             import json
 

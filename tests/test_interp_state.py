@@ -106,7 +106,7 @@ def test_groups_the_dialect_refuses_are_not_listed(monkeypatch: pytest.MonkeyPat
 
 
 def test_status_message_carries_the_whole_list() -> None:
-    # motiond/runtime.py copies active_gcodes() into the variable-length canon.status string array
+    # motiond/runtime/status.py copies active_gcodes() into the variable-length canon.status string array
     # (int16 count) and status_view.decode_status reads num_gcodes of them back
     from motiond.status_view import decode_status
     from telemetry.lcmtypes.canon import status

@@ -205,7 +205,7 @@ def test_run_from_line_restores_state_approaches_safely_and_lands_as_a_full_run(
     assert len(rest) == len(full_rest)
     assert all(near(a, b, 1e-9) for a, b in zip(rest, full_rest, strict=True))
     assert near(res.final_commanded, full.final_commanded, 1e-12)
-    wait_for(lambda: near(tuple(m._actual), REST[-1], 1e-3), "the drives at the end")
+    wait_for(lambda: near(tuple(m.motion.actual), REST[-1], 1e-3), "the drives at the end")
 
 
 def test_approach_raises_z_first_when_the_start_point_is_higher(rec: Recorder, tmp_path: Path) -> None:
@@ -311,7 +311,7 @@ def test_run_verb_second_value_and_ctl_words(rec: Recorder, tmp_path: Path) -> N
     wait_for(lambda: m.job is None and m.states.state is State.IDLE, "the end of the run from line", 30.0)
     info = [e for e in rec.kinds("run_from_line") if e[0] == "INFO"]
     assert info and info[-1][4] == START
-    assert near(tuple(m._commanded), REST[-1])
+    assert near(tuple(m.motion.commanded), REST[-1])
 
 
 def canon(*args: str) -> subprocess.CompletedProcess[str]:

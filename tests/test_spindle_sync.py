@@ -190,7 +190,7 @@ def test_rigid_tap_reverses_the_spindle_at_the_bottom() -> None:
 
 
 def test_real_machine_refuses_synchronized_motion_without_spindle_feedback() -> None:
-    from motiond.runtime import refuse_unfollowed_sync
+    from motiond.runtime.cycle import refuse_unfollowed_sync
 
     cmd = C.SpindleSync(1.5, file="p.ngc", line=7)
     refuse_unfollowed_sync(cmd, simulated=True)
@@ -201,8 +201,8 @@ def test_real_machine_refuses_synchronized_motion_without_spindle_feedback() -> 
 
 def test_canon_run_threads_on_the_simulated_machine(tmp_path: Path) -> None:
     prog = tmp_path / "thread.ngc"
-    prog.write_text("%\nG21 G18 G90 G94\nM3 S600\nG0 X10 Z2\nG76 P1.5 Z-10 I-1 J0.4 K1.2 H1\nG0 X12\n"
-                    "G17 G0 X0 Y0 Z5\nG33.1 Z-5 K1\nM5\nM2\n%\n")
+    prog.write_text("%\nG21 G18 G90 G94\nM3 S900\nG0 X10 Z2\nG76 P1.5 Z-4 I-1 J0.5 K1.0 H1\nG0 X12\n"
+                    "G17 G0 X0 Y0 Z5\nG33.1 Z2 K1\nM5\nM2\n%\n")  # a few seconds of motion
     r = subprocess.run([sys.executable, "-m", "motiond.cli", "run", "--no-telemetry", str(prog)],
                        capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert r.returncode == 0, r.stderr

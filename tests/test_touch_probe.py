@@ -232,7 +232,7 @@ def test_a_trip_during_a_feed_hold_leaves_the_planner_holding() -> None:
     from types import SimpleNamespace
 
     from gcode_canon.commands import Pose, Probe, ProbeMode
-    from motiond.drive_probe import DriveProbing
+    from motiond.runtime.probing import DriveProbing
 
     class Planner:
         def __init__(self) -> None:

@@ -1,0 +1,300 @@
+"""Lines read once, run many times: loops, subroutines and repeated CAM patterns re-read the same text.
+
+:class:`LineCache` turns a line's text into its :class:`~gcode_canon.lexer.Block` faster the second
+time:
+
+* a line whose values cannot change (no ``#``: numbers, constant expressions and functions only)
+  is parsed once and its Block reused (Blocks are not changed once parsed);
+* a line with parameters is compiled, on its second reading, into its words and closures that
+  evaluate its expressions: the text is not read again, the values are computed each time.
+
+The reference stays :func:`~gcode_canon.lexer.parse_line`: the compiler mirrors its reading and the
+:class:`~gcode_canon.expressions.ExpressionReader`'s (the same depth count, the same checks), and
+any line it cannot compile without an error goes through ``parse_line`` every time, so a wrong
+line's error (which one, in which order) is always the reader's own. Evaluated, the closures apply
+the reader's own operations (``_apply``, ``_unary``) in the reader's order (left to right, each
+reduction before the value after it), so the values and the errors of a run are the same too.
+
+The cache holds at most ``size`` lines (cleared when full): its memory does not grow with the program.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+from gcode_canon.errors import GCodeError
+from gcode_canon.expressions import (
+    _NUMBER,
+    MAX_PARAMETER,
+    NON_INTEGER,
+    PARAMETER_OUT_OF_RANGE,
+    TOLERANCE_EQUAL,
+    ExpressionReader,
+    _apply,
+    _finite,
+    _unary,
+    atan_divisor,
+    bracketed,
+    exists_close,
+    exists_name,
+    function_name,
+    named_key,
+)
+from gcode_canon.lexer import (
+    _AXIS_WORDS,
+    _NUMBER_TAIL,
+    _PLAIN_NUMBER,
+    WORD_LETTERS,
+    Block,
+    fold,
+    g_code,
+    m_code,
+    parse_line,
+    read_prefix,
+)
+
+Node = float | Callable[[], float]
+"""A compiled value: a constant, or a function that computes it now."""
+
+_SEEN = object()  # read once: compiled when read again
+_NOT_COMPILED = object()  # the compiler refused it: parse_line every time
+_G, _M, _WORD, _ASSIGN = range(4)
+
+
+class _Compiler:
+    """:class:`~gcode_canon.expressions.ExpressionReader`'s grammar, producing nodes."""
+
+    __slots__ = ("max_depth", "params", "tolerant")
+
+    def __init__(self, reader: ExpressionReader) -> None:
+        self.params = reader.params
+        self.max_depth = reader.max_depth
+        self.tolerant = reader.tolerant_order
+
+    def value(self, s: str, i: int, depth: int = 0) -> tuple[Node, int]:
+        if depth > self.max_depth:
+            raise GCodeError("nested too deeply")
+        if i >= len(s):
+            raise GCodeError("Missing value at end of line")
+        c = s[i]
+        if c == "[":
+            return self.expression(s, i, depth + 1)
+        if c == "#":
+            return self.parameter(s, i, depth + 1)
+        if c in "+-" and i + 1 < len(s) and s[i + 1] not in "0123456789.":
+            node, j = self.value(s, i + 1, depth + 1)
+            if c == "+":
+                return node, j
+            if callable(node):
+                return (lambda: -node()), j
+            return -node, j
+        if "a" <= c <= "z":
+            return self.function(s, i, depth + 1)
+        m = _NUMBER.match(s, i)
+        if m is None:
+            raise GCodeError("bad number")
+        return _finite(float(m.group()), "Number"), m.end()
+
+    def parameter(self, s: str, i: int, depth: int) -> tuple[Node, int]:
+        key, j = self.parameter_key(s, i, depth)
+        params = self.params
+        if isinstance(key, str):
+            get_named = params.get_named
+            return (lambda: get_named(key)), j
+        get_numbered = params.get_numbered
+        if callable(key):
+            return (lambda: get_numbered(key())), j
+        return (lambda: get_numbered(key)), j
+
+    def parameter_key(self, s: str, i: int, depth: int) -> tuple[str | int | Callable[[], int], int]:
+        i += 1
+        if i < len(s) and s[i] == "<":
+            return named_key(s, i)
+        index, j = self._parameter_number(s, i, depth)
+        if callable(index):
+            number = index
+
+            def checked() -> int:
+                n = number()
+                if not 1 <= n <= MAX_PARAMETER:
+                    raise GCodeError(f"{PARAMETER_OUT_OF_RANGE}: #{n} (1 to {MAX_PARAMETER})")
+                return n
+
+            return checked, j
+        if not 1 <= index <= MAX_PARAMETER:
+            raise GCodeError("out of range")
+        return index, j
+
+    def _parameter_number(self, s: str, i: int, depth: int) -> tuple[int | Callable[[], int], int]:
+        node, j = self.value(s, i, depth + 1)
+        if callable(node):
+            def number() -> int:
+                value = node()
+                index = round(value)
+                if abs(value - index) > TOLERANCE_EQUAL:
+                    raise GCodeError(f"{NON_INTEGER}: parameter number #{value:g}")
+                return int(index)
+
+            return number, j
+        index = round(node)
+        if abs(node - index) > TOLERANCE_EQUAL:
+            raise GCodeError("non-integer")
+        return int(index), j
+
+    def expression(self, s: str, i: int, depth: int) -> tuple[Node, int]:
+        if depth > self.max_depth:
+            raise GCodeError("nested too deeply")
+        return bracketed(s, i, depth, self.value, self._combine)
+
+    def _combine(self, op: str, a: Node, b: Node) -> Node:
+        tolerant = self.tolerant
+        if not callable(a) and not callable(b):
+            return _apply(op, a, b, tolerant)  # an error here: the line is not compiled
+        fa = a if callable(a) else (lambda: a)
+        fb = b if callable(b) else (lambda: b)
+        if op == "+":
+            return lambda: _finite(fa() + fb())
+        if op == "-":
+            return lambda: _finite(fa() - fb())
+        if op == "*":
+            return lambda: _finite(fa() * fb())
+        return lambda: _apply(op, fa(), fb(), tolerant)
+
+    def function(self, s: str, i: int, depth: int) -> tuple[Node, int]:
+        name, j = function_name(s, i)
+        if name == "exists":
+            return self._exists(s, j, depth)
+        arg, j = self.expression(s, j, depth + 1)
+        if name == "atan":
+            x, j = self.expression(s, atan_divisor(s, j), depth + 1)
+            if not callable(arg) and not callable(x):
+                return math.degrees(math.atan2(arg, x)), j
+            fy = arg if callable(arg) else (lambda: arg)
+            fx = x if callable(x) else (lambda: x)
+            return (lambda: math.degrees(math.atan2(fy(), fx()))), j
+        if not callable(arg):
+            return _unary(name, arg), j
+        return (lambda: _unary(name, arg())), j
+
+    def _exists(self, s: str, j: int, depth: int) -> tuple[Node, int]:
+        name, end = exists_name(s, j)
+        if name is not None:
+            exists = self.params.exists
+            return (lambda: 1.0 if exists(name) else 0.0), end
+        index, k = self._parameter_number(s, j + 2, depth)
+        k = exists_close(s, k)
+        if callable(index):
+            number = index
+            return (lambda: 1.0 if 1 <= number() <= MAX_PARAMETER else 0.0), k
+        return (1.0 if 1 <= index <= MAX_PARAMETER else 0.0), k
+
+
+class CompiledLine:
+    """One line's words in order, each a constant or a closure; :meth:`run` makes its Block."""
+
+    __slots__ = ("comments", "deleted", "items", "line_number")
+
+    def __init__(self, raw: str, compiler: _Compiler) -> None:
+        s, self.comments = fold(raw)
+        self.deleted, self.line_number, i = read_prefix(s)
+        n = len(s)
+        if i < n and s[i] == "o":
+            raise GCodeError("o-word lines are cached as Blocks")
+        items: list[tuple[int, str, Node, object]] = []
+        letters: set[str] = set()
+        m_count = 0
+        while i < n:
+            c = s[i]
+            if c == "(":
+                i += 1
+            elif c == "#":
+                key, i = compiler.parameter_key(s, i, 0)
+                if i >= n or s[i] != "=":
+                    raise GCodeError("equal sign missing")
+                node, i = compiler.value(s, i + 1)
+                items.append((_ASSIGN, "", node, key))
+            elif c == "g":
+                node, i = compiler.value(s, i + 1)
+                items.append((_G, "", node, None))
+            elif c == "m":
+                node, i = compiler.value(s, i + 1)
+                m_count += 1
+                if m_count > 4:
+                    raise GCodeError("too many M codes")
+                items.append((_M, "", node, None))
+            elif c in WORD_LETTERS:
+                if c in letters:
+                    raise GCodeError("repeated word")
+                letters.add(c)
+                m = _PLAIN_NUMBER(s, i + 1)
+                if m is not None and (m.end() >= n or s[m.end()] not in _NUMBER_TAIL):
+                    value = float(m.group())
+                    if value - value != 0.0:
+                        raise GCodeError("number out of range")
+                    node, i = value, m.end()
+                else:
+                    node, i = compiler.value(s, i + 1)
+                items.append((_WORD, c, node, None))
+            else:
+                raise GCodeError("bad character")
+        self.items = tuple(items)
+
+    def run(self) -> Block:
+        """The Block ``parse_line`` would give now (values from the parameters in force)."""
+        block = Block()
+        block.comments = self.comments
+        block.deleted = self.deleted
+        block.line_number = self.line_number
+        words = block.words
+        for kind, letter, node, key in self.items:
+            value = node() if callable(node) else node
+            if kind == _WORD:
+                words[letter] = value
+                if letter in _AXIS_WORDS:
+                    block.axes = True
+            elif kind == _ASSIGN:
+                # parse_line reads the key (evaluating #[...] / ##n) before the value
+                block.assigns.append((key() if callable(key) else key, value))  # type: ignore[operator]
+            elif kind == _G:
+                block.g.append(g_code(value))
+            else:
+                block.m.append(m_code(value))
+        return block
+
+
+class LineCache:
+    """Text of a line to its Block (module docstring)."""
+
+    __slots__ = ("_compiler", "_entries", "reader", "size")
+
+    def __init__(self, reader: ExpressionReader, size: int = 4096) -> None:
+        self.reader = reader
+        self.size = size
+        self._entries: dict[str, object] = {}
+        self._compiler: _Compiler | None = None
+
+    def parse(self, raw: str) -> Block:
+        entry = self._entries.get(raw)
+        if entry is None:
+            block = parse_line(raw, self.reader)  # errors: the reader's, and nothing is kept
+            entries = self._entries
+            if len(entries) >= self.size:
+                entries.clear()
+            entries[raw] = block if (block.o_text is not None or "#" not in raw) else _SEEN
+            return block
+        if entry.__class__ is Block:
+            return entry  # type: ignore[return-value]
+        if entry.__class__ is CompiledLine:
+            return entry.run()  # type: ignore[attr-defined]
+        if entry is _SEEN:
+            if self._compiler is None:
+                self._compiler = _Compiler(self.reader)
+            try:
+                entry = CompiledLine(raw, self._compiler)
+            except (GCodeError, RecursionError):
+                entry = _NOT_COMPILED
+            self._entries[raw] = entry
+            if entry is not _NOT_COMPILED:
+                return entry.run()  # type: ignore[attr-defined]
+        return parse_line(raw, self.reader)

@@ -1,0 +1,304 @@
+"""The interpreter's loop: lines read from a lazily read source, the fast path for plain G0/G1 lines,
+and the execution of one line (parse, checks, parameter settings, then the steps its codes concern).
+A mixin of :class:`gcode_canon.interpreter.Interpreter` (module docstring there)."""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Iterator
+
+from gcode_canon.arcs import MM_PER_INCH
+from gcode_canon.commands import (
+    Canon,
+    FeedMode,
+    MotionControlMode,
+    Pose,
+    SetFeedRate,
+    SetMotionControlMode,
+    StraightFeed,
+    StraightTraverse,
+)
+from gcode_canon.dialect import GRBL_JUNCTION_DEVIATION_MM, Dialect
+from gcode_canon.errors import GCodeError
+from gcode_canon.lexer import FAST_LINE, Block
+from gcode_canon.machine import Resume
+from gcode_canon.modal import ModalLine, sort_codes
+from gcode_canon.source import LineSource
+
+log = logging.getLogger(__name__)
+
+_isfinite = math.isfinite
+_new_pose = tuple.__new__
+
+class ProgramLoopMixin:
+    """Reading and executing lines (module docstring)."""
+
+    def _run_source(self, open_source: Callable[[], LineSource]) -> Iterator[Canon]:
+        source = open_source()  # open errors surface at the call, not at first next()
+        return self._run(source)
+
+    def _run(self, source: LineSource) -> Iterator[Canon]:
+        self.file = source.name
+        self.line = 0
+        self.ended = False
+        self.source = source
+        self.flow.reset(source)
+        self.seen_code = False
+        self._resync()  # the machine may have been jogged or homed since the last program
+        self._fast_ok = self.fast_path_allowed()
+        if self.dialect is Dialect.GRBL and self.control == (MotionControlMode.CONTINUOUS, 0.0, 0.0):
+            # Grbl blends every corner within its junction deviation ($11); a G64 P in the program wins
+            self.control = (MotionControlMode.CONTINUOUS, GRBL_JUNCTION_DEVIATION_MM, 0.0)
+            yield SetMotionControlMode(*self.control, file=source.name, line=1)
+        try:
+            yield from self._loop(main=source)
+        finally:
+            self.flow.close_all()
+            source.close()
+
+    def switch_source(self, source: LineSource, file: str | None = None) -> None:
+        """Continue reading from ``source`` (an o-word call or return); the loop picks it up."""
+        self.source = source
+        self.file = file if file is not None else source.name
+        self._fast_ok = False  # re-evaluated after the line
+
+    def _loop(self, main: LineSource | None, depth: int = 0) -> Iterator[Canon]:
+        """Read and execute lines from ``self.source`` until the program ends (``main``) or, for an
+        MDI call, until the call stack is back to ``depth`` frames."""
+        fast_match = FAST_LINE.match
+        fast = self._fast
+        flow = self.flow
+        self._tail = None
+        settings = self.settings
+        percent_open = False
+        seen_content = seen_fast = False
+        while True:
+            source = self.source
+            in_main = source is main
+            for raw in source:
+                self.line = source.line
+                if self.before_line is not None:
+                    self.before_line()
+                if self._fast_ok:
+                    m = fast_match(raw)
+                    if m is not None:
+                        cmds = fast(m)
+                        if cmds is not None:
+                            seen_content = seen_fast = True
+                            yield from cmds
+                            continue
+                self._tail = None
+                stripped = raw.strip()
+                if not stripped:
+                    continue
+                if stripped[0] == "$" and self.dialect is Dialect.GRBL:
+                    log.warning("%s:%d: Grbl system command %r skipped (not G-code)", self.file, self.line,
+                                stripped)
+                    continue
+                if stripped == "%":
+                    if not in_main:
+                        continue
+                    if not seen_content:
+                        seen_content = True
+                        percent_open = True
+                        continue
+                    self._end_program(None)
+                    yield from self._drain()
+                    return
+                seen_content = True
+                if seen_fast:
+                    self.seen_code = True
+                try:
+                    out = self._execute_line(raw)
+                except GCodeError as exc:
+                    raise exc.located(self.file, self.line) from None
+                except RecursionError:
+                    raise GCodeError("Expression nested too deeply", self.file, self.line) from None
+                except Exception as exc:
+                    log.exception("internal error")
+                    raise GCodeError(f"internal error: {exc!r}", self.file, self.line) from exc
+                for item in out:
+                    if type(item) is Resume:
+                        try:
+                            item.fn()
+                        except GCodeError as exc:
+                            raise exc.located(self.file, self.line) from None
+                    else:
+                        yield item
+                if self.ended:
+                    return
+                if self.source is not source:
+                    if main is None and len(flow.frames) <= depth:
+                        return
+                    break
+            else:
+                try:
+                    flow.at_end_of_source(source)
+                except GCodeError as exc:
+                    raise exc.located(self.file, max(source.line, 1)) from None
+                if self.source is not source:
+                    if main is None and len(flow.frames) <= depth:
+                        return
+                    continue
+                if main is None:
+                    return
+                if self.dialect is Dialect.GRBL:
+                    # Grbl has no program end: the end of the file ends the program (modes stay, as
+                    # after a closing %)
+                    self._end_program(None)
+                    yield from self._drain()
+                    return
+                if settings.require_program_end:
+                    last = max(source.line, 1)
+                    if percent_open:
+                        raise GCodeError("File ended with no closing percent sign", self.file, last)
+                    raise GCodeError("File ended with no percent sign or program end (M2, M30)",
+                                     self.file, last)
+                return
+
+    def _drain(self) -> Iterator[Canon]:
+        out, self._out = self._out, []
+        for item in out:
+            if isinstance(item, Resume):
+                item.fn()
+            else:
+                yield item
+
+    def _fast(self, m) -> tuple[Canon, ...] | None:
+        """A plain G0/G1 line of literal X Y Z F words; None sends the line the general way."""
+        g, xs, ys, zs, fs = m.groups()
+        has_axes = xs is not None or ys is not None or zs is not None
+        if g is None:
+            if not has_axes and fs is None:
+                return None
+            motion = self.motion
+        else:
+            motion = 0 if g == "0" else 10
+        scale = self.scale
+        feed = self.feed
+        if fs is not None:
+            feed = float(fs) * scale
+            if feed < 0.0 or not math.isfinite(feed):
+                return None
+        if has_axes and ((motion == 10 and feed == 0.0) or motion not in (0, 10)):
+            return None
+        file, line = self.file, self.line
+        end = None
+        if has_axes:
+            prog = self.prog
+            x, y, z = prog[0], prog[1], prog[2]
+            if self.absolute:
+                if xs is not None:
+                    x = float(xs) * scale
+                if ys is not None:
+                    y = float(ys) * scale
+                if zs is not None:
+                    z = float(zs) * scale
+            else:
+                if xs is not None:
+                    x += float(xs) * scale
+                if ys is not None:
+                    y += float(ys) * scale
+                if zs is not None:
+                    z += float(zs) * scale
+            s = self.frames.sum
+            mx, my, mz = x + s[0], y + s[1], z + s[2]
+            if not (_isfinite(mx) and _isfinite(my) and _isfinite(mz)):
+                return None  # the general path reports it
+            prog[0], prog[1], prog[2] = x, y, z
+            tail = self._tail
+            if tail is None:  # A B C U V W do not change on fast lines: computed once per run of them
+                tail = self._tail = (prog[3] + s[3], prog[4] + s[4], prog[5] + s[5], prog[6] + s[6],
+                                     prog[7] + s[7], prog[8] + s[8])
+            end = _new_pose(Pose, (mx, my, mz, *tail))
+            self.pos = end
+            if motion:
+                cmd: Canon = StraightFeed(end, file=file, line=line)
+            else:
+                cmd = StraightTraverse(end, file=file, line=line)
+            self.motion = motion
+            if feed != self.feed:
+                self.feed = feed
+                return (SetFeedRate(feed, file=file, line=line), cmd)
+            return (cmd,)
+        self.motion = motion
+        if feed != self.feed:
+            self.feed = feed
+            return (SetFeedRate(feed, file=file, line=line),)
+        return ()
+
+    def _emit(self, cmd: Canon | Resume) -> None:
+        comp = self.comp
+        if comp is not None and comp.pending:  # keep order behind the move compensation holds back
+            self._out.extend(comp.hold(cmd))  # type: ignore[arg-type]
+            return
+        self._out.append(cmd)
+
+    def _execute_line(self, raw: str) -> list[Canon | Resume]:
+        self._out = []
+        block = self._lines.parse(raw)
+        if block.deleted and self.settings.block_delete:
+            return []
+        if block.o_text is not None:
+            self._o_word(block)
+            return self._drain_list()
+        if block.g or block.m or block.words or block.assigns:
+            self.seen_code = True
+        ml = sort_codes(block)
+        self._check_words(block, ml)
+        for key, _ in block.assigns:
+            self.params.check_assignable(key)
+        for key, value in block.assigns:
+            self.params.assign(key, value)
+        units = ml.g.get(6)
+        if units is not None:
+            self.scale = MM_PER_INCH if units == 200 else 1.0
+        words = block.words
+        key = (tuple(ml.g), tuple(ml.m), "f" in words, "s" in words, "t" in words, bool(block.comments))
+        steps = self._step_cache.get(key)
+        if steps is None or len(self.steps) != self._step_cache_len:
+            steps = self._steps_for(key)
+        for step in steps:
+            step(block, ml)
+        self._fast_ok = self.fast_path_allowed()
+        return self._drain_list()
+    def _steps_for(self, key: tuple) -> list[Callable[[Block, ModalLine], None]]:
+        if self._step_cache_for != self.steps:  # a module inserted or removed steps: start again
+            self._step_cache = {}
+            self._step_cache_for = list(self.steps)
+            self._step_cache_len = len(self.steps)
+        g_groups, m_groups, f, s, t, comments = key
+        present = {"f": f, "s": s, "t": t}
+        chosen = []
+        for step in self.steps:
+            trigger = self._STEP_TRIGGERS.get(getattr(step, "__name__", ""))
+            if trigger is None or getattr(step, "__self__", None) is not self:
+                chosen.append(step)
+                continue
+            gs, ms, letters, wants_comments = trigger
+            if (any(g in g_groups for g in gs) or any(m in m_groups for m in ms)
+                    or any(present[c] for c in letters) or (wants_comments and comments)):
+                chosen.append(step)
+        self._step_cache[key] = chosen
+        return chosen
+
+    def fast_path_allowed(self) -> bool:
+        """Whether plain G0/G1 lines may skip the general machinery in the current modal state.
+
+        Asked after every general line. A module that changes what a straight move produces (cutter
+        compensation, scaling, mirroring ...) must extend this to return False while it is active.
+        """
+        return (self.feed_mode is not FeedMode.INVERSE_TIME and self.frames.rotation == 0.0
+                and not self._missing_axes & {"x", "y", "z"} and self.cycle_state.motion is None
+                and self.comp is None and not self._after_comp and not self.polar_on
+                and not self.xform_on)
+
+    def _drain_list(self) -> list[Canon | Resume]:
+        out, self._out = self._out, []
+        return out
+
+    def _o_word(self, block: Block) -> None:
+        """Flow control: :mod:`gcode_canon.owords`."""
+        assert block.o_text is not None
+        self.flow.execute(block.o_text)
