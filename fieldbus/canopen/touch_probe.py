@@ -88,11 +88,12 @@ class TouchProbe:
         self._edge = POSITIVE_STORED
         self.status = 0  # 0x60B9, from TPDO4 (reader thread) or the last SDO read
         pdo = master.layout.with_touch_probe().carrying(TOUCH_PROBE_STATUS, tpdo=True)
-        self._cob_id = pdo.cob_id(d.cfg.node_id)
         self._struct = pdo.struct
         self._at = pdo.objects.index(STATUS)
         assert master.network is not None
-        master.network.subscribe(self._cob_id, self._on_tpdo)
+        # beside the master's own reader of that TPDO (which takes the inputs from its first bytes);
+        # the network's subscription ends with the master's
+        master.network.subscribe(pdo.cob_id(d.cfg.node_id), self._on_tpdo)
 
     @classmethod
     def of(cls, master: CanopenMaster) -> TouchProbe | None:
@@ -135,7 +136,3 @@ class TouchProbe:
 
     def disarm(self) -> None:
         self.master._sdo(self.drive, "touch probe function (off)", FUNCTION, 0, "H", 0)
-
-    def close(self) -> None:
-        if self.master.network is not None:
-            self.master.network.unsubscribe(self._cob_id, self._on_tpdo)
