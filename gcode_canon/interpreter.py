@@ -127,6 +127,8 @@ class Interpreter(ProgramLoopMixin, BlockChecksMixin, ModeStepsMixin, ToolSpindl
         # LinuxCNC (and Grbl, which has no expressions) compare GT/GE/LT/LE strictly
         self.reader.tolerant_order = self.dialect is Dialect.GCODE_CANON
         self._lines = LineCache(self.reader)
+        self._modal_lines: dict[tuple, ModalLine] = {}  # (G codes, M codes) -> sort_codes' answer
+        self._checks_passed: set[tuple] = set()  # see _check_block
         self.flow = FlowControl(self)
         self.source: LineSource = LineSource.from_string("", "<none>")
         self.seen_code = False

@@ -245,8 +245,14 @@ class ProgramLoopMixin:
             return self._drain_list()
         if block.g or block.m or block.words or block.assigns:
             self.seen_code = True
-        ml = sort_codes(block)
-        self._check_words(block, ml)
+        codes = (tuple(block.g), tuple(block.m))
+        ml = self._modal_lines.get(codes)
+        if ml is None:  # sort_codes depends on the codes only; a line in error is not kept
+            ml = sort_codes(block)
+            if len(self._modal_lines) >= 4096:
+                self._modal_lines.clear()
+            self._modal_lines[codes] = ml
+        self._check_block(block, ml, codes)
         for key, _ in block.assigns:
             self.params.check_assignable(key)
         for key, value in block.assigns:
@@ -255,20 +261,21 @@ class ProgramLoopMixin:
         if units is not None:
             self.scale = MM_PER_INCH if units == 200 else 1.0
         words = block.words
-        key = (tuple(ml.g), tuple(ml.m), "f" in words, "s" in words, "t" in words, bool(block.comments))
+        key = (codes, "f" in words, "s" in words, "t" in words, bool(block.comments))
         steps = self._step_cache.get(key)
         if steps is None or len(self.steps) != self._step_cache_len:
-            steps = self._steps_for(key)
+            steps = self._steps_for(key, ml)
         for step in steps:
             step(block, ml)
         self._fast_ok = self.fast_path_allowed()
         return self._drain_list()
-    def _steps_for(self, key: tuple) -> list[Callable[[Block, ModalLine], None]]:
+    def _steps_for(self, key: tuple, ml: ModalLine) -> list[Callable[[Block, ModalLine], None]]:
         if self._step_cache_for != self.steps:  # a module inserted or removed steps: start again
             self._step_cache = {}
             self._step_cache_for = list(self.steps)
             self._step_cache_len = len(self.steps)
-        g_groups, m_groups, f, s, t, comments = key
+        _, f, s, t, comments = key
+        g_groups, m_groups = ml.g, ml.m
         present = {"f": f, "s": s, "t": t}
         chosen = []
         for step in self.steps:
