@@ -26,7 +26,8 @@ class BlockChecksMixin:
         """:meth:`_check_words`, remembered: a line with the same codes and word letters in the same
         modal state (motion, plane, distance mode, compensation on or off) passes again; only M19's
         checks read the words' values, and they run every time."""
-        key = (codes, tuple(block.words), self.motion, self.plane._value_[2], self.absolute, self.comp is None)
+        key = (codes, tuple(block.words), self.motion, self.plane._value_[2], self.absolute,
+               self.comp is None)
         passed = self._checks_passed
         if key in passed:
             if ml.m.get(7) == 19:

@@ -244,6 +244,7 @@ class Interpreter(ProgramLoopMixin, BlockChecksMixin, ModeStepsMixin, ToolSpindl
         self.comp_code = 400
         self._after_comp = False  # the first move after G40 must be straight
         self._comp_normal = 0.0
+        self.diameter_mode = False  # G7 (lathe diameter mode) / G8; M2 does not reset it, as LinuxCNC
 
     def _load_tool_table(self) -> None:
         self.tool_table = None

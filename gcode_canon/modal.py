@@ -45,7 +45,6 @@ G_UNSUPPORTED: dict[int, str] = {
     181: "G18.1 (WU plane)",
     191: "G19.1 (VW plane)",
     960: "G96 (constant surface speed)",
-    70: "G7 (lathe diameter mode)",
 }
 G_UNSUPPORTED[760] = "G76 (threading: it needs spindle-synchronized motion)"
 

@@ -133,12 +133,11 @@ def format_text(cmd) -> str:
             text = text.replace("-0.0000", "0.0000")
         return text + tail
     if isinstance(cmd, ArcFeed):
-        f, s, n = cmd.plane.value
+        f, s, n = cmd.plane._value_  # Enum's value property is Python code: read per arc
         e, c = cmd.end, cmd.center
-        args = [e[f], e[s], c[f], c[s]]
-        text = ", ".join(_num(v) for v in args) + f", {cmd.turns}, {_num(e[n])}, " + ", ".join(
-            _num(v) for v in e[3:6])
-        if any(e[6:]):
+        text = (f"{_num(e[f])}, {_num(e[s])}, {_num(c[f])}, {_num(c[s])}, {cmd.turns}, {_num(e[n])}, "
+                f"{_num(e[3])}, {_num(e[4])}, {_num(e[5])}")
+        if e[6] or e[7] or e[8]:
             text += ", " + ", ".join(_num(v) for v in e[6:])
         return f"{cmd.NAME}({text})"
     special = _LINUXCNC_STYLE.get(cmd.NAME)
