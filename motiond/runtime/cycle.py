@@ -297,6 +297,8 @@ class Cycle:
             else:
                 what = "M1" if w.optional else "M0"
             self.hooks.program_stop(what, w)
+        elif self.stream is not None and self.stream.answered_ahead:
+            p.release()  # MDI: the job answered this M66 or probe before it queued it: nobody waits
         else:  # M66, probe: the job thread is waiting for this
             with self._sync_cond:
                 self._sync_reached = w

@@ -54,6 +54,7 @@ class Job:
         self.late0 = 0
         self.queued = 0
         self.stream = Stream(n_axes)
+        self.stream.answered_ahead = mode is not Mode.AUTO
         self.result: JobResult | None = None
         self.lines_total = 0
         self.run_from: RunFrom | None = None
