@@ -29,3 +29,16 @@ def test_mdi_sync_points_finish(machine: Machine, line: str) -> None:
         assert result.ok, result.error
     job = machine.mdi("G0 Z0")  # and the machine takes the next line
     assert machine.wait_job(job, timeout=30) is not None
+
+
+def test_a_gcode_error_in_mdi_is_refused_not_a_fault(machine: Machine) -> None:
+    """An MDI line is interpreted whole before any of it is queued: its error moved nothing, so the
+    machine stays IDLE and enabled (it faulted, and needed a reset, for a typo)."""
+    from motiond.states import State
+
+    job = machine.mdi("G1 X10 F0")
+    result = machine.wait_job(job, timeout=30)
+    assert result is not None and not result.ok and "zero feed rate" in result.error
+    assert machine.states.state is State.IDLE and machine.last_error.endswith("zero feed rate")
+    job = machine.mdi("G0 X1")
+    assert machine.wait_job(job, timeout=30).ok
