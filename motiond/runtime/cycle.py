@@ -73,6 +73,8 @@ class Cycle:
         """The IoExecutor (task side): setpoint events are handed to it, output commands checked."""
         self.master: Any = None
         self.planner: Any = None
+        self.drive_probe: Any = None
+        """G38.x by a drive's touch probe (:class:`~motiond.runtime.probing.DriveProbing`), or None."""
         self.runner: Any = None
         self._calls: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
         self._cmdq: queue.Queue[Any] = queue.Queue(QUEUE_MAX)
@@ -164,6 +166,8 @@ class Cycle:
         self.actual = fb.positions
         self.actual_t = time.monotonic()
         self.following_error = fb.following_errors
+        if self.drive_probe is not None:
+            self.drive_probe.on_cycle(self.planner)  # a touch probe trip stops the probing move
         stream = self.stream
         if self.trace is not None and sp is not None:
             self.trace.append((self.cycle, time.monotonic(), sp.positions, sp.events))
@@ -297,6 +301,8 @@ class Cycle:
             else:
                 what = "M1" if w.optional else "M0"
             self.hooks.program_stop(what, w)
+        elif self.stream is not None and self.stream.answered_ahead:
+            p.release()  # MDI: the job answered this M66 or probe before it queued it: nobody waits
         else:  # M66, probe: the job thread is waiting for this
             with self._sync_cond:
                 self._sync_reached = w
