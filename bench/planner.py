@@ -25,6 +25,7 @@ when it starts), so the figures of one program do not hide in another's.
 from __future__ import annotations
 
 import argparse
+import itertools
 import math
 import multiprocessing
 import resource
@@ -38,7 +39,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from ruckig import InputParameter, Result, Ruckig, RuckigError, Trajectory
 
 from gcode_canon.commands import (
+    ArcFeed,
     MotionControlMode,
+    Plane,
     Pose,
     ProgramEnd,
     SetFeedRate,
@@ -263,6 +266,39 @@ def tiny(segments: int, step: float, feed: float) -> Iterator:
     yield ProgramEnd(file="tiny.ngc", line=segments + 1)
 
 
+def arc_chords(radius: float, pieces: int, step: float, feed: float, as_arc: bool = False) -> Iterator:
+    """``pieces`` chords of ``step`` mm on a circle of ``radius`` about the origin from (radius, 0),
+    4 decimals (G64 P0.01); with ``as_arc`` the same path as one G3."""
+    yield G64P
+    yield SetFeedRate(feed)
+    yield StraightFeed(Pose(radius, 0, 0), file="arc.ngc", line=1)
+    dth = step / radius
+    if as_arc:
+        th = pieces * dth
+        yield ArcFeed(Pose(_r(radius * math.cos(th), 4), _r(radius * math.sin(th), 4), 0), Pose(), Plane.XY,
+                      1 + int(th / (2 * math.pi)), file="arc.ngc", line=2)
+    else:
+        for k in range(1, pieces + 1):
+            yield StraightFeed(Pose(_r(radius * math.cos(k * dth), 4), _r(radius * math.sin(k * dth), 4), 0),
+                               file="arc.ngc", line=k + 1)
+    yield ProgramEnd(file="arc.ngc", line=pieces + 2)
+
+
+def wave(seed: int, feed: float) -> list:
+    """A random CAM-like wave along X: 400 chords of 0.2 mm, 3 decimals, G64 P0.005 (two sines of
+    random amplitude and frequency, from ``seed``)."""
+    import random
+
+    rng = random.Random(seed)
+    a1, f1, a2, f2 = rng.uniform(2, 10), rng.uniform(0.03, 0.1), rng.uniform(0.5, 3), rng.uniform(0.15, 0.5)
+    prog: list = [SetMotionControlMode(MotionControlMode.CONTINUOUS, 0.005), SetFeedRate(feed)]
+    for k in range(1, 401):
+        x = 0.2 * k
+        prog.append(StraightFeed(Pose(_r(x, 3), _r(a1 * math.sin(f1 * x) + a2 * math.sin(f2 * x), 3), 0),
+                                 file="wave.ngc", line=k))
+    return [*prog, ProgramEnd(file="wave.ngc", line=401)]
+
+
 def square(size: float, feed: float) -> list:
     """A square in G64 without P."""
     prog = [G64, SetFeedRate(feed)]
@@ -270,6 +306,26 @@ def square(size: float, feed: float) -> list:
         prog.append(StraightFeed(Pose(x, y, 0), file="square.ngc", line=k))
     prog.append(ProgramEnd(file="square.ngc", line=6))
     return prog
+
+
+def calls_per_move(make: Callable[[], Iterable]) -> float:
+    """Python function calls the planning makes per programmed move (the program's own generation
+    not counted): a measure of the planner's work that, unlike CPU time, does not depend on what else
+    the machine runs, so that a cost growing with the program's length is told from load."""
+    import cProfile
+    import pstats
+
+    def calls(run: Callable[[], object]) -> int:
+        prof = cProfile.Profile()
+        prof.enable()
+        run()
+        prof.disable()
+        return pstats.Stats(prof).total_calls  # type: ignore[attr-defined]
+
+    moves = sum(isinstance(c, StraightFeed | StraightTraverse) for c in make())
+    generate = calls(lambda: sum(1 for _ in make()))
+    planned = calls(lambda: sum(1 for _ in plan_all(make(), DEMO_MACHINE)))
+    return (planned - generate) / moves
 
 
 def _measure(make: Callable[[], Iterable], check: bool = False, repeat: int = 1) -> dict:
@@ -368,6 +424,20 @@ def table(check: bool) -> None:
     bound = lower_bound(list(tiny(20000, 0.001, 6000)))
     _row("20,000 x 0.001 mm, F6000", _measure(lambda: tiny(20000, 0.001, 6000), check), bound,
          "acceleration bound", "<= 1.5")
+    for radius, pieces, step in ((20.0, 20000, 0.001), (10.0, 6000, 0.01)):
+        ref = _measure(lambda r=radius, n=pieces, h=step: arc_chords(r, n, h, 6000, as_arc=True), check)
+        _row(f"R{radius:g} arc as {pieces:,} x {step:g} mm chords, F6000",
+             _measure(lambda r=radius, n=pieces, h=step: arc_chords(r, n, h, 6000), check),
+             ref["cycles"] * T, "one G3", "<= 1.03")
+    feeds = (2000, 2500, 3000, 4000)
+    slower, worst = 0, 0.0
+    for seed in range(8):
+        times = [plan(wave(seed, f))[0] for f in feeds]
+        ratios = [b / a for a, b in itertools.pairwise(times)]
+        slower += max(ratios) > 1.0
+        worst = max(worst, *ratios)
+    print(f"  {'8 random waves, 0.2 mm, F2000/2500/3000/4000':<44} slower at a higher F: {slower} of 8, "
+          f"worst time ratio to the next lower F {worst:.3f}   target: 0 of 8 (<= 1.000)")
     # the square: the largest distance from the programmed corners' lines, against v^2/a
     from planner.checker import _deviation, _program_geometry
 
@@ -401,7 +471,12 @@ def throughput() -> None:
         print(f"  0.05 mm spiral, {n:>7,} moves, F1000: {t:8.1f} s of motion in {m['cpu']:6.2f} s CPU: "
               f"{t / m['cpu']:6.1f}x ({t / m['cpu_median']:.1f}x) real time, "
               f"{m['cpu'] / m['moves'] * 1e6:6.1f} us per move, peak +{m['mem_mb']:.1f} MB   target: >= 50x")
-    print(f"  cost per move, largest over smallest: {max(per_move) / min(per_move):.3f}   target: <= 1.10")
+    print(f"  cost per move, largest over smallest: {max(per_move) / min(per_move):.3f}   target: <= 1.10"
+          " (CPU time: on a loaded machine the longer runs are hit by more of the load; see the calls below)")
+    calls = [calls_per_move(lambda n=n: spiral(n, 0.05, 1000, 4)) for n in sizes]
+    print("  work per move, Python calls (independent of the machine's load): "
+          + ", ".join(f"{c:.1f} at {n:,}" for c, n in zip(calls, sizes, strict=True))
+          + f"; largest over smallest {max(calls) / min(calls):.3f}   target: <= 1.10")
     m = _measure(lambda: surfacing_lazy(100_000, 0.2, 2000,
                                         SetMotionControlMode(MotionControlMode.CONTINUOUS, 0.01)), repeat=3)
     t = m["cycles"] * DEMO_MACHINE.cycle_s

@@ -23,6 +23,22 @@ class BlockChecksMixin:
         motion = ml.g.get(1)
         return self.motion if motion is None else motion
 
+    def _check_block(self, block: Block, ml: ModalLine, codes: tuple) -> None:
+        """:meth:`_check_words`, remembered: a line with the same codes and word letters in the same
+        modal state (motion, plane, distance mode, compensation on or off) passes again; only M19's
+        checks read the words' values, and they run every time."""
+        key = (codes, tuple(block.words), self.motion, self.plane._value_[2], self.absolute,
+               self.comp is None)
+        passed = self._checks_passed
+        if key in passed:
+            if ml.m.get(7) == 19:
+                self._check_orient_words(block.words, ml)
+            return
+        self._check_words(block, ml)
+        if len(passed) >= 4096:
+            passed.clear()
+        passed.add(key)
+
     def _check_words(self, block: Block, ml: ModalLine) -> None:
         w = block.words
         g0 = ml.g.get(0)

@@ -129,6 +129,8 @@ class Interpreter(ProgramLoopMixin, BlockChecksMixin, ModeStepsMixin, ToolSpindl
         # LinuxCNC (and Grbl, which has no expressions) compare GT/GE/LT/LE strictly
         self.reader.tolerant_order = self.dialect is Dialect.GCODE_CANON
         self._lines = LineCache(self.reader)
+        self._modal_lines: dict[tuple, ModalLine] = {}  # (G codes, M codes) -> sort_codes' answer
+        self._checks_passed: set[tuple] = set()  # see _check_block
         self.flow = FlowControl(self)
         self.source: LineSource = LineSource.from_string("", "<none>")
         self.seen_code = False
@@ -246,6 +248,7 @@ class Interpreter(ProgramLoopMixin, BlockChecksMixin, ModeStepsMixin, ToolSpindl
         self.comp_code = 400
         self._after_comp = False  # the first move after G40 must be straight
         self._comp_normal = 0.0
+        self.diameter_mode = False  # G7 (lathe diameter mode) / G8; M2 does not reset it, as LinuxCNC
 
     def _load_tool_table(self) -> None:
         self.tool_table = None

@@ -43,7 +43,6 @@ G_UNSUPPORTED: dict[int, str] = {
     181: "G18.1 (WU plane)",
     191: "G19.1 (VW plane)",
     960: "G96 (constant surface speed)",
-    70: "G7 (lathe diameter mode)",
 }
 
 G_AXIS_USERS_GROUP0 = frozenset((100, 280, 300, 920, 520))

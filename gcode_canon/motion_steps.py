@@ -52,7 +52,7 @@ class MotionMixin:
         absolute = self.absolute
         words = block.words
         if polar and self.polar_on:
-            first, second, _ = self.plane.value
+            first, second, _ = self.plane._value_
             r_letter, a_letter = AXIS_LETTERS[first], AXIS_LETTERS[second]
             radius = words.get(r_letter)
             angle = words.get(a_letter)
@@ -97,7 +97,7 @@ class MotionMixin:
         if self.comp is not None:
             raise GCodeError(f"{name} with cutter radius compensation on is not supported")
         self._require_feed(block, name)
-        first, second, normal = self.plane.value
+        first, second, normal = self.plane._value_
         i = block.take("i")
         tool_radius = 0.0
         d = self._int_word(block, "d", name)
@@ -180,7 +180,7 @@ class MotionMixin:
         if self.comp is not None and motion in (0, 10):
             if motion == 10:
                 self._require_feed(block, "G1")
-            first, second, normal = self.plane.value
+            first, second, normal = self.plane._value_
             t = list(self.xform.apply_position(target)) if self.xform_on else target
             others = tuple(t[k] for k in range(N_AXES) if k not in (first, second, normal))
             self._comp_move(cutter_comp.Line2(self.comp.programmed, (t[first], t[second]),
@@ -317,7 +317,7 @@ class MotionMixin:
 
     def _arc(self, block: Block, clockwise: bool) -> None:
         name = "G2" if clockwise else "G3"
-        first, second, normal = self.plane.value
+        first, second, normal = self.plane._value_
         if self.frames.rotation != 0.0 and self.plane is not Plane.XY:
             raise GCodeError(f"{name} in {self.plane.gcode}: arcs out of the XY plane with a rotated "
                              "coordinate system are not supported")
@@ -330,7 +330,7 @@ class MotionMixin:
         self._require_feed(block, name)
         start = self.prog
         radius = block.take("r")
-        has_ijk = any(letter in block.words for letter in letters.values())
+        has_ijk = letters[first] in block.words or letters[second] in block.words
         if radius is not None and has_ijk:
             raise GCodeError("Mixed radius-ijk format for arc")
         target = self._target(block)
@@ -353,7 +353,7 @@ class MotionMixin:
             raise GCodeError("The move just after exiting cutter compensation mode must be straight, "
                              "not an arc")
         if self.comp is not None:
-            normal = self.plane.value[2]
+            normal = self.plane._value_[2]
             t, t_start = target, start
             end2, centre2, ccw = e2, (cx, cy), rot > 0
             if self.xform_on:
@@ -373,7 +373,7 @@ class MotionMixin:
         centre_prog[second] = cy
         xform = self.xform
         if self.xform_on:
-            normal = self.plane.value[2]
+            normal = self.plane._value_[2]
             res = xform.apply_arc((target[first], target[second], target[normal]), (cx, cy), clockwise,
                                   self.plane)
             end_t = list(xform.apply_position(target))

@@ -28,6 +28,9 @@ def system_base(index: int) -> int:
     return 5201 + 20 * index
 
 
+_new_pose = tuple.__new__
+
+
 class Frames:
     """Active offsets and the transforms between frames (lists of nine floats)."""
 
@@ -81,8 +84,9 @@ class Frames:
     def to_machine(self, prog: list[float]) -> Pose:
         if self.rotation == 0.0:
             s = self.sum
-            return Pose(prog[0] + s[0], prog[1] + s[1], prog[2] + s[2], prog[3] + s[3], prog[4] + s[4],
-                        prog[5] + s[5], prog[6] + s[6], prog[7] + s[7], prog[8] + s[8])
+            return _new_pose(Pose, (prog[0] + s[0], prog[1] + s[1], prog[2] + s[2], prog[3] + s[3],
+                                    prog[4] + s[4], prog[5] + s[5], prog[6] + s[6], prog[7] + s[7],
+                                    prog[8] + s[8]))  # NamedTuple's own __new__ is Python: slower
         a = self.to_absolute(prog)
         return Pose(*(p + t for p, t in zip(a, self.tool, strict=True)))
 

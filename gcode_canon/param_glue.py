@@ -90,8 +90,8 @@ class ParamGlueMixin:
             "_spindle_rpm_mode": lambda: 1.0,
             "_spindle_css_mode": lambda: 0.0,
             "_ijk_absolute_mode": lambda: b(self.ijk_absolute),
-            "_lathe_diameter_mode": lambda: 0.0,
-            "_lathe_radius_mode": lambda: 0.0,
+            "_lathe_diameter_mode": lambda: b(self.diameter_mode),
+            "_lathe_radius_mode": lambda: b(not self.diameter_mode),  # LinuxCNC: 1 in G8
             "_spindle_on": lambda: b(self.spindle is not None),
             "_spindle_cw": lambda: b(self.spindle is SpindleDirection.CW),
             "_mist": lambda: b(self.mist),

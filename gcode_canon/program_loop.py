@@ -245,8 +245,14 @@ class ProgramLoopMixin:
             return self._drain_list()
         if block.g or block.m or block.words or block.assigns:
             self.seen_code = True
-        ml = sort_codes(block, self.settings.user_mcodes)
-        self._check_words(block, ml)
+        codes = (tuple(block.g), tuple(block.m))
+        ml = self._modal_lines.get(codes)
+        if ml is None:  # sort_codes depends on the codes only; a line in error is not kept
+            ml = sort_codes(block, self.settings.user_mcodes)
+            if len(self._modal_lines) >= 4096:
+                self._modal_lines.clear()
+            self._modal_lines[codes] = ml
+        self._check_block(block, ml, codes)
         for key, _ in block.assigns:
             self.params.check_assignable(key)
         for key, value in block.assigns:
@@ -254,21 +260,27 @@ class ProgramLoopMixin:
         units = ml.g.get(6)
         if units is not None:
             self.scale = MM_PER_INCH if units == 200 else 1.0
+        lathe = ml.g.get(15)
+        if lathe is not None:
+            self.diameter_mode = lathe == 70
+        if self.diameter_mode and "x" in block.words:
+            block = _radius_x(block)
         words = block.words
-        key = (tuple(ml.g), tuple(ml.m), "f" in words, "s" in words, "t" in words, bool(block.comments))
+        key = (codes, "f" in words, "s" in words, "t" in words, bool(block.comments))
         steps = self._step_cache.get(key)
         if steps is None or len(self.steps) != self._step_cache_len:
-            steps = self._steps_for(key)
+            steps = self._steps_for(key, ml)
         for step in steps:
             step(block, ml)
         self._fast_ok = self.fast_path_allowed()
         return self._drain_list()
-    def _steps_for(self, key: tuple) -> list[Callable[[Block, ModalLine], None]]:
+    def _steps_for(self, key: tuple, ml: ModalLine) -> list[Callable[[Block, ModalLine], None]]:
         if self._step_cache_for != self.steps:  # a module inserted or removed steps: start again
             self._step_cache = {}
             self._step_cache_for = list(self.steps)
             self._step_cache_len = len(self.steps)
-        g_groups, m_groups, f, s, t, comments = key
+        _, f, s, t, comments = key
+        g_groups, m_groups = ml.g, ml.m
         present = {"f": f, "s": s, "t": t}
         chosen = []
         for step in self.steps:
@@ -292,7 +304,7 @@ class ProgramLoopMixin:
         return (self.feed_mode is not FeedMode.INVERSE_TIME and self.frames.rotation == 0.0
                 and not self._missing_axes & {"x", "y", "z"} and self.cycle_state.motion is None
                 and self.comp is None and not self._after_comp and not self.polar_on
-                and not self.xform_on)
+                and not self.xform_on and not self.diameter_mode)
 
     def _drain_list(self) -> list[Canon | Resume]:
         out, self._out = self._out, []
@@ -302,3 +314,17 @@ class ProgramLoopMixin:
         """Flow control: :mod:`gcode_canon.owords`."""
         assert block.o_text is not None
         self.flow.execute(block.o_text)
+
+
+def _radius_x(block: Block) -> Block:
+    """G7 (lathe diameter mode): the X word is a diameter, so the X axis moves by half of it; every use
+    of X on the line (moves, G92, G10, cycles ...), as LinuxCNC halves ``x_number`` (``read_x``,
+    ``convert_lathe_diameter_mode``: a G7 or G8 on the line counts for its own X word). A copy: a
+    Block may be shared by every reading of its line."""
+    copy = Block()
+    copy.g, copy.m, copy.assigns, copy.comments = block.g, block.m, block.assigns, block.comments
+    copy.line_number, copy.deleted, copy.o_text, copy.axes = (block.line_number, block.deleted, block.o_text,
+                                                              block.axes)
+    copy.words = dict(block.words)
+    copy.words["x"] /= 2.0
+    return copy

@@ -97,7 +97,7 @@ class SpindleSyncMixin:
                 any(abs(target[k] - here[k]) > 1e-12 for k in range(6, len(here))):
             raise GCodeError("Cannot move rotary axes with G76")  # LinuxCNC: also U, V, W
         ops = tc.expand(words, here[0], here[2], target[0], target[2],
-                        diameter_mode=bool(getattr(self, "lathe_diameter_mode", False)))
+                        diameter_mode=self.diameter_mode)  # type: ignore[attr-defined]
         f, n = self.file, self.line  # type: ignore[attr-defined]
         for op in ops:
             cmd: Canon

@@ -38,7 +38,7 @@ class StatusMixin:
             gname(self.retract), G5X_NAMES[self.frames.g5x_index],
             {MotionControlMode.EXACT_PATH: "G61", MotionControlMode.EXACT_STOP_MODAL: "G61.1"}.get(
                 self.control[0], "G64"),
-            "G97", "G8",
+            "G97", "G7" if self.diameter_mode else "G8",
         ]
         if extensions:
             codes.extend(self._active_extension_gcodes())
@@ -73,5 +73,5 @@ class StatusMixin:
                 self.polar_on, self.scale_code, self.rotation_code,
                 self.xform.mirrored if self.xform_on else (), self.spindle, self.mist, self.flood,
                 self.overrides["feed"], self.overrides["spindle"], self.feed, self.speed, self.current_tool,
-                self.params.numbered[5403])
+                self.params.numbered[5403], self.diameter_mode)
 

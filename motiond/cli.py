@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.util
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -86,15 +87,32 @@ def _version() -> str:
         return "(not installed: version unknown)"
 
 
-def build_parser() -> argparse.ArgumentParser:
+class _VersionAction(argparse.Action):
+    """``--version``, looked up only when asked for (importlib.metadata takes a tenth of canon check's
+    start-up)."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:  # type: ignore[override]
+        print(f"canon {_version()}")  # on stdout, as argparse's own version action
+        parser.exit()
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The whole command line; with ``only`` (the sub-command the command line names), the other
+    sub-commands' modules are not imported (their parsers hold only their help line): ``canon check``
+    starts without importing the fieldbus and LCM stacks."""
     parser = argparse.ArgumentParser(prog="canon", description="canon: G-code to CiA 402 servo drives")
-    parser.add_argument("--version", action="version", version=f"canon {_version()}")
+    parser.add_argument("--version", action=_VersionAction, nargs=0, help="show the version and exit")
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="more log output: -v canon's debug messages, -vv the libraries' too "
                              "(default: canon's at INFO, pymodbus/canopen/python-can at WARNING)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name, (module, help_text) in COMMANDS.items():
+        if only is not None and name != only:
+            if importlib.util.find_spec(module) is not None:  # a sub-command still being built: left out
+                p = sub.add_parser(name, help=help_text, description=help_text)
+                p.set_defaults(_module=module)
+            continue
         try:
             mod = importlib.import_module(module)
         except ModuleNotFoundError as exc:
@@ -107,8 +125,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _named_command(argv: Sequence[str]) -> str | None:
+    """The sub-command the arguments name (the first argument that is not an option), if known."""
+    for arg in argv:
+        if not arg.startswith("-"):
+            return arg if arg in COMMANDS else None
+    return None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    parser = build_parser(_named_command(sys.argv[1:] if argv is None else argv))
     args = parser.parse_args(argv)
     setup_logging(args.verbose)
     module = importlib.import_module(args._module)

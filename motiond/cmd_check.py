@@ -65,11 +65,20 @@ def _write(interp: Any, args: argparse.Namespace, write: Callable[[str], Any],
             write(dumps(to_json(cmd)) + "\n")
     else:
         main = args.file
-        for cmd in commands:
-            if cmd.file and cmd.file != main:  # a subroutine's file: FILE:LINE where the number stands
-                write(f"{cmd.file}:{cmd.line} {format_text(cmd)}\n")
-            else:
-                write(f"{cmd.line:>6} {format_text(cmd)}\n")
+        lines: list[str] = []
+        add = lines.append
+        try:
+            for cmd in commands:
+                file = cmd.file
+                if file and file != main:  # a subroutine's file: FILE:LINE where the number stands
+                    add(f"{file}:{cmd.line} {format_text(cmd)}\n")
+                else:
+                    add(f"{cmd.line:>6} {format_text(cmd)}\n")
+                if len(lines) >= 256:  # one write per block of lines: a write call per line costs more
+                    write("".join(lines))
+                    lines.clear()
+        finally:  # the commands before an error are printed before it
+            write("".join(lines))
 
 
 def _num(v: float) -> str:
@@ -115,14 +124,20 @@ def format_text(cmd) -> str:
         e = cmd.end
         if e[6] or e[7] or e[8]:
             return f"{name}({_pose_text(e)})"
-        return f"{name}({_num(e[0])}, {_num(e[1])}, {_num(e[2])}, {_num(e[3])}, {_num(e[4])}, {_num(e[5])})"
+        a, b, c = e[3], e[4], e[5]  # A B C are mostly 0: no float formatting for them then
+        tail = ", 0.0000, 0.0000, 0.0000)" if not (a or b or c) else f", {_num(a)}, {_num(b)}, {_num(c)})"
+        text = f"{name}({e[0]:.4f}, {e[1]:.4f}, {e[2]:.4f}"
+        # as _num: no "-0.0000" (a value that prints so is below 0.00005; any other starts "-0.000" and
+        # goes on with a digit that is not 0 on its 4th decimal, or has another digit before the point)
+        if "-0.0000" in text:
+            text = text.replace("-0.0000", "0.0000")
+        return text + tail
     if isinstance(cmd, ArcFeed):
-        f, s, n = cmd.plane.value
+        f, s, n = cmd.plane._value_  # Enum's value property is Python code: read per arc
         e, c = cmd.end, cmd.center
-        args = [e[f], e[s], c[f], c[s]]
-        text = ", ".join(_num(v) for v in args) + f", {cmd.turns}, {_num(e[n])}, " + ", ".join(
-            _num(v) for v in e[3:6])
-        if any(e[6:]):
+        text = (f"{_num(e[f])}, {_num(e[s])}, {_num(c[f])}, {_num(c[s])}, {cmd.turns}, {_num(e[n])}, "
+                f"{_num(e[3])}, {_num(e[4])}, {_num(e[5])}")
+        if e[6] or e[7] or e[8]:
             text += ", " + ", ".join(_num(v) for v in e[6:])
         return f"{cmd.NAME}({text})"
     special = _LINUXCNC_STYLE.get(cmd.NAME)

@@ -93,6 +93,8 @@ def _print_tables(config: Any, results: list[Any]) -> None:
     from rich.console import Console
     from rich.table import Table
 
+    from fieldbus.canopen.master import input_names
+
     out = Console(highlight=False)
     if not out.is_terminal:  # a file or a pipe: wide enough that the values stay on one line
         out = Console(highlight=False, width=140)
@@ -132,6 +134,12 @@ def _print_tables(config: Any, results: list[Any]) -> None:
             soft = "" if cfg.min_position is None or cfg.max_position is None else \
                 f"{cfg.min_position:g} to {cfg.max_position:g}"
             t.add_row("0x607D position limits", "—" if lo is None else f"{lo:,} to {hi:,}", soft)
+            inputs = r.digital_inputs
+            t.add_row("0x60FD digital inputs", "—" if inputs is None else
+                      f"yes: 0x{inputs:08X} ({', '.join(input_names(inputs)) or 'none active'})",
+                      "limit and home switches")
+            t.add_row("0x60B8-0x60BD touch probes", ", ".join(str(n) for n in r.touch_probes) or "—",
+                      f"touch_probe = {cfg.touch_probe}" if cfg.touch_probe else "")
             t.add_row("optional objects absent",
                       ", ".join(f"0x{i:04X}" for i in r.optional_absent) or "none", "")
         out.print(t)

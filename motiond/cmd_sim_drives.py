@@ -45,6 +45,16 @@ def _limit(text: str) -> tuple[str, float | None, float | None]:
                                          "(e.g. y=-5:120 or x=:50)") from None
 
 
+def _probe(text: str) -> tuple[str, float]:
+    try:
+        axis, _, where = text.partition("=")
+        if not axis.strip():
+            raise ValueError
+        return axis.strip(), float(where)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not AXIS=POSITION: {text!r} (e.g. z=-3.2)") from None
+
+
 def limit_counts(scale: AxisScale, lo: float | None, hi: float | None) -> tuple[int | None, int | None]:
     """``(negative, positive)`` limit switch positions in the drive's counts for switches at machine
     positions ``lo``/``hi``: with a negative scale (direction -1) the machine's maximum is the drive's
@@ -75,6 +85,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--limit", type=_limit, action="append", default=[], metavar="AXIS=MIN:MAX",
                         help="limit switches of an axis at these machine positions (0x60FD bits 0/1, from "
                              "the actual position; the drive only reports them), e.g. y=-5:120; repeatable")
+    parser.add_argument("--probe", type=_probe, metavar="AXIS=POSITION",
+                        help="the probe input of that axis's drive (its touch probe, 0x60B8-0x60BD) is "
+                             "active at and below this machine position, e.g. z=-3.2 for a surface at Z-3.2 "
+                             "(instead of the file's canopen.axes.<a>.sim_probe_position)")
     parser.add_argument("--strict", action="store_true",
                         help="take 'enable operation' in Quick stop active at once, during the stop ramp "
                              "(CiA 402 transition 16, as strict drives do)")
@@ -86,6 +100,7 @@ def run(args: argparse.Namespace) -> int:
     import threading
 
     from fieldbus.canopen.drive_sim import SimDrive, motor_for
+    from fieldbus.canopen.drive_sim_probe import sim_probe
     from fieldbus.canopen.sim_process import SimBus
     from motiond.config_canopen import canopen_for_tool
 
@@ -109,12 +124,18 @@ def run(args: argparse.Namespace) -> int:
             from motiond.cli import UserError
 
             raise UserError(f"--limit {axis}=...: {exc}") from None
+    if args.probe is not None and args.probe[0] not in axes:
+        from motiond.cli import UserError
+
+        raise UserError(f"--probe {args.probe[0]}=...: no axis {args.probe[0]!r} (axes: {', '.join(axes)})")
     drives = [SimDrive(d.node_id, d.eds_path, lag_s=args.lag_ms / 1000.0, order=args.order,
                        boot_delay_s=args.boot_delay_ms / 1000.0, rpdo_timeout_syncs=args.rpdo_timeout_syncs,
                        absent_objects=args.absent,
                        negative_limit_counts=switches.get(d.axis, (None, None))[0],
                        positive_limit_counts=switches.get(d.axis, (None, None))[1],
-                       parameters={**motor_for(d, d.eds_path), **dict(args.param)})
+                       parameters={**motor_for(d, d.eds_path), **dict(args.param)},
+                       **sim_probe(d, args.probe[1] if args.probe is not None and args.probe[0] == d.axis
+                                   else None))
               for d in config.drives]
     for d in drives:
         d.reenable_during_quick_stop_ramp = args.strict

@@ -105,6 +105,7 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
             raise axes.error(name, f"no axis {name!r} in [axes] (axes: {', '.join(axis_names)})")
     drives = []
     used: dict[int, str] = {}
+    probe_axis = ""
     for name in axis_names:
         if name not in axes.data:
             raise axes.error(name, "missing: every axis needs a drive ([canopen.axes."
@@ -145,8 +146,17 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
             quick_stop_option=qs_option,
             counts_per_revolution=a.get("counts_per_revolution", int, None, check=positive),
             sdo=_extra_sdo(a),
+            touch_probe=a.get("touch_probe", int, 0, check=one_of(0, 1, 2)),
+            sim_probe_position=a.get("sim_probe_position", float, None),
             **lim,
         )
+        if drive.touch_probe and probe_axis:
+            raise a.error("touch_probe", f"axis {probe_axis} has the machine's probe input already "
+                                         f"(canopen.axes.{probe_axis}.touch_probe): G38.x uses one probe")
+        probe_axis = probe_axis or (name if drive.touch_probe else "")
+        if drive.sim_probe_position is not None and not drive.touch_probe:
+            raise a.error("sim_probe_position", "the simulated probe input is the drive's touch probe: set "
+                                                "touch_probe = 1 on this axis too")
         check_drive_ranges(a, drive)
         drives.append(drive)
         a.check_unknown()

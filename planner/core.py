@@ -30,6 +30,7 @@ Not thread-safe: the cycle loop owns the planner (feed and pull from the same th
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 from collections.abc import Iterable, Iterator, Sequence
@@ -119,6 +120,9 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
                 groups.append(g)
         self._groups = groups
         self._linear = [i for i, a in enumerate(machine.axes) if not a.rotary] or list(range(n))
+        # the planes a run of lines may be merged into an arc in: pairs of X Y Z (planner.merging)
+        xyz = [i for i, a in enumerate(machine.axes) if a.name in "xyz" and not a.rotary]
+        self._arc_planes = list(itertools.combinations(xyz, 2))
         start_pos = [0.0] * n if start is None else [float(x) for x in start]
         if len(start_pos) != n:
             raise PlannerError(f"start position needs {n} values, got {len(start_pos)}")

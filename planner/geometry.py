@@ -98,7 +98,27 @@ class Line(Piece):
         return Line(tuple(self.pos(s0)), tuple(self.pos(s1)), s1 - s0)
 
 
-class MergedLine(Line):
+class _Parts:
+    """Several programmed moves planned as one piece (``planner.merging``): ``cmds[i]`` is the move
+    from ``starts[i]`` on, for the setpoints' file and line."""
+
+    __slots__ = ()
+    starts: list[float]
+    cmds: list[Any]
+    _i: int
+
+    def cmd_at(self, s: float) -> Any:
+        self._i = forward_index(self.starts, self._i, s)
+        return self.cmds[self._i]
+
+    def _parts(self, s0: float, s1: float) -> tuple[list[float], list[Any]]:
+        """``starts`` and ``cmds`` of the part between ``s0`` and ``s1``."""
+        lo = max(bisect_right(self.starts, s0) - 1, 0)
+        hi = max(bisect_right(self.starts, s1) - 1, lo)
+        return [0.0] + [x - s0 for x in self.starts[lo + 1: hi + 1]], self.cmds[lo: hi + 1]
+
+
+class MergedLine(_Parts, Line):
     """Consecutive programmed lines within a tolerance of one line, planned as this line
     (``planner.merging``). ``cmds[i]`` is the programmed move from ``starts[i]`` on (its start
     projected on the line), for the setpoints' file and line."""
@@ -110,15 +130,8 @@ class MergedLine(Line):
         self.starts, self.cmds = starts, cmds
         self._i = 0
 
-    def cmd_at(self, s: float) -> Any:
-        self._i = forward_index(self.starts, self._i, s)
-        return self.cmds[self._i]
-
     def part(self, s0: float, s1: float) -> Line:
-        lo = max(bisect_right(self.starts, s0) - 1, 0)
-        hi = max(bisect_right(self.starts, s1) - 1, lo)
-        starts = [0.0] + [x - s0 for x in self.starts[lo + 1: hi + 1]]
-        return MergedLine(tuple(self.pos(s0)), tuple(self.pos(s1)), s1 - s0, starts, self.cmds[lo: hi + 1])
+        return MergedLine(tuple(self.pos(s0)), tuple(self.pos(s1)), s1 - s0, *self._parts(s0, s1))
 
 
 class Arc(Piece):
@@ -185,6 +198,24 @@ class Arc(Piece):
         """The piece between ``s0`` and ``s1``: same centre, angle and radius still linear in ``s``."""
         return Arc(tuple(self.pos(s0)), tuple(self.pos(s1)), self._i0, self._i1, self._c0, self._c1,
                    self._k * (s1 - s0), s1 - s0)
+
+
+class MergedArc(_Parts, Arc):
+    """Consecutive programmed lines within a tolerance of one circular arc, planned as this arc
+    (``planner.merging``, ``planner.arcfit``). ``cmds[i]`` is the programmed move from ``starts[i]``
+    on (where the arc passes its start's angle)."""
+
+    __slots__ = ("_i", "cmds", "starts")
+
+    def __init__(self, start: Vec, end: Vec, i0: int, i1: int, c0: float, c1: float, sweep: float,
+                 length: float, starts: list[float], cmds: list[Any]) -> None:
+        super().__init__(start, end, i0, i1, c0, c1, sweep, length)
+        self.starts, self.cmds = starts, cmds
+        self._i = 0
+
+    def part(self, s0: float, s1: float) -> Arc:
+        return MergedArc(tuple(self.pos(s0)), tuple(self.pos(s1)), self._i0, self._i1, self._c0, self._c1,
+                         self._k * (s1 - s0), s1 - s0, *self._parts(s0, s1))
 
 
 class Blend(Piece):

@@ -25,8 +25,17 @@ import math
 from collections.abc import Sequence
 
 from gcode_canon import commands as C
-from planner.geometry import MergedLine
-from planner.segments import MERGE_EXACT, MERGE_MAX_PIECES, MERGE_MAX_TIME, MERGE_SHARE
+from planner.arcfit import ArcFit, fit_arc
+from planner.geometry import MergedArc, MergedLine
+from planner.segments import (
+    ARC_DENSE,
+    ARC_MIN_PIECES,
+    MERGE_EXACT,
+    MERGE_MAX_PIECES,
+    MERGE_MAX_TIME,
+    MERGE_SHARE,
+    Seg,
+)
 
 log = logging.getLogger(__name__)
 
@@ -35,8 +44,8 @@ class _Run:
     """Lines being merged: from ``start`` through the ``points`` (the interior programmed points) to
     ``end``; ``dev`` bounds the distance of every interior point from the chord ``start``-``end``."""
 
-    __slots__ = ("chord", "cmds", "dev", "end", "events", "exact_from", "feed", "key", "length", "points",
-                 "rapid", "start", "tol", "tol_mode")
+    __slots__ = ("arc", "arc_n", "chord", "cmds", "dev", "end", "events", "exact_from", "feed", "key",
+                 "length", "line_n", "points", "rapid", "start", "tol", "tol_mode", "travel")
 
     def __init__(self, start: tuple[float, ...], end: tuple[float, ...], cmd: C.Canon, feed: float,
                  rapid: bool, key: tuple, tol: float, tol_mode: float, events: list[C.Canon]) -> None:
@@ -49,6 +58,10 @@ class _Run:
         self.exact_from = 0  # pieces when dev was last computed exactly
         self.feed, self.rapid, self.key, self.tol, self.tol_mode = feed, rapid, key, tol, tol_mode
         self.events = events
+        self.travel = self.length  # the programmed length so far
+        self.arc: ArcFit | None = None  # once the points no longer lie on one line: the arc they lie on
+        self.arc_n = 0  # pieces when ``arc`` was fitted (the pieces after it are not checked yet)
+        self.line_n = 1  # pieces the line (chord, length, dev) holds: all of them until ``arc`` is set
 
 
 def _line_distance(p: Sequence[float], a: Sequence[float], u: Sequence[float]) -> float:
@@ -85,7 +98,7 @@ class MergingMixin:
         key = (feed, rapid, self._seg_ovr(rapid), tol_mode)
         run = self._run
         end_t = tuple(end)
-        if run is not None and run.key == key and not self._pending and self._extend(run, end_t, cmd):
+        if run is not None and run.key == key and not self._pending and self._extend_open(end_t, cmd):
             return True
         self._emit_run()
         self._run = _Run(tuple(start), end_t, cmd, feed, rapid, key, self._merge_tolerance(), tol_mode,
@@ -94,10 +107,16 @@ class MergingMixin:
         return True
 
     def _extend(self, run: _Run, end: tuple[float, ...], cmd: C.Canon) -> bool:
-        """Whether the run with ``end`` added stays within its tolerance (then it is added)."""
-        n = len(run.cmds)
-        if n >= MERGE_MAX_PIECES:
+        """Whether the run with ``end`` added stays within its tolerance of one line, or else of one
+        arc (then it is added)."""
+        if len(run.cmds) >= MERGE_MAX_PIECES:
             return False
+        if run.arc is None and self._extend_line(run, end, cmd):
+            return True
+        return self._extend_arc(run, end, cmd)
+
+    def _extend_line(self, run: _Run, end: tuple[float, ...], cmd: C.Canon) -> bool:
+        n = len(run.cmds)
         s, e, old, old_len = run.start, run.end, run.chord, run.length
         piece = [x - y for x, y in zip(end, e, strict=True)]
         chord = [x + y for x, y in zip(old, piece, strict=True)]
@@ -133,25 +152,111 @@ class MergingMixin:
         run.points.append(e)
         run.cmds.append(cmd)
         run.end, run.chord, run.length = end, chord, length
+        run.travel += math.hypot(*piece)
         run.dev = dev
+        run.line_n = n + 1
         return True
 
-    def _emit_run(self) -> None:
-        """The run enters the queue as one line."""
+    def _extend_arc(self, run: _Run, end: tuple[float, ...], cmd: C.Canon) -> bool:
+        """Add ``end`` if the run stays within its tolerance of one arc (``planner.arcfit``). The fit
+        costs O(run): it is redone for every piece of a short run, and past 64 pieces once every n/8
+        (amortised O(1) per line); the pieces in between are checked when the run is emitted
+        (:meth:`_emit_one`), which falls back to the last arc that was checked."""
+        if run.rapid or (run.arc is None and len(run.cmds) < ARC_DENSE):
+            return False
+        travel = run.travel + math.dist(run.end, end)
+        if travel > MERGE_MAX_TIME * run.feed:
+            return False
+        n = len(run.cmds)
+        run.points.append(run.end)
+        if run.arc is None or n <= 64 or n + 1 - run.arc_n >= n // 8:
+            fit = fit_arc(run.start, run.points, end, run.tol, self._arc_planes)
+            if fit is None:
+                run.points.pop()
+                return False
+            run.arc, run.arc_n = fit, n + 1
+        run.cmds.append(cmd)
+        run.end, run.travel = end, travel
+        return True
+
+    def _emit_run(self, keep_last: bool = False) -> None:
+        """The run enters the queue as one line or arc. An arc that holds only as far as it was
+        checked (or is too short) enters that far, and the pieces after it are merged again; with
+        ``keep_last`` the last run they make stays open (the next line may still join it)."""
         run = self._run
         if run is None:
             return
         self._run = None
-        s, e = run.start, run.end
-        length = math.dist(s, e)
-        u = [(x - y) / length for x, y in zip(e, s, strict=True)]
+        rest = self._emit_one(run)
+        if not rest:
+            return
+        start = run.points[len(run.cmds) - len(rest) - 1]
+        for end, cmd in rest:
+            self._add_to_run(start, end, cmd, run)
+            start = end
+        if not keep_last:
+            self._emit_run()
+
+    def _add_to_run(self, start: tuple[float, ...], end: tuple[float, ...], cmd: C.Canon, like: _Run) -> None:
+        """Add the piece ``start``-``end`` to the open run, or open another (with the feed, mode and
+        tolerance of ``like``)."""
+        if not self._extend_open(end, cmd):
+            self._run = _Run(start, end, cmd, like.feed, like.rapid, like.key, like.tol, like.tol_mode, [])
+
+    def _extend_open(self, end: tuple[float, ...], cmd: C.Canon) -> bool:
+        """Extend the open run with a piece to ``end``. Where it does not fit, the run is emitted; what
+        an arc leaves out of it stays open and is tried again, so a line ends up in the run it would
+        have joined had no arc been tried (False: it opens a run of its own)."""
+        while self._run is not None:
+            if self._extend(self._run, end, cmd):
+                return True
+            self._emit_run(keep_last=True)
+        return False
+
+    def _emit_one(self, run: _Run) -> list[tuple[tuple[float, ...], C.Canon]]:
+        """Queue the run as one piece; return the pieces left out (``(end, cmd)`` each, in order, the
+        first starting where the queued piece ends) when its arc holds only as far as it was checked."""
+        s, n = run.start, len(run.cmds)
+        if run.arc is not None:
+            fit, k = run.arc, n
+            if run.arc_n < n:
+                full = fit_arc(s, run.points, run.end, run.tol, self._arc_planes)
+                if full is not None:
+                    fit = full
+                else:
+                    k = run.arc_n
+            ends = [*run.points, run.end]
+            if k < ARC_MIN_PIECES:
+                # too few pieces to gain from an arc: the line they were, then the rest again
+                k = run.line_n
+                self._emit_line(run, ends[k - 1], run.points[: k - 1], run.cmds[:k])
+                return list(zip(ends[k:], run.cmds[k:], strict=True))
+            piece = MergedArc(s, ends[k - 1], fit.i0, fit.i1, fit.c0, fit.c1, fit.sweep, fit.length,
+                              fit.starts, run.cmds[:k])
+            seg = Seg(piece, "arc", run.cmds[0], run.feed, run.rapid, run.key[2])
+            seg.blend_tol = run.tol_mode
+            self._limits(seg)
+            self._last_chord = None
+            seg.merge_dev = fit.dev
+            seg.events = run.events
+            self._queue_seg(seg, False)
+            return list(zip(ends[k:], run.cmds[k:], strict=True))
+        self._emit_line(run, run.end, run.points, run.cmds)
+        return []
+
+    def _emit_line(self, run: _Run, end: tuple[float, ...], points: list[tuple[float, ...]],
+                   cmds: list[C.Canon]) -> None:
+        """Queue the line from the run's start to ``end`` through ``points``, merged from ``cmds``."""
+        s = run.start
+        length = math.dist(s, end)
+        u = [(x - y) / length for x, y in zip(end, s, strict=True)]
         starts = [0.0]
-        for p in run.points:
+        for p in points:
             along = sum((x - y) * w for x, y, w in zip(p, s, u, strict=True))
             starts.append(min(max(along, starts[-1]), length))
-        piece = MergedLine(s, e, length, starts, run.cmds) if len(run.cmds) > 1 else None
-        cmd = run.cmds[0]
-        seg = self._new_line_seg(piece, cmd, s, e, length, run.feed, run.rapid, run.key[2], run.tol_mode)
+        piece = MergedLine(s, end, length, starts, cmds) if len(cmds) > 1 else None
+        seg = self._new_line_seg(piece, cmds[0], s, end, length, run.feed, run.rapid, run.key[2],
+                                 run.tol_mode)
         seg.merge_dev = run.dev
         seg.events = run.events
         self._queue_seg(seg, False)

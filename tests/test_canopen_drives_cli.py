@@ -76,6 +76,31 @@ def test_scan_names_absent_optional_objects_and_every_mismatch(tmp_path, bus, ca
     assert sims[1].state.value == "Switch on disabled"  # nothing written: the scan reads only
 
 
+def test_scan_lists_digital_inputs_and_touch_probes_per_node(tmp_path, capsys):
+    channel = unique_channel()
+    # x has no 0x60FD; y's negative limit switch is active where it stands, and its touch probe 1
+    # lacks the negative edge's position (probe 2 is complete)
+    sims = SimBus([SimDrive(1, absent_objects={0x60FD}),
+                   SimDrive(2, absent_objects={0x60BB}, negative_limit_counts=10)],
+                  CanBusConfig("virtual", channel))
+    try:
+        assert wait_for(lambda: all(d.nmt_state != 0 for d in sims.drives.values()), 2.0)
+        path = _machine(tmp_path, channel, "touch_probe = 1\n")
+        rc = main(["drives", "scan", "--config", str(path)])
+        out = capsys.readouterr().out
+        assert rc == 1
+        assert "note: node 1 (axis x): no 0x60FD (digital inputs): canon does not see its limit" in out
+        assert "yes: 0x00000001 (negative limit switch)" in out
+        assert ("mismatch: node 2 (axis y): canopen.axes.y.touch_probe = 1, but the drive lacks 0x60BB "
+                "(touch probe 1 position, negative edge)") in out
+        rc = main(["drives", "scan", "--config", str(path), "--json"])
+        data = json.loads(capsys.readouterr().out)
+        assert [d["digital_inputs"] for d in data] == [None, 1]
+        assert [d["touch_probes"] for d in data] == [[1, 2], [2]]
+    finally:
+        sims.close()
+
+
 def test_scan_of_a_node_that_does_not_answer(tmp_path, capsys):
     path = _machine(tmp_path, unique_channel())
     rc = main(["drives", "scan", "--config", str(path), "--timeout", "0.1"])

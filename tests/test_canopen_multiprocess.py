@@ -286,3 +286,40 @@ def test_a_limit_switch_of_a_drive_in_the_drive_process_stops_the_machine(setup)
         time.sleep(0.002)
     states = [decode(master._statusword(d)) for d in master.drives]  # by SDO, from the drives
     assert State.OPERATION_ENABLED not in states, states
+
+
+def test_touch_probe_of_a_drive_in_the_drive_process_latches_within_one_count(tmp_path):
+    """z's drive in the other process has its probe input at Z-1.23457 (``--probe``); z moves down
+    through it at 10 mm/s (0.04 mm per 4 ms SYNC): the master sees the latch in TPDO4 and reads a
+    position within one count (0.2 µm at 5000 counts/mm) of the trip point."""
+    from fieldbus.canopen.touch_probe import TouchProbe
+
+    height = -1.23457
+    path = machine_file(tmp_path, "udp_multicast", group(), 4.0)
+    path.write_text(path.read_text() + "touch_probe = 1\n")  # [canopen.axes.z] is the file's last table
+    config = canopen_from_file(load_toml(path), str(path))
+    drives = DriveProcess(path, "--probe", f"z={height}")
+    master = CanopenMaster(config)
+    try:
+        master.boot()
+        master.enable()
+        probe = TouchProbe.of(master)
+        assert probe is not None and probe.axis == "z"
+        probe.arm(toward=True)
+        start = master.positions()
+        seen: list[float] = []
+
+        def path_at(t: float) -> list[float]:
+            if probe.tripped and not seen:
+                seen.append(t)
+            return [start[0], start[1], start[2] - 10.0 * min(t, 0.2)]
+
+        runner = stream(master, path_at, 0.6, fault_on_late=False)
+        assert runner.join(30.0) and runner.error is None
+        assert master.fault is None, master.fault
+        assert seen, "the latch never reached the master"
+        result = probe.result()
+        assert result.tripped and abs(result.position - height) <= 1.0001 / 5000
+    finally:
+        master.shutdown()
+        drives.stop()

@@ -47,3 +47,20 @@ def test_check_names_the_subroutine_file(tmp_path: Path, capsys: pytest.CaptureF
     feed = f"{subs / 'dr.ngc'}:2 STRAIGHT_FEED(1.0000, 0.0000, -1.0000"
     assert any(line.startswith(feed) for line in lines)
     assert lines[-1].split() == ["5", "PROGRAM_END(FALSE)"]
+
+
+def test_check_imports_only_its_own_sub_command(tmp_path: Path) -> None:
+    """canon check's start-up: the other sub-commands (fieldbus, LCM) and importlib.metadata (for
+    --version) are not imported; --help still lists every sub-command."""
+    program = tmp_path / "a.ngc"
+    program.write_text("G0 X1\nM2\n")
+    code = ("import sys; from motiond.cli import main; main(['check', sys.argv[1]]); "
+            "print(sorted(m for m in sys.modules if m.startswith('motiond.cmd_') "
+            "or m == 'importlib.metadata'))")
+    r = subprocess.run([sys.executable, "-c", code, str(program)], capture_output=True, text=True, timeout=60,
+                       cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().splitlines()[-1] == "['motiond.cmd_check']"
+    r = subprocess.run([sys.executable, "-m", "motiond.cli", "--help"], capture_output=True, text=True,
+                       timeout=60, cwd=ROOT)
+    assert all(name in r.stdout for name in ("check", "plan", "run", "daemon", "status"))

@@ -349,3 +349,38 @@ def test_disable_g92_persistence_clears_at_start_and_program_end(tmp_path) -> No
     assert interp.parameter(5210) == 0.0 and interp.parameter(5211) == 0.0
     out = list(interp.run_string("G0 X1\nM2\n", "t.ngc"))
     assert out[0].end.x == pytest.approx(1.0)
+
+
+# --- G7/G8 lathe diameter mode (read_x, convert_lathe_diameter_mode) -----------------------------------
+
+
+def test_g7_makes_x_words_diameters() -> None:
+    from gcode_canon.commands import ArcFeed
+    from gcode_canon.interpreter import Interpreter
+    from gcode_canon.settings import InterpreterSettings
+    from tests.test_interp_helpers import ends
+
+    program = ("G21 G18 G90 G94 F100\nG0 X10 Z5\nG7\nG1 X10 Z0\nG91 X-2\nG90 G8 X6\nG7 X4 Z-1\n"
+               "G2 X8 Z-3 I1 K-1\nG3 X8 Z-5 R1.5\nG92 X20\nG0 X10\nG8\nG0 X5\n")
+    # rs274 (LinuxCNC master), machine X and Z of each move; X is halved from the G7 line on, G8 on
+    # its own line counts for its X word, G92 X20 is a diameter too (program X10 -> offset -6)
+    got = [(round(e[0], 4), round(e[2], 4)) for e in ends(program)]
+    assert got == [(10, 5), (5, 0), (4, 0), (6, 0), (2, -1), (4, -3), (4, -5), (-1, -5), (-1, -5)]
+    interp = Interpreter(InterpreterSettings(dry_run=True, require_program_end=False))
+    arcs = [c for c in interp.run_string(program[:program.index("G92")], "t.ngc") if isinstance(c, ArcFeed)]
+    # I and K stay radii: rs274's ARC_FEED centres, Z then X: (-2, 3) and (-4, 2.882)
+    assert [(round(a.center[2], 4), round(a.center[0], 4)) for a in arcs] == [(-2, 3), (-4, 2.882)]
+    assert interp.active_gcodes(extensions=False)[-1] == "G7"
+    # rs274's (PRINT) of #<_lathe_diameter_mode> #<_lathe_radius_mode> #<_x>: 1 0 5
+    assert (interp.parameter("_lathe_diameter_mode"), interp.parameter("_lathe_radius_mode")) == (1.0, 0.0)
+    assert interp.parameter("_x") == pytest.approx(4.0)  # machine X 4 is program X 4 (a radius)
+    list(interp.run_string("G8\n", "t.ngc"))
+    assert interp.active_gcodes(extensions=False)[-1] == "G8"
+    assert (interp.parameter("_lathe_diameter_mode"), interp.parameter("_lathe_radius_mode")) == (0.0, 1.0)
+
+
+def test_g7_lines_do_not_take_the_fast_path() -> None:
+    from tests.test_interp_helpers import ends
+
+    # plain G1 X lines after G7 must be halved as every other line is
+    assert [round(e[0], 4) for e in ends("G7\nG0 X8\nG1 X6 F100\nX4\nG8\nX4")] == [4, 3, 2, 4]

@@ -221,3 +221,16 @@ def test_lathe_example_threads_within_the_limits() -> None:
     cuts = [next(c for c in ps if isinstance(c, C.StraightFeed)) for ps in _passes(out)]
     full = [c for c in cuts if c.end.x == pytest.approx(12.0 - 2.0 - 1.53)]
     assert len(full) == 2 and len(cuts) > 2
+
+
+def test_g76_in_diameter_mode_halves_i_j_k() -> None:
+    """G7: X, I, J and K are diameters (LinuxCNC convert_threading_cycle): the same passes as in G8
+    with every one of them halved."""
+    def cuts(text: str) -> list[float]:
+        out = commands(text)
+        feeds = [c for ps in _passes(out) for c in ps if isinstance(c, C.StraightFeed)]
+        return [v for c in feeds for v in (c.end.x, c.end.z)]
+
+    g7 = cuts("G18 G7\nM3 S300\nG0 X20 Z2\nG76 P1.5 Z-10 I-2 J0.4 K2.4 H1\n")
+    g8 = cuts("G18 G8\nM3 S300\nG0 X10 Z2\nG76 P1.5 Z-10 I-1 J0.2 K1.2 H1\n")
+    assert g7 == pytest.approx(g8) and len(g7) > 6

@@ -2,7 +2,8 @@
 
 ``config`` holds the typed configuration, ``cia402`` the drive state machine shared by master and
 simulator, ``busload`` the bus budget, ``master`` the master, ``clock`` the absolute-deadline periodic
-runner, ``drive_sim`` one simulated drive and ``sim_process`` several of them on one bus.
+runner, ``touch_probe`` a drive's touch probe as the probe input for G38.x, ``drive_sim`` one
+simulated drive (its concerns in ``drive_sim_*``) and ``sim_process`` several of them on one bus.
 """
 
 from pathlib import Path

@@ -73,7 +73,7 @@ def boot_writes(conf: CanopenConfig, cfg: DriveConfig) -> list[tuple[str, int, i
         ("max profile velocity", 0x607F, 0, "I", vmax),
         ("quick stop deceleration", 0x6085, 0, "I", qsd),
         ("quick stop option", 0x605A, 0, "h", quick_stop_option(cfg, conf.pdo_layout)),
-        *conf.layout.sdo_steps(cfg.node_id),
+        *(conf.layout.with_touch_probe() if cfg.touch_probe else conf.layout).sdo_steps(cfg.node_id),
         ("producer heartbeat time", 0x1017, 0, "H", conf.heartbeat_producer_ms),
         ("consumer heartbeat time", 0x1016, 1, "I",
          (conf.master_node_id << 16) | (conf.heartbeat_consumer_ms if conf.heartbeat_producer_ms else 0)),

@@ -74,6 +74,11 @@ class DriveConfig:
     product_code: int | None = None
     #: 0x605A written at boot; None: the layout's safe default (:func:`quick_stop_option`)
     quick_stop_option: int | None = None
+    #: the machine's probe input (G38.x) is this drive's touch probe 1 or 2 (0x60B8-0x60BD); 0: none
+    touch_probe: int = 0
+    #: simulated drives only: the probe input is active at and below this machine position (None: the
+    #: simulated probe never trips)
+    sim_probe_position: float | None = None
 
     @property
     def eds_path(self) -> str:

@@ -20,14 +20,17 @@ Behaviour a real drive has and the tests rely on:
   arriving late, is counted (``missed_setpoints``, ``late_syncs``).
 * Quick stop and fault reaction decelerate at 0x6085; quick stop option 0x605A 5/6 stays in Quick
   stop active holding the position, 1/2 ends in Switch on disabled.
-* Homing mode 6: methods 35/37 take the current position as home; others travel at 0x6099:1 to a
-  simulated home switch, at 0x6099:2 once on it (its 0x60FD bit 2, with ``home_switch_window_counts``);
-  either way the position then reads 0x607C.
+* Homing mode 6 by the method's direction and end (``drive_sim_homing``): limit switches (17/18), the
+  home switch (19-30, reversed by the limit switch in 23-30), the next index pulse (33/34), here
+  (35/37); travel at 0x6099:1, at 0x6099:2 on the home switch (its 0x60FD bit 2, with
+  ``home_switch_window_counts``); the position then reads 0x607C.
 * Digital inputs 0x60FD from the actual position: bit 0 negative limit switch (at or below
   ``negative_limit_counts``), bit 1 positive limit switch (at or above ``positive_limit_counts``), bit 2
   home switch (within ``home_switch_window_counts`` of ``home_switch_counts``; 0: no home input).
   The drive itself does not react to them (as a drive whose limit switch reaction is "report"): the
   master must.
+* A touch probe (0x60B8-0x60BD) on a probe input switched at ``probe_trip_counts``: the position is
+  latched where the motion crossed it inside the period (``drive_sim_probe``).
 * Optional objects absent (``absent_objects``): SDO access aborts 0x06020000 and the drive keeps its
   own defaults for them.
 * A small motor's limits, from the EDS (0x6080 3000 rpm, 0x608F 50000 counts/rev, 0x60C5/0x60C6,
@@ -42,68 +45,68 @@ Faults are injected from tests: :meth:`inject_fault`, :meth:`drop_heartbeat`, :m
 does on a real bus, by SDO to the simulation-only object 0x2F00 (:data:`SIM_INJECT`): sub 2 a delay in
 ms, then sub 1 an EMCY code; the drive faults with that code exactly as :meth:`inject_fault` does
 (``canon sim inject``).
+
+The drive is one class, :class:`SimDrive`, written by concern: this module holds its wiring, NMT,
+heartbeat and dictionary; ``drive_sim_cia402`` the state machine and the CSP motion of a SYNC
+period; ``drive_sim_pdo`` the SYNC and the PDOs; ``drive_sim_homing`` homing mode;
+``drive_sim_probe`` the touch probe; ``drive_sim_faults`` fault injection.
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import struct
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass
 from pathlib import Path
 
 import canopen
 from canopen.sdo import SdoAbortedError
 
 from fieldbus.canopen import SHIPPED_EDS, cia402
-from fieldbus.canopen.cia402 import Command, State
+from fieldbus.canopen.cia402 import State
 from fieldbus.canopen.config import DriveConfig
+from fieldbus.canopen.drive_sim_cia402 import (
+    DI_HOME,
+    DI_INTERLOCK,
+    DI_NEGATIVE_LIMIT,
+    DI_POSITIVE_LIMIT,
+    EMCY_FOLLOWING_ERROR,
+    EMCY_GENERIC,
+    EMCY_HEARTBEAT,
+    EMCY_RPDO_TIMEOUT,
+    EMCY_VELOCITY,
+    NMT_INITIALISING,
+    NMT_OPERATIONAL,
+    NMT_PRE_OPERATIONAL,
+    NMT_STOPPED,
+    StateMachineMixin,
+)
+from fieldbus.canopen.drive_sim_faults import (
+    SIM_INJECT,
+    SIM_INJECT_CODE,
+    SIM_INJECT_DELAY_MS,
+    SIM_QUICK_STOP_INPUT,
+    FaultInjectionMixin,
+)
+from fieldbus.canopen.drive_sim_homing import HomingMixin
+from fieldbus.canopen.drive_sim_pdo import CyclicMixin, PdoMap
+from fieldbus.canopen.drive_sim_probe import PROBE_OBJECTS, TOUCH_PROBE_FUNCTION, TouchProbeMixin
+
+__all__ = [
+    "DI_HOME", "DI_INTERLOCK", "DI_NEGATIVE_LIMIT", "DI_POSITIVE_LIMIT", "EMCY_FOLLOWING_ERROR",
+    "EMCY_GENERIC", "EMCY_HEARTBEAT", "EMCY_RPDO_TIMEOUT", "EMCY_VELOCITY", "NMT_INITIALISING",
+    "NMT_OPERATIONAL", "NMT_PRE_OPERATIONAL", "NMT_STOPPED", "NO_SUCH_OBJECT", "SIM_INJECT",
+    "SIM_INJECT_CODE", "SIM_INJECT_DELAY_MS", "SIM_QUICK_STOP_INPUT", "PdoMap", "SimDrive", "motor_for",
+]
 
 log = logging.getLogger(__name__)
 
-NMT_INITIALISING, NMT_STOPPED, NMT_OPERATIONAL, NMT_PRE_OPERATIONAL = 0, 4, 5, 127
-
-EMCY_VELOCITY = 0x8400  # setpoint jump beyond the maximum velocity
-EMCY_FOLLOWING_ERROR = 0x8611
-EMCY_HEARTBEAT = 0x8130  # life guard / heartbeat consumer timeout
-EMCY_GENERIC = 0x1000
-EMCY_RPDO_TIMEOUT = 0x8250  # RPDO deadline monitoring (CiA 301: "RPDO timeout")
-
-# Manufacturer-specific, simulation only (not on a real drive): an SDO write of a non-zero code to
-# sub 1 faults the drive with that EMCY code, after the delay in ms held in sub 2 (write it first);
-# writing 0 to sub 1 cancels faults still waiting for their delay.
-SIM_INJECT = 0x2F00
-SIM_INJECT_CODE, SIM_INJECT_DELAY_MS = 1, 2
-#: sub 3: the drive's local quick-stop input (1 active, 0 released), as a wired button or limit switch
-SIM_QUICK_STOP_INPUT = 3
-
 NO_SUCH_OBJECT = 0x06020000  # SDO abort: object does not exist in the object dictionary
 
-_LIVE = {0x6041, 0x6061, 0x6062, 0x6064, 0x60F4, 0x603F, 0x1001, 0x60FD}
-
-#: 0x60FD bits (CiA 402)
-DI_NEGATIVE_LIMIT, DI_POSITIVE_LIMIT, DI_HOME, DI_INTERLOCK = 0x1, 0x2, 0x4, 0x8
-
-
-@dataclass
-class PdoMap:
-    cob_id: int
-    transmission: int
-    entries: tuple[tuple[int, int, int], ...]  # (index, subindex, bytes)
-    fmt: str = ""
-    inhibit_s: float = 0.0
-    event_timer_s: float = 0.0
-
-    @property
-    def event(self) -> bool:
-        return self.transmission in (254, 255)
-
-
-_FMT = {(1, True): "b", (1, False): "B", (2, True): "h", (2, False): "H", (4, True): "i", (4, False): "I"}
+_LIVE = {0x6041, 0x6061, 0x6062, 0x6064, 0x60F4, 0x603F, 0x1001, 0x60FD, *PROBE_OBJECTS}
 
 
 def motor_for(cfg: DriveConfig, eds: str | Path = SHIPPED_EDS) -> dict[tuple[int, int], int]:
@@ -131,14 +134,15 @@ def motor_for(cfg: DriveConfig, eds: str | Path = SHIPPED_EDS) -> dict[tuple[int
     return out
 
 
-class SimDrive:
+class SimDrive(StateMachineMixin, CyclicMixin, HomingMixin, TouchProbeMixin, FaultInjectionMixin):
     """One simulated drive. Attach it to a ``canopen.Network``; call :meth:`tick` every few ms."""
 
     def __init__(self, node_id: int, eds: str | Path = SHIPPED_EDS, *, lag_s: float = 0.002,
                  order: int = 1, damping: float = 0.8, boot_delay_s: float = 0.0,
                  home_switch_counts: int = 0, rpdo_timeout_syncs: int = 0,
                  negative_limit_counts: int | None = None, positive_limit_counts: int | None = None,
-                 home_switch_window_counts: int = 0,
+                 home_switch_window_counts: int = 0, probe_trip_counts: int | None = None,
+                 probe_active_below: bool = True,
                  absent_objects: Iterable[int] = (), parameters: Mapping[tuple[int, int], int] | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
         if order not in (1, 2):
@@ -159,6 +163,10 @@ class SimDrive:
         self.negative_limit_counts = negative_limit_counts
         self.positive_limit_counts = positive_limit_counts
         self.home_switch_window_counts = home_switch_window_counts
+        # the touch probe input (0x60B8-0x60BD), by the actual position in counts; None: not wired
+        self.probe_trip_counts = probe_trip_counts
+        self.probe_active_below = probe_active_below
+        self._probe_reset()
         # RPDO deadline monitoring, as EPOS4-style drives have: in Operation enabled (CSP), this many
         # SYNCs in a row without a target fault the drive with EMCY 0x8250 (0: off)
         self.rpdo_timeout_syncs = rpdo_timeout_syncs
@@ -300,6 +308,7 @@ class SimDrive:
                 obj = self.node._find_object(index, sub)
                 store.setdefault(index, {})[sub] = obj.encode_raw(value)
         if application:
+            self._probe_reset()
             self.state = State.NOT_READY_TO_SWITCH_ON
             self.mode = 0
             self.controlword = 0
@@ -346,6 +355,7 @@ class SimDrive:
                     self._next_hb = now + self._hb_ms / 1000.0
                 return
             self._load_params()
+            before = self.actual
             if self._last_tick is not None and self.state == State.OPERATION_ENABLED \
                     and self.mode == cia402.MODE_HOMING:
                 self._homing_step(now - self._last_tick)  # homing runs on the drive's own clock
@@ -353,6 +363,7 @@ class SimDrive:
                   and self.state in (State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE)
                   and (self._last_sync is None or now - self._last_sync > 3 * (self._period or 0.01))):
                 self._decelerate(now - self._last_tick)  # no SYNC: the stop ramp runs on its own clock
+            self._probe_sample(before)
             self._last_tick = now
             if self._hb_ms > 0 and now >= self._next_hb:
                 self._send_heartbeat()
@@ -406,46 +417,6 @@ class SimDrive:
         self._homing_speed = max(1, self._value(0x6099, 1))
         self._homing_speed_zero = max(1, self._value(0x6099, 2))
 
-    def _read_pdo(self, comm: int, mapping: int) -> PdoMap | None:
-        if comm not in self.node.object_dictionary or mapping not in self.node.object_dictionary:
-            return None  # an EDS with fewer PDOs
-        cob = self._value(comm, 1)
-        n = self._value(mapping, 0)
-        if cob & 0x80000000 or n == 0:
-            return None
-        entries = []
-        fmt = "<"
-        for sub in range(1, n + 1):
-            m = self._value(mapping, sub)
-            index, subindex, bits = m >> 16, (m >> 8) & 0xFF, m & 0xFF
-            obj = self.node._find_object(index, subindex)
-            signed = obj.data_type in (canopen.objectdictionary.INTEGER8, canopen.objectdictionary.INTEGER16,
-                                       canopen.objectdictionary.INTEGER32)
-            entries.append((index, subindex, bits // 8))
-            fmt += _FMT[(bits // 8, signed)]
-        timing = [0.0, 0.0]
-        if comm >= 0x1800:  # TPDO: inhibit time (100 us units) and event timer (ms), where the EDS has them
-            for i, (sub, unit) in enumerate(((3, 1e-4), (5, 1e-3))):
-                with contextlib.suppress(KeyError):
-                    timing[i] = self._value(comm, sub) * unit
-        return PdoMap(cob & 0x7FF, self._value(comm, 2), tuple(entries), fmt, *timing)
-
-    def _subscribe_pdos(self) -> None:
-        self._unsubscribe_pdos()
-        self._rpdos = [p for p in (self._read_pdo(0x1400 + i, 0x1600 + i) for i in range(4)) if p]
-        self._tpdos = [p for p in (self._read_pdo(0x1800 + i, 0x1A00 + i) for i in range(4)) if p]
-        self._event_sent = {}
-        for p in self._rpdos:
-            self.network.subscribe(p.cob_id, self._on_rpdo)  # type: ignore[union-attr]
-            self._subscribed.append(p.cob_id)
-
-    def _unsubscribe_pdos(self) -> None:
-        if self.network is not None:
-            for cob in self._subscribed:
-                # with the callback: never drop other nodes' subscribers on a shared network
-                self.network.unsubscribe(cob, self._on_rpdo)
-        self._subscribed = []
-
     # ------------------------------------------------------------------ dictionary callbacks
     def _on_read(self, index: int, subindex: int, od: object) -> int | None:
         if index in self.absent_objects and od is not None:
@@ -470,6 +441,8 @@ class SimDrive:
                 return self.error_code
             if index == 0x60FD:
                 return self.digital_inputs()
+            if index in PROBE_OBJECTS:
+                return self._probe_read(index)
             return 1 if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE) else 0
 
     def _on_write(self, index: int, subindex: int, od: object, data: bytes) -> None:
@@ -481,6 +454,8 @@ class SimDrive:
         with self.lock:
             if index == 0x6040:
                 self._controlword(struct.unpack_from("<H", data)[0])
+            elif index == TOUCH_PROBE_FUNCTION:
+                self._probe_function(struct.unpack_from("<H", data)[0])
             elif index == 0x607A:
                 self._pending_target = struct.unpack_from("<i", data)[0]
             elif index == 0x6060:
@@ -503,329 +478,3 @@ class SimDrive:
             else:
                 self._params_dirty = True
             self._event_tpdos()
-
-    def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        with self.lock:
-            if self.nmt_state != NMT_OPERATIONAL:
-                return
-            for p in self._rpdos:
-                if p.cob_id != can_id:
-                    continue
-                self.rpdos += 1
-                try:
-                    values = struct.unpack_from(p.fmt, data)
-                except struct.error:
-                    continue
-                for (index, _sub, _size), value in zip(p.entries, values, strict=True):
-                    if index == 0x6040:
-                        self._controlword(value)
-                    elif index == 0x607A:
-                        self._pending_target = value
-            self._event_tpdos()
-
-    # ------------------------------------------------------------------ CiA 402
-    def statusword(self) -> int:
-        extra = 0
-        if self.state == State.OPERATION_ENABLED:
-            if self.mode == cia402.MODE_CSP:
-                extra |= cia402.SW_BIT12
-                if self._window != 0xFFFFFFFF and abs(self.demand - self.actual) > self._window:
-                    extra |= cia402.SW_BIT13
-            elif self.mode == cia402.MODE_HOMING:
-                if self._homing_attained:
-                    extra |= cia402.SW_BIT12 | cia402.SW_TARGET_REACHED
-                if self._homing_error:
-                    extra |= cia402.SW_BIT13
-        elif self.state == State.QUICK_STOP_ACTIVE and self.velocity == 0:
-            extra |= cia402.SW_TARGET_REACHED  # halted at the end of the quick stop ramp
-        return cia402.statusword_for(self.state, extra)
-
-    _window = 0xFFFFFFFF
-
-    def digital_inputs(self) -> int:
-        """0x60FD from the actual position: the limit and home switches this drive has."""
-        bits = 0
-        pos = round(self.actual)
-        if self.negative_limit_counts is not None and pos <= self.negative_limit_counts:
-            bits |= DI_NEGATIVE_LIMIT
-        if self.positive_limit_counts is not None and pos >= self.positive_limit_counts:
-            bits |= DI_POSITIVE_LIMIT
-        window = self.home_switch_window_counts
-        if window and abs(pos - self.home_switch_counts) <= window:
-            bits |= DI_HOME
-        return bits
-
-    def _controlword(self, cw: int) -> None:
-        if self.ignore_controlword:
-            return
-        self._load_params()
-        previous, self.controlword = self.controlword, cw
-        cmd = cia402.command_of(cw, previous)
-        s = self.state
-        if s == State.FAULT:
-            if cmd == Command.FAULT_RESET:
-                self.state = State.SWITCH_ON_DISABLED
-                self.error_code = 0
-                if self.network is not None:
-                    self.node.emcy.reset()
-            return
-        if s in (State.FAULT_REACTION_ACTIVE, State.NOT_READY_TO_SWITCH_ON):
-            return
-        if cmd == Command.DISABLE_VOLTAGE:
-            self.state = State.SWITCH_ON_DISABLED
-        elif s == State.SWITCH_ON_DISABLED:
-            if cmd == Command.SHUTDOWN:
-                self.state = State.READY_TO_SWITCH_ON
-        elif s == State.READY_TO_SWITCH_ON:
-            if cmd == Command.SWITCH_ON:
-                self.state = State.SWITCHED_ON
-            elif cmd == Command.QUICK_STOP:
-                self.state = State.SWITCH_ON_DISABLED
-        elif s == State.SWITCHED_ON:
-            if cmd == Command.ENABLE_OPERATION:
-                self._enable()
-            elif cmd == Command.SHUTDOWN:
-                self.state = State.READY_TO_SWITCH_ON
-            elif cmd == Command.QUICK_STOP:
-                self.state = State.SWITCH_ON_DISABLED
-        elif s == State.OPERATION_ENABLED:
-            if cmd == Command.QUICK_STOP:
-                self.state = State.QUICK_STOP_ACTIVE
-            elif cmd == Command.SWITCH_ON:
-                self.state = State.SWITCHED_ON
-            elif cmd == Command.SHUTDOWN:
-                self.state = State.READY_TO_SWITCH_ON
-            elif self.mode == cia402.MODE_HOMING and cw & cia402.CW_HOMING_START \
-                    and not previous & cia402.CW_HOMING_START:
-                self._start_homing()
-        elif (s == State.QUICK_STOP_ACTIVE and cmd == Command.ENABLE_OPERATION
-              and (self.velocity == 0 or self.reenable_during_quick_stop_ramp)
-              and self._qs_option in (5, 6, 7, 8)):
-            self._enable()
-
-    def _enable(self) -> None:
-        # As drives do: the demand starts where the motor is, so enabling never jumps.
-        if self.quick_stop_input:
-            return  # the input holds the drive in its stop
-        self.enables += 1
-        self._syncs_without_target = 0
-        self.state = State.OPERATION_ENABLED
-        self.demand = self.actual
-        self.target = round(self.actual)
-        self._pending_target = None
-        self.velocity = 0.0
-
-    def _fault(self, code: int, why: str) -> None:
-        log.info("drive %d: fault 0x%04X (%s) in %s", self.id, code, why, self.state)
-        self.error_code = code
-        self.emcys.append(code)
-        self._homing = False
-        if self.network is not None:
-            self.node.emcy.send(code, 0x01)
-        if self.state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE):
-            self.state = State.FAULT_REACTION_ACTIVE
-        else:
-            self.state = State.FAULT
-            self.velocity = 0.0
-
-    # ------------------------------------------------------------------ the cycle
-    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        now = self.clock()
-        with self.lock:
-            if self.nmt_state != NMT_OPERATIONAL:
-                return
-            self._load_params()
-            period = self._period or 0.002
-            if self._last_sync is not None and now - self._last_sync > 1.5 * period:
-                self.late_syncs += 1
-            self._last_sync = now
-            self.syncs += 1
-            self._step(period)
-            for p in self._tpdos:
-                if 1 <= p.transmission <= 240 and self.syncs % p.transmission == 0:
-                    self._send(p.cob_id, self._encode(p))
-            self._event_tpdos(now)
-
-    def _event_tpdos(self, now: float | None = None) -> None:
-        """Send each event TPDO whose data changed since it was last sent (once its inhibit time has
-        passed), or whose event timer has run out. Called, with the lock held, after everything that
-        can change the drive's state: SYNC, RPDO, SDO write, tick."""
-        if self.nmt_state != NMT_OPERATIONAL or self.network is None:
-            return
-        now = self.clock() if now is None else now
-        for p in self._tpdos:
-            if not p.event:
-                continue
-            data = self._encode(p)
-            last = self._event_sent.get(p.cob_id)
-            if last is not None:
-                changed = data != last[0] and now - last[1] >= p.inhibit_s
-                due = p.event_timer_s > 0 and now - last[1] >= p.event_timer_s
-                if not (changed or due):
-                    continue
-            self._send(p.cob_id, data)
-            self._event_sent[p.cob_id] = (data, now)
-
-    def _encode(self, p: PdoMap) -> bytes:
-        values = []
-        for index, sub, _size in p.entries:
-            v = self._on_read(index, sub, None)
-            values.append(self._value(index, sub) if v is None else v)
-        return struct.pack(p.fmt, *values)
-
-    def _step(self, dt: float) -> None:
-        s = self.state
-        new = self._pending_target
-        self._pending_target = None
-        if s == State.OPERATION_ENABLED and self.mode == cia402.MODE_CSP:
-            if new is None:
-                self.missed_setpoints += 1
-                self._syncs_without_target += 1
-                if self.rpdo_timeout_syncs and self._syncs_without_target >= self.rpdo_timeout_syncs:
-                    self._fault(EMCY_RPDO_TIMEOUT, f"{self._syncs_without_target} SYNCs without a target")
-                    self._decelerate(dt)
-                    return
-            else:
-                self._syncs_without_target = 0
-                if abs(new - self.target) > self._max_velocity * dt * 1.0001 + 1:
-                    self._fault(EMCY_VELOCITY, f"target jump {new - self.target} counts in {dt} s")
-                    self._decelerate(dt)
-                    return
-                self.target = new
-                if self.record_targets:
-                    self.latched.append((self.syncs, new))
-            previous = self.demand
-            self.demand = float(self.target)
-            self.velocity = (self.demand - previous) / dt
-            self._follow(dt)
-            if (self.fault_on_following_error and self._window != 0xFFFFFFFF
-                    and abs(self.demand - self.actual) > self._window):
-                self._fault(EMCY_FOLLOWING_ERROR, f"following error {self.demand - self.actual:.0f} counts")
-        elif s in (State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE):
-            self._decelerate(dt)
-        else:
-            self.velocity = 0.0
-            self.demand = self.actual
-            self.target = round(self.actual)
-
-    def _follow(self, dt: float) -> None:
-        if self._stalled:
-            return
-        tau = max(self.lag_s, 1e-6)
-        if self.order == 1:
-            self.actual += (self.demand - self.actual) * (1.0 - math.exp(-dt / tau))
-            return
-        wn = 1.0 / tau
-        n = 8
-        h = dt / n
-        v = getattr(self, "_actual_velocity", 0.0)
-        for _ in range(n):
-            acc = wn * wn * (self.demand - self.actual) - 2.0 * self.damping * wn * v
-            v += acc * h
-            self.actual += v * h
-        self._actual_velocity = v
-
-    def _decelerate(self, dt: float) -> None:
-        v = self.velocity
-        dv = self._qs_decel * dt
-        v = 0.0 if abs(v) <= dv else v - math.copysign(dv, v)
-        self.velocity = v
-        self.demand += v * dt
-        self.target = round(self.demand)
-        self._follow(dt)
-        if v == 0.0:
-            if self.state == State.FAULT_REACTION_ACTIVE:
-                self.state = State.FAULT
-            elif self.state == State.QUICK_STOP_ACTIVE and self._qs_option in (1, 2):
-                self.state = State.SWITCH_ON_DISABLED
-
-    def _start_homing(self) -> None:
-        self._homing = True
-        self._homing_attained = False
-        self._homing_error = False
-
-    def _homing_step(self, dt: float) -> None:
-        if not self._homing:
-            return
-        if self._homing_method in (35, 37):
-            goal = self.actual
-        else:
-            goal = float(self.home_switch_counts)
-        speed = self._homing_speed
-        if self.home_switch_window_counts and self.digital_inputs() & DI_HOME:
-            speed = self._homing_speed_zero  # on the home switch: the slow search for its zero
-        step = speed * dt
-        d = goal - self.actual
-        if abs(d) > step:
-            self.actual += math.copysign(step, d)
-            self.demand = self.actual
-            return
-        # home found: the position now reads the home offset
-        self.actual = float(self._home_offset)
-        self.demand = self.actual
-        self.target = round(self.actual)
-        self.home_switch_counts = round(self.actual) if self._homing_method not in (35, 37) else \
-            self.home_switch_counts
-        self._homing = False
-        self._homing_attained = True
-
-    # ------------------------------------------------------------------ fault injection
-    def inject_fault(self, code: int = EMCY_GENERIC, at: float | None = None) -> None:
-        """Fault now, or at clock time ``at`` (sends EMCY ``code``)."""
-        with self.lock:
-            if at is None:
-                self._fault(code, "injected")
-            else:
-                self._scheduled.append((at, code))
-
-    def _injected_by_sdo(self, code: int) -> None:
-        """0x2F00:01 written (from another process): fault with ``code`` after 0x2F00:02 ms; 0 cancels."""
-        if code == 0:
-            self._scheduled.clear()
-            return
-        delay_ms = self._value(SIM_INJECT, SIM_INJECT_DELAY_MS)
-        log.info("drive %d: EMCY 0x%04X injected by SDO, in %d ms", self.id, code, delay_ms)
-        if delay_ms:
-            self._scheduled.append((self.clock() + delay_ms / 1000.0, code))
-        else:
-            self._fault(code, "injected by SDO")
-
-    def send_warning(self, code: int, register: int = 0) -> None:
-        """Send an EMCY that is a warning (error register 0 by default): the drive stays as it is."""
-        with self.lock:
-            self.emcys.append(code)
-            if self.network is not None:
-                self.node.emcy.send(code, register)
-
-    def drop_heartbeat(self, seconds: float) -> None:
-        """Send no heartbeat for ``seconds``."""
-        self._hb_dropped_until = self.clock() + seconds
-
-    def abort_sdo(self, index: int, subindex: int = 0, code: int = 0x08000020) -> None:
-        """Answer SDO access to ``index:subindex`` with abort ``code`` (0 removes it)."""
-        if code:
-            self._sdo_aborts[(index, subindex)] = code
-        else:
-            self._sdo_aborts.pop((index, subindex), None)
-
-    def set_quick_stop_input(self, active: bool) -> None:
-        """The drive's local quick-stop input (a wired stop button, a limit switch on the drive): on
-        activation in Operation enabled the drive goes to Quick stop active and ramps down at 0x6085,
-        ending as its quick stop option (0x605A) says; while it is active the drive does not enable."""
-        with self.lock:
-            self.quick_stop_input = active
-            if active and self.state == State.OPERATION_ENABLED:
-                log.info("drive %d: local quick stop input", self.id)
-                self._homing = False
-                self.state = State.QUICK_STOP_ACTIVE
-            self._event_tpdos()
-
-    def inject_disable(self) -> None:
-        """Drop to Switch on disabled, as a drive does when its safe-torque-off input opens."""
-        with self.lock:
-            self.state = State.SWITCH_ON_DISABLED
-            self.velocity = 0.0
-
-    def stall(self, stalled: bool = True) -> None:
-        """The motor stops following (a jammed axis): the following error grows."""
-        self._stalled = stalled

@@ -50,7 +50,7 @@ import can
 import canopen
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
-from fieldbus.canopen import cia402
+from fieldbus.canopen import cia402, touch_probe
 from fieldbus.canopen.busload import BusLoad, alternatives, bus_load
 from fieldbus.canopen.cia402 import State
 from fieldbus.canopen.commissioning import LIMIT_OBJECTS, boot_writes, limit_problems, optional_objects
@@ -369,6 +369,8 @@ class CanopenMaster:
                 raise CanopenError(f"{d.describe()}: identity 0x1018:{sub:02X} {name} is 0x{got:08X}, "
                                    f"the configuration expects 0x{want:08X} (wrong drive on this node id?)")
         self._check_limits(d)
+        if cfg.touch_probe:
+            touch_probe.check_objects(self, d)
         self._load_dcf(d)
         for index, sub, code, value, where in cfg.sdo:
             self._sdo(d, f"{where} in the machine file", index, sub, code, value)

@@ -23,11 +23,14 @@ position actual and following error back.
 
 Both layouts add TPDO4 = digital inputs (0x60FD: limit and home switches), transmission type 255 with
 no event timer: the drive sends it when a switch changes (and on entering Operational), so it adds no
-cyclic load. A drive without 0x60FD keeps TPDO4 disabled (a warning at boot).
+cyclic load. A drive without 0x60FD keeps TPDO4 disabled (a warning at boot). The drive with the
+machine's touch probe also has the touch probe status (0x60B9) in TPDO4, after the inputs
+(:meth:`PdoLayout.with_touch_probe`): sent when the probe latches.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import struct
 from dataclasses import dataclass
 
@@ -37,6 +40,7 @@ STATUSWORD = (0x6041, 0, 16)
 POSITION_ACTUAL = (0x6064, 0, 32)
 FOLLOWING_ERROR = (0x60F4, 0, 32)
 DIGITAL_INPUTS = (0x60FD, 0, 32)
+TOUCH_PROBE_STATUS = (0x60B9, 0, 16)
 
 _SIGNED = {0x607A, 0x6064, 0x60F4}
 #: transmission type 255: event-driven (device profile specific), acted on / sent on reception / change
@@ -116,6 +120,14 @@ class PdoLayout:
             if obj in p.entries:
                 return p
         raise KeyError(f"no {'T' if tpdo else 'R'}PDO carries 0x{obj[0]:04X} in the {self.name} layout")
+
+    def with_touch_probe(self) -> PdoLayout:
+        """This layout with the touch probe status (0x60B9) after the digital inputs in their TPDO, for
+        the drive that has the machine's probe: the master reads the inputs from the PDO's first
+        bytes as on every drive."""
+        inputs = self.carrying(DIGITAL_INPUTS, tpdo=True)
+        probe = dataclasses.replace(inputs, entries=(*inputs.entries, TOUCH_PROBE_STATUS))
+        return dataclasses.replace(self, tpdos=tuple(probe if p is inputs else p for p in self.tpdos))
 
     def sdo_steps(self, node_id: int) -> list[tuple[str, int, int, str, int]]:
         """``(what, index, subindex, struct code, value)`` writes, in CiA 301's order: disable the PDO

@@ -1,9 +1,10 @@
 """Read what each configured drive says about itself, against the configuration: ``canon drives scan``.
 
-Read only: SDO uploads of identity, names, supported modes, limits and the presence of the objects boot
-would write; no NMT, no SDO download, so a scan never changes a drive. The comparison is the master's
-own (:mod:`fieldbus.canopen.commissioning`), so a scan with no mismatch means the boot will accept the
-drive.
+Read only: SDO uploads of identity, names, supported modes, limits, the digital inputs (0x60FD: the
+limit and home switches canon watches), the touch probe (0x60B8-0x60BB) and the presence of the
+objects boot would write; no NMT, no SDO download, so a scan never changes a drive. The comparison is
+the master's own (:mod:`fieldbus.canopen.commissioning`), so a scan with no mismatch means the boot will
+accept the drive.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from typing import Any
 import canopen
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
+from fieldbus.canopen import touch_probe
 from fieldbus.canopen.commissioning import LIMIT_OBJECTS, boot_writes, limit_problems, optional_objects
 from fieldbus.canopen.config import CanopenConfig, DriveConfig
 
@@ -40,6 +42,10 @@ class DriveScan:
     names: dict[str, str | None] = field(default_factory=dict)
     limits: dict[tuple[int, int], int | None] = field(default_factory=dict)
     optional_absent: list[int] = field(default_factory=list)
+    #: 0x60FD now (None: the drive has no digital inputs object)
+    digital_inputs: int | None = None
+    #: the touch probes (1, 2) whose objects (function, status, both latched positions) the drive has
+    touch_probes: list[int] = field(default_factory=list)
     mismatches: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
 
@@ -48,6 +54,7 @@ class DriveScan:
                 "expected_identity": self.expected, "names": self.names,
                 "limits": {f"0x{i:04X}:{s:02X}": v for (i, s), v in self.limits.items()},
                 "optional_absent": [f"0x{i:04X}" for i in self.optional_absent],
+                "digital_inputs": self.digital_inputs, "touch_probes": self.touch_probes,
                 "mismatches": self.mismatches, "notes": self.notes}
 
 
@@ -106,6 +113,7 @@ def scan_drive(conf: CanopenConfig, cfg: DriveConfig, node: canopen.RemoteNode) 
     problems, notes = limit_problems(cfg, out.limits)
     out.mismatches += problems
     out.notes += notes
+    _inputs_and_probe(cfg, node, out)
     optional = optional_objects(conf.pdo_layout)
     seen: set[tuple[int, int]] = set()
     checks = [(index, sub, what) for what, index, sub, _f, _v in boot_writes(conf, cfg)]
@@ -127,6 +135,33 @@ def scan_drive(conf: CanopenConfig, cfg: DriveConfig, node: canopen.RemoteNode) 
         except SdoAbortedError:
             pass  # exists, but not readable (write-only): fine for a scan
     return out
+
+
+def _inputs_and_probe(cfg: DriveConfig, node: canopen.RemoteNode, out: DriveScan) -> None:
+    """0x60FD and the touch probes, as the boot takes them: without 0x60FD a note (canon does not see
+    the switches); a configured touch probe whose objects (or 0x60FD, whose PDO carries its status)
+    the drive lacks, a mismatch (the boot refuses it)."""
+    key = f"canopen.axes.{cfg.axis}.touch_probe = {cfg.touch_probe}"
+    out.digital_inputs = _number(node, 0x60FD, 0, "I")
+    if out.digital_inputs is None:
+        out.notes.append("no 0x60FD (digital inputs): canon does not see its limit and home switches, only "
+                         "the drive's own reaction to them stops the axis")
+        if cfg.touch_probe:
+            out.mismatches.append(f"{key} needs 0x60FD (digital inputs): the touch probe status travels in "
+                                  "its PDO")
+    for probe in touch_probe.POSITIONS:
+        absent = []
+        for index, what in touch_probe.objects(probe):
+            try:
+                _upload(node, index, 0)
+            except _Absent:
+                absent.append(f"0x{index:04X} ({what})")
+            except SdoAbortedError:
+                pass  # exists, not readable
+        if not absent:
+            out.touch_probes.append(probe)
+        elif probe == cfg.touch_probe:
+            out.mismatches.append(f"{key}, but the drive lacks {', '.join(absent)}")
 
 
 def scan(conf: CanopenConfig, network: canopen.Network, timeout_s: float = 0.5) -> list[DriveScan]:

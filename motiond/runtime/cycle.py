@@ -34,6 +34,9 @@ QUEUE_MAX = 2000
 """Canonical commands the interpreter may run ahead of the planner."""
 LOOKAHEAD = 300
 """Items kept queued in the planner (its lookahead); more wait in the interpreter's queue."""
+LOOKAHEAD_MOVES = 5000
+"""... and programmed moves at most (``Planner.queued_moves``: a merged line or a smoothed chain is one
+item holding many moves), as ``plan_all`` keeps; below 2 items the planner is fed regardless."""
 FEED_PER_CYCLE = 40
 """At most this many commands move into the planner per cycle (bounds the cycle's work)."""
 LATE_LOG = 100_000
@@ -70,6 +73,8 @@ class Cycle:
         """The IoExecutor (task side): setpoint events are handed to it, output commands checked."""
         self.master: Any = None
         self.planner: Any = None
+        self.drive_probe: Any = None
+        """G38.x by a drive's touch probe (:class:`~motiond.runtime.probing.DriveProbing`), or None."""
         self.runner: Any = None
         self._calls: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
         self._cmdq: queue.Queue[Any] = queue.Queue(QUEUE_MAX)
@@ -164,6 +169,8 @@ class Cycle:
         self.actual_t = time.monotonic()
         self.following_error = fb.following_errors
         self.drive_inputs = fb.digital_inputs
+        if self.drive_probe is not None:
+            self.drive_probe.on_cycle(self.planner)  # a touch probe trip stops the probing move
         stream = self.stream
         if self.trace is not None and sp is not None:
             self.trace.append((self.cycle, time.monotonic(), sp.positions, sp.events))
@@ -193,7 +200,8 @@ class Cycle:
         if stream is None:
             return
         n = 0
-        while p.queue_length < LOOKAHEAD and n < FEED_PER_CYCLE:
+        while n < FEED_PER_CYCLE and (p.queue_length < 2 or (
+                p.queue_length < LOOKAHEAD and p.queued_moves < LOOKAHEAD_MOVES)):
             try:
                 item = self._cmdq.get_nowait()
             except queue.Empty:
@@ -300,6 +308,8 @@ class Cycle:
             else:
                 what = "M1" if w.optional else "M0"
             self.hooks.program_stop(what, w)
+        elif self.stream is not None and self.stream.answered_ahead:
+            p.release()  # MDI: the job answered this M66 or probe before it queued it: nobody waits
         else:  # M66, probe: the job thread is waiting for this
             with self._sync_cond:
                 self._sync_reached = w

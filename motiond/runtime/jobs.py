@@ -54,6 +54,7 @@ class Job:
         self.late0 = 0
         self.queued = 0
         self.stream = Stream(n_axes)
+        self.stream.answered_ahead = mode is not Mode.AUTO
         self.result: JobResult | None = None
         self.lines_total = 0
         self.run_from: RunFrom | None = None
@@ -83,6 +84,7 @@ class Callbacks:
 
     def __init__(self, machine: Machine) -> None:
         self.m = machine
+        self._probed = False  # a drive's touch probe stopped the last probing move
 
     def _job(self) -> Job:
         job = self.m._job
@@ -118,6 +120,8 @@ class Callbacks:
             raise GCodeError(f"cannot start at line {job.run_from.line}: the probe at line {cmd.line} comes "
                              "before it, and its result (#5061-#5070) needs the probing move; start at or "
                              "before the probe", cmd.file, cmd.line)
+        if self.m.motion.has_touch_probe:
+            return self._touch_probe(cmd, job)
         if not self.m.simulated:
             raise GCodeError("probing (G38.x) needs a probe input, and this machine has none configured",
                              cmd.file, cmd.line)
@@ -129,13 +133,34 @@ class Callbacks:
                      kind="probe", source="motiond", file=cmd.file, line=cmd.line)
         return cmd.end, True
 
+    def _touch_probe(self, cmd: C.Probe, job: Job) -> tuple[C.Pose, bool]:
+        """The probe is a drive's touch probe (docs/canopen.md): the probed point is its latch."""
+        if job.mode is not Mode.AUTO:
+            # an MDI line's probe callback runs before the line's commands are queued: the move
+            # could not have run yet
+            raise GCodeError(f"G{cmd.mode.value} in MDI: probing with the drive's touch probe needs the "
+                             "move to run first; put the probing move in a program", cmd.file, cmd.line)
+        probed = self.m.motion.probe(cmd, job.cancel)
+        if probed is None:
+            raise Aborted()
+        pose = list(cmd.end)  # axes the machine lacks: as programmed
+        for i, k in enumerate(self.m.limits.pose_index):
+            pose[k] = probed.positions[i]
+        if probed.tripped:
+            self._probed = True  # the machine stopped past the point: the next move starts there
+            self.m.event("INFO", f"probe: the touch probe of axis {probed.axis} latched at "
+                                 f"{probed.latched:.6g} ({probed.counts} counts)", kind="probe",
+                         source="motiond", file=cmd.file, line=cmd.line)
+        return C.Pose(*pose), probed.tripped
+
     def current_position(self) -> C.Pose | None:
         """At the start of a program or MDI line: where the machine is (it may have been jogged, homed
         or stopped by an abort since the interpreter last commanded it). Later (after M0, M6): None,
         the machine went exactly where the interpreter sent it; also after an M6 before the start line
         of a run from line (nothing moved: the interpreter's own position is the program's)."""
         job = self.m._job
-        if job is None or job.queued or (job.run_from is not None and job.run_from.skipped):
+        probed, self._probed = self._probed, False  # stopped past the trip point: go on from there
+        if job is None or (job.queued and not probed) or (job.run_from is not None and job.run_from.skipped):
             return None
         return self.m._machine_pose()
 
@@ -155,7 +180,7 @@ class JobsMixin(MachinePart):
         def _before_line(self, job: Job, run_from: RunFrom) -> None: ...
         def _start_from(self, job: Job, run_from: RunFrom) -> bool: ...
         def _never_reached(self, job: Job, run_from: RunFrom) -> str: ...
-        def _refuse_start(self, job: Job, exc: GCodeError) -> None: ...
+        def _refuse_start(self, job: Job, exc: GCodeError, kind: str = ...) -> None: ...
         def _post_fault(self, reason: str, source: str) -> None: ...
 
     def run(self, path: str | os.PathLike[str], start_line: int = 0) -> Job:
@@ -310,6 +335,8 @@ class JobsMixin(MachinePart):
             if not job.cancel.is_set():
                 if job.skipping:  # nothing was sent to the machine: a refusal, not a fault
                     self._refuse_start(job, exc)
+                elif job.mode is Mode.MDI:  # an MDI line is interpreted whole before any of it is
+                    self._refuse_start(job, exc, kind="gcode")  # queued: nothing moved, no fault
                 else:
                     self._post_fault(str(exc), "gcode")
         except Exception as exc:  # never silently: an interpreter bug faults the machine

@@ -289,10 +289,11 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
         try:
             if self.simulated:
                 from fieldbus.canopen.drive_sim import SimDrive, motor_for
+                from fieldbus.canopen.drive_sim_probe import sim_probe
                 from fieldbus.canopen.sim_process import SimBus
 
                 self.sim_drives = [SimDrive(d.node_id, d.eds_path, lag_s=self.sim_lag_s,
-                                            parameters=motor_for(d, d.eds_path))
+                                            parameters=motor_for(d, d.eds_path), **sim_probe(d))
                                    for d in self.canopen.drives]
                 self.sim_bus = SimBus(self.sim_drives, self.canopen.bus)
             try:

@@ -17,8 +17,9 @@ Life: :meth:`~MotionCore.open` (master up, drives booted), :meth:`~MotionCore.st
 
 In (task -> motion)
   * canonical commands through one bounded queue (:data:`QUEUE_MAX`): :meth:`MotionCore.put` (the job
-    thread; blocks while full, gives up when the job is cancelled), :data:`END` after a job's last
-    command; :meth:`~MotionCore.begin_stream` / :meth:`~MotionCore.end_stream` around a job (its
+    thread; blocks while full, gives up when the job is cancelled; a probing move, with a drive's
+    touch probe, waits for rest and arms it first), :data:`END` after a job's last command;
+    :meth:`~MotionCore.begin_stream` / :meth:`~MotionCore.end_stream` around a job (its
     :class:`~motiond.runtime.records.Stream` accounting), :meth:`~MotionCore.drop_commands`,
     :meth:`~MotionCore.wake_waiters` (a cancelled job thread waiting for a sync point looks again).
   * urgent calls, explicit methods that act within a cycle and never queue behind the commands:
@@ -48,7 +49,8 @@ Out (motion -> task)
     The Modbus executor (``io``) is the motion side's too: the I/O map's outputs go out from the cycle
     thread, never waiting on the network.
   * :meth:`~MotionCore.wait_sync_point`: the job thread waits until the planner stands at an M66 or
-    a probe.
+    a probe; with a drive's touch probe (``has_touch_probe``) :meth:`~MotionCore.probe` instead: the
+    probing move's end or its trip, and the probed point (:class:`~motiond.runtime.probing.Probed`).
 
 Two things still cross in-process only: :meth:`~MotionCore.run_on_cycle` (the task's job bookkeeping
 ordered with the hooks; in the process split the task side gets its own thread for hook messages),
@@ -71,6 +73,7 @@ from typing import Any, Protocol
 
 from gcode_canon import commands as C
 from motiond.runtime.cycle import END, FEED_PER_CYCLE, LATE_LOG, LOOKAHEAD, QUEUE_MAX, Cycle
+from motiond.runtime.probing import Probed
 from motiond.runtime.records import ModalState, Stream
 from motiond.states import CommandRefused
 
@@ -179,6 +182,11 @@ class MotionCore(Cycle):
         self.master.add_warning_listener(self._on_master_warning)
         self.master.open()
         self.master.boot()
+        from fieldbus.canopen.touch_probe import TouchProbe
+        from motiond.runtime.probing import DriveProbing
+
+        probe = TouchProbe.of(self.master)
+        self.drive_probe = None if probe is None else DriveProbing(self, probe)
 
     def start_cycle(self) -> None:
         from fieldbus.canopen.clock import PeriodicRunner
@@ -227,7 +235,11 @@ class MotionCore(Cycle):
     # ------------------------------------------------------------------ commands in
     def put(self, item: Any, cancel: threading.Event) -> bool:
         """Job thread: queue a canonical command (or :data:`END`), waiting while the queue is full;
-        False when ``cancel`` is set first."""
+        False when ``cancel`` is set first. A probing move with a drive's touch probe: first the
+        motion before it comes to rest and the probe is armed (:mod:`motiond.runtime.probing`)."""
+        if isinstance(item, C.Probe) and self.drive_probe is not None \
+                and not self.drive_probe.before_move(item, cancel):
+            return False
         while not cancel.is_set():
             try:
                 self._cmdq.put(item, timeout=0.05)
@@ -276,6 +288,18 @@ class MotionCore(Cycle):
                     return False
                 self._sync_cond.wait(0.05)
         return True
+
+    @property
+    def has_touch_probe(self) -> bool:
+        """G38.x uses a drive's touch probe (``canopen.axes.<a>.touch_probe``)."""
+        return self.drive_probe is not None
+
+    def probe(self, cmd: C.Probe, cancel: threading.Event) -> Probed | None:
+        """Job thread, with a drive's touch probe: wait for the probing move ``cmd`` to end (at its
+        end point or stopped by the trip), let the planner go on, and return what the probe latched
+        (GCodeError when the drive does not answer); None when ``cancel`` is set first."""
+        assert self.drive_probe is not None
+        return self.drive_probe.answer(cmd, cancel)
 
     def release_wait(self) -> None:
         """The sync point answered (M66 read, probe done): the planner goes on."""

@@ -96,6 +96,9 @@ class Stream:
 
     def __init__(self, n_axes: int) -> None:
         self.input_done = False
+        # MDI: the job answers M66 and probes before it queues them (the line's moves before have
+        # already run), so the planner goes on at once when it reaches their sync point
+        self.answered_ahead = False
         self.peaks = [AxisPeaks() for _ in range(n_axes)]
         self.outputs: list[OutputSwitch] = []
         self.line = 0  # the line of the last setpoint that carried one

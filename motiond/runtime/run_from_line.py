@@ -154,7 +154,7 @@ class RunFromLineMixin(MachinePart):
         return (f"cannot start at line {n}: the program's flow never executes it (a branch not taken, a "
                 "loop that does not run, or after the end of the program); nothing was moved")
 
-    def _refuse_start(self, job: Job, exc: GCodeError) -> None:
+    def _refuse_start(self, job: Job, exc: GCodeError, kind: str = "run_from_line") -> None:
         """Job thread: a run from line refused, or a G-code error, before anything was queued. Nothing
         was sent to the drives, so there is nothing to stop and no fault: the job ends with the reason
         (``last_error``, an ERROR event), the machine back to IDLE with the drives still enabled."""
@@ -169,7 +169,7 @@ class RunFromLineMixin(MachinePart):
             self._finish_job()
             if self.states.state in (State.RUNNING, State.PAUSED):
                 self.states.finished()
-            self.event("ERROR", reason, kind="run_from_line", source="gcode", file=exc.file, line=exc.line)
+            self.event("ERROR", reason, kind=kind, source="gcode", file=exc.file, line=exc.line)
 
         self.motion.run_on_cycle(on_cycle, wait=False)
 

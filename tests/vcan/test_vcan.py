@@ -158,3 +158,22 @@ node_id = 2
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait(10.0)
+
+
+def test_touch_probe_latches_within_one_count_on_vcan0():
+    from fieldbus.canopen.drive_sim import SimDrive
+    from fieldbus.canopen.touch_probe import TouchProbe
+
+    trip = -12_345  # counts; x moves 500 counts per 20 ms cycle
+    r = Rig(make_config(1, bus=BUS, touch_probe=1, **SLOW), [SimDrive(1, probe_trip_counts=trip)])
+    try:
+        r.up()
+        probe = TouchProbe.of(r.master)
+        assert probe is not None
+        probe.arm(toward=True)
+        r.run(60, lambda k: [-0.05 * min(k, 50)])
+        assert wait_for(lambda: probe.tripped, 5.0)
+        result = probe.result()
+        assert result.tripped and abs(result.counts - trip) <= 1
+    finally:
+        r.close()

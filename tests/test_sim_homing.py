@@ -1,0 +1,78 @@
+"""The simulated drive homes as its homing method (0x6098) says: direction, and the switch or index pulse
+it stops at; the switches keep their physical place when the count is re-based on the home offset."""
+
+from __future__ import annotations
+
+import pytest
+from canopen_helpers import Rig, make_config
+
+from fieldbus.canopen.clock import PeriodicRunner
+from fieldbus.canopen.drive_sim import SimDrive
+
+NEG, POS, HOME = -30_000, 60_000, 20_000  # counts: negative and positive limit switches, home switch
+
+
+def home(method: int, **sim_kw: int) -> tuple[SimDrive, float, float]:
+    """Home axis x with ``method`` from count 0; the drive, and the lowest and highest count it
+    travelled through while homing (in its counts before homing)."""
+    sim = SimDrive(1, negative_limit_counts=NEG, positive_limit_counts=POS, home_switch_counts=HOME,
+                   **sim_kw)  # type: ignore[arg-type]
+    seen = [0.0, 0.0]
+    step = sim._homing_step
+
+    def watched(dt: float) -> None:
+        step(dt)
+        if sim._homing:
+            seen[0], seen[1] = min(seen[0], sim.actual), max(seen[1], sim.actual)
+
+    sim._homing_step = watched  # type: ignore[method-assign]
+    # 1 mm = 10000 counts; the EDS's 100000 counts/s: at most 1.2 s of travel in these tests
+    r = Rig(make_config(1, homing="cia402", homing_method=method), [sim])
+    try:
+        r.up()
+        runner = PeriodicRunner(r.config.cycle_s, lambda k, t: r.master.cycle(None), cycles=5000,
+                                late_s=1.0).start()
+        try:
+            assert r.master.home("x") == pytest.approx(0.0)
+        finally:
+            runner.stop()
+            assert runner.join(5.0)
+        assert r.master.fault is None, r.master.fault
+    finally:
+        r.close()
+    return sim, seen[0], seen[1]
+
+
+@pytest.mark.parametrize(("method", "switch"), [(17, NEG), (18, POS)])
+def test_homing_on_a_limit_switch_travels_toward_it_and_stops_on_its_edge(method: int, switch: int) -> None:
+    sim, lowest, highest = home(method)
+    # the count is now 0 at the switch: both switches moved by the same amount, the span kept
+    assert (sim.negative_limit_counts, sim.positive_limit_counts) == (NEG - switch, POS - switch)
+    if method == 17:
+        assert highest == 0.0 and lowest > NEG - 1  # straight down to the negative switch
+    else:
+        assert lowest == 0.0 and highest < POS + 1  # straight up to the positive switch
+
+
+def test_home_switch_methods_start_in_their_direction_and_reverse_on_the_limit_switch() -> None:
+    sim, lowest, highest = home(23)  # home switch, positive limit switch: first direction positive
+    assert lowest == 0.0 and highest < HOME + 1
+    assert sim.home_switch_counts == 0 and sim.negative_limit_counts == NEG - HOME
+    sim, lowest, highest = home(27)  # with the negative limit switch: first negative, reversed there
+    assert lowest == pytest.approx(NEG) and highest < HOME + 1
+    assert sim.home_switch_counts == 0 and sim.positive_limit_counts == POS - HOME
+
+
+def test_index_pulse_methods_go_to_the_next_pulse_in_their_direction() -> None:
+    # 0x608F: 50000 counts per revolution, an index pulse at every multiple; start at 0, on one
+    sim, lowest, highest = home(33)
+    assert lowest > -50_001 and highest == 0.0 and sim.negative_limit_counts == NEG + 50_000
+    sim, lowest, highest = home(34)
+    assert highest < 50_001 and lowest == 0.0 and sim.positive_limit_counts == POS - 50_000
+
+
+def test_an_unsupported_method_is_a_homing_error() -> None:
+    from fieldbus.canopen.master import CanopenError
+
+    with pytest.raises(CanopenError, match=r"homing error .*method 36"):
+        home(36)
