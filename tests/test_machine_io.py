@@ -370,3 +370,30 @@ def test_a_limit_switch_on_a_drive_input_bit(tmp_path: Path) -> None:
     assert kinds(acts) == [LIMIT] and "axis z: negative limit switch limit_z_min" in acts[0].reason
     assert "drive z 0x60FD bit 20" in acts[0].reason
     assert poll(1 << 20, 3.0) == []  # moving off it
+
+
+def test_at_speed_from_the_measured_speed_within_the_tolerance(tmp_path: Path) -> None:
+    with SimIoModule(size=64) as sim:
+        f = tmp_path / "m.toml"
+        f.write_text((BASE + """
+[io.functions]
+spindle_on = { device = "io", coil = 9 }
+spindle_speed = { device = "io", holding_register = 8 }
+spindle_speed_measured = { device = "io", input_register = 2, scale = 10.0 }
+[io.spindle]
+at_speed_tolerance = 0.05
+""").replace("port = 5020", f"port = {sim.port}").replace(
+            '[[modbus.devices]]\nname = "plc"\nport = 5021\n', ""))
+        mb, io = machine_io(load_machine(str(f)))
+        ex = IoExecutor(mb).start()
+        try:
+            rig = Rig(sim, ex, MachineIO(io, ex, ("x", "z")))
+            cmd = C.SpindleOn(C.SpindleDirection.CW, 1000.0, file="p.ngc", line=2)
+            rig.mio.on_event(cmd)
+            assert rig.mio.on_wait(cmd)
+            sim.set("input_register", 2, 90)  # 900 rpm: 10 % off
+            assert rig.poll_until(lambda a: RELEASE in kinds(a), timeout=0.3) is None
+            sim.set("input_register", 2, 97)  # 970 rpm: within 5 %
+            assert rig.poll_until(lambda a: RELEASE in kinds(a)) is not None
+        finally:
+            ex.stop()
