@@ -24,6 +24,7 @@ from fieldbus.canopen.config import (
     DriveConfig,
     EmcyPolicy,
     emcy_pattern_problem,
+    sync_problem,
 )
 from fieldbus.canopen.pdo import LAYOUTS
 from motiond.configkit import Table, in_range, one_of, positive
@@ -85,6 +86,7 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
     cpu_latency = t.get("cpu_latency_us", int, 0, check=in_range(-1, 100_000))
     affinity = t.get("cpu_affinity", list, [], check=_cpu_list)
     steer_gc = t.get("steer_gc", bool, True)
+    sync = t.get("sync", str, "auto", check=lambda v: sync_problem(v, interface))
     options = dict(t.table("options").data)
     emcy_t = t.table("emcy")
     emcy_lists = {}
@@ -158,7 +160,7 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
         state_timeout_s=state_timeout, homing_timeout_s=homing_timeout, max_bus_load=max_load / 100.0,
         pdo_layout=layout, following_error_every=fe_every, status_refresh_ms=refresh,
         realtime_priority=rt_priority, cpu_latency_us=None if cpu_latency < 0 else cpu_latency,
-        emcy=EmcyPolicy(**emcy_lists), cpu_affinity=tuple(affinity), steer_gc=steer_gc)
+        emcy=EmcyPolicy(**emcy_lists), cpu_affinity=tuple(affinity), steer_gc=steer_gc, sync=sync)
 
 
 def _extra_sdo(axis: Table) -> tuple[tuple[int, int, str, int, str], ...]:

@@ -511,7 +511,7 @@ class Machine:
                                          realtime_priority=self.canopen.realtime_priority,
                                          cpu_latency_us=self.canopen.cpu_latency_us,
                                          cpu_affinity=self.canopen.cpu_affinity,
-                                         steer_gc=self.canopen.steer_gc)
+                                         steer_gc=self.canopen.steer_gc, tick=self.master.sync_tick)
             self.runner.start()
             self._service_closed = False
             self._service_thread = threading.Thread(target=self._service_main, name="canon-service",

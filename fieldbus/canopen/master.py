@@ -69,6 +69,7 @@ from fieldbus.canopen.master_records import (
 )
 from fieldbus.canopen.master_states import StateMachineMixin
 from fieldbus.canopen.master_supervision import ErrorFrameListener, SupervisionMixin
+from fieldbus.canopen.sync import SYNC_COB_ID, KernelSync, SyncError
 
 __all__ = ["INPUT_BITS", "NEGATIVE_LIMIT", "POSITIVE_LIMIT", "BusBudgetError", "CanopenError",
            "CanopenMaster", "DriveFeedback", "DriveState", "Fault", "input_names"]
@@ -110,7 +111,15 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin):
         self._lock = threading.RLock()
         self._heartbeat_task: canopen.network.PeriodicMessageTask | None = None
         self._stream_t0 = 0.0  # first cycle with a drive streamed to: TPDO ages count from there
-        self._last_sync = 0.0  # the last SYNC sent while streaming to a drive (0: none yet)
+        self._last_sent = 0.0  # the last cycle's frames sent while streaming to a drive (0: none yet)
+        self._rpdo_syncs = -1
+        self._reader_sync_at = 0.0
+        #: who times the SYNC: "kernel" (the broadcast manager, :mod:`fieldbus.canopen.sync`) or "master"
+        self.sync_mode = "kernel" if config.kernel_sync else "master"
+        self._kernel_sync: KernelSync | None = None
+        #: kernel SYNC: SYNCs that found no new RPDO since the previous one while streaming (the drives
+        #: held their last target); with the master's SYNC a stalled cycle delays the SYNC instead
+        self.missed_setpoints = 0
         self._fault_listeners: list[Callable[[Fault], None]] = []
         self._warning_listeners: list[Callable[[Fault], None]] = []
         self.warnings: list[Fault] = []
@@ -126,6 +135,12 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin):
         net.listeners.append(ErrorFrameListener(self))
         net.NOTIFIER_SHUTDOWN_TIMEOUT = 2.0
         net.connect()
+        if self.sync_mode == "kernel":
+            try:
+                self._start_kernel_sync(net, bus)
+            except CanopenError:
+                self._release(net)
+                raise
         self.network = net
         for cfg in self.config.drives:
             node = canopen.RemoteNode(cfg.node_id, cfg.eds_path)
@@ -142,6 +157,42 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin):
             self._heartbeat_task = net.send_periodic(
                 0x700 + self.config.master_node_id, [0x05], self.config.heartbeat_producer_ms / 1000.0)
 
+    def _release(self, net: canopen.Network) -> None:
+        """Let go of the bus: closed if the master opened it, else only its reader stopped."""
+        if self._own_bus:
+            net.disconnect()
+            self._bus = None
+        elif net.notifier is not None:
+            net.notifier.stop(2.0)
+
+    def _start_kernel_sync(self, net: canopen.Network, bus: can.BusABC) -> None:
+        """The kernel's periodic SYNC, ready: it starts with the first cycle (or wait for a tick) and
+        runs until :meth:`shutdown`. The bus reader notes each SYNC it sees (TPDO ages count in SYNCs
+        the reader has seen: a stall of the reader is not a drive's silence)."""
+        net.subscribe(SYNC_COB_ID, self._on_sync)
+        ks = KernelSync(bus, self.config.bus.bus_kwargs(), self.config.cycle_s)
+        try:
+            ks.open()
+        except SyncError as exc:
+            raise CanopenError(f"[canopen] sync = \"{self.config.sync}\": {exc}") from None
+        self._kernel_sync = ks
+
+    def _stop_kernel_sync(self) -> None:
+        ks, self._kernel_sync = self._kernel_sync, None
+        if ks is not None:
+            ks.stop()
+
+    def _on_sync(self, cob_id: int, data: bytearray, timestamp: float) -> None:
+        self._reader_sync_at = time.monotonic()
+
+    @property
+    def sync_tick(self) -> Callable[[float], tuple[float, float, int] | None] | None:
+        """With the kernel's SYNC: what paces the cycle thread (``PeriodicRunner(tick=...)``): wait for
+        the next SYNC seen, so the RPDOs go out right after it. None with the master's own SYNC (the
+        runner keeps its absolute deadlines)."""
+        ks = self._kernel_sync
+        return ks.wait if ks is not None else None
+
     def _send(self, cob_id: int, data: bytes) -> None:
         assert self.network is not None
         self.network.send_message(cob_id, data)
@@ -149,12 +200,21 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin):
     # ------------------------------------------------------------------ the cycle
     def cycle(self, positions: Sequence[float] | None = None) -> DriveFeedback:
         """One cycle: check the drives' feedback, send one RPDO per drive with ``positions`` (machine
-        units, axis order; ``None`` holds), then one SYNC. Faulted or not enabled: SYNC only."""
+        units, axis order; ``None`` holds), then one SYNC. Faulted or not enabled: SYNC only.
+
+        With the kernel's SYNC (:attr:`sync_mode` "kernel") no SYNC is sent here: the RPDOs are for the
+        next SYNC, and the cycle is best called right after one (:attr:`sync_tick`)."""
         now = time.monotonic()
         with self._lock:
             if self.network is None:  # not open, or shut down: nothing to send
                 return self.feedback()
             self.cycles += 1
+            ks = self._kernel_sync
+            if ks is not None:
+                try:
+                    ks.poll()
+                except SyncError as exc:
+                    self.raise_fault(0, f"bus error: {exc}")
             active = [d for d in self.drives if d.active]
             if active:
                 if self._stream_t0 == 0.0:
@@ -166,12 +226,22 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin):
                 for d in self.drives:
                     if d.active and not d.homing:
                         self._send(d.rpdo_id, d.cyclic_rpdo())
-                self.network.sync.transmit()  # type: ignore[union-attr]
+                if ks is None:
+                    self.network.sync.transmit()  # type: ignore[union-attr]
                 if any(d.active for d in self.drives):
-                    self._last_sync = time.monotonic()
+                    self._last_sent = time.monotonic()
+                    if ks is not None:
+                        self._count_setpoints(ks.seen)
             except (can.CanError, OSError) as exc:
                 self.raise_fault(0, f"bus error: {exc}")
             return self.feedback()
+
+    def _count_setpoints(self, seen: int) -> None:
+        """Kernel SYNC: the RPDOs just sent are for the next SYNC; a SYNC more than one since the last
+        ones found no new target (the drives held the old one)."""
+        if self._rpdo_syncs >= 0 and seen - self._rpdo_syncs > 1:
+            self.missed_setpoints += seen - self._rpdo_syncs - 1
+        self._rpdo_syncs = seen
 
     def _set_targets(self, positions: Sequence[float]) -> None:
         if len(positions) != len(self.drives):

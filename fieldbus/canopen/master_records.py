@@ -16,6 +16,7 @@ from fieldbus.canopen import cia402
 from fieldbus.canopen.cia402 import State
 from fieldbus.canopen.config import AxisScale, CanopenConfig, DriveConfig, quick_stop_option
 from fieldbus.canopen.pdo import CONTROLWORD, TARGET_POSITION, PdoLayout
+from fieldbus.canopen.sync import KernelSync
 
 #: SDO abort codes a drive answers for an object (or sub-index) it does not have
 NO_SUCH_OBJECT = (0x06020000, 0x06090011)
@@ -135,7 +136,7 @@ class DriveBook:
 class MasterCore:
     """The state the master's parts share (:class:`~fieldbus.canopen.master.CanopenMaster` sets it in
     its constructor; the boot, state machine and supervision mixins read and change it). The cyclic
-    book-keeping (``_stream_t0``, ``_last_sync``, ``streaming``, each drive's ``active``) changes under
+    book-keeping (``_stream_t0``, ``_last_sent``, ``streaming``, each drive's ``active``) changes under
     ``_lock`` only: the reader thread, the cycle thread and the SDO-using threads all touch it."""
 
     config: CanopenConfig
@@ -152,6 +153,16 @@ class MasterCore:
     _lock: threading.RLock
     _heartbeat_task: canopen.network.PeriodicMessageTask | None
     _stream_t0: float  # first cycle with a drive streamed to: TPDO ages count from there
-    _last_sync: float  # the last SYNC sent while streaming to a drive (0: none yet)
+    _last_sent: float  # the last cycle's frames sent while streaming to a drive (0: none yet)
+    _rpdo_syncs: int  # kernel SYNC: SYNCs seen when the last RPDOs went out (-1: none yet)
+    _reader_sync_at: float  # kernel SYNC: when the bus reader thread last saw one (time.monotonic)
+    _kernel_sync: KernelSync | None  # the kernel's periodic SYNC, while the master is open with it
     _fault_listeners: list[Callable[[Fault], None]]
     _warning_listeners: list[Callable[[Fault], None]]
+
+    def _streaming_off(self) -> None:
+        """No drive streamed to from now on (with ``_lock`` held): the stream's clocks start again at
+        the next enable."""
+        self.streaming = False
+        self._stream_t0 = self._last_sent = 0.0
+        self._rpdo_syncs = -1

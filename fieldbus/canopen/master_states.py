@@ -42,8 +42,7 @@ class StateMachineMixin(MasterCore):
             if self.fault is not None:
                 raise CanopenError(f"cannot enable with a fault standing ({self.fault}); "
                                    "reset_faults() first")
-            self.streaming = False
-            self._stream_t0 = self._last_sync = 0.0
+            self._streaming_off()
         try:
             for d in self.drives:
                 self._enable_drive(d)
@@ -159,8 +158,7 @@ class StateMachineMixin(MasterCore):
         the quick stop first and is disabled (controlword 0, by SDO) once its ramp is over, never
         dropped at speed. No torque afterwards. A drive in Fault stays there (:meth:`reset_faults`)."""
         with self._lock:
-            self.streaming = False
-            self._stream_t0 = self._last_sync = 0.0
+            self._streaming_off()
             for d in self.drives:
                 if d.active:
                     d.active = False
@@ -296,9 +294,13 @@ class StateMachineMixin(MasterCore):
         drive in Fault stays there) and its consumer heartbeat (0x1016) cleared, all while the
         master's heartbeat still runs; then the heartbeat stops, NMT pre-operational, the bus closes.
         Otherwise every drive would fault (heartbeat consumer, EMCY 0x8130) one consumer time after
-        canon exits."""
+        canon exits.
+
+        The kernel's SYNC (if it times the SYNC) stops first, as the master's own stops with its cycle:
+        the drives are parked by SDO in either case, and no SYNC outlives the master."""
         if self.network is None:
             return
+        self._stop_kernel_sync()
         with self._lock:
             if any(d.active for d in self.drives):
                 self._quick_stop_locked()
@@ -316,11 +318,7 @@ class StateMachineMixin(MasterCore):
         except (can.CanError, OSError):
             pass
         net, self.network = self.network, None
-        if self._own_bus:
-            net.disconnect()
-        else:
-            if net.notifier is not None:
-                net.notifier.stop(2.0)
+        self._release(net)
 
     def _park(self, d: DriveBook, consumer_off: bool = True) -> None:
         """One drive to a defined state: its stop ramp waited for, Switch on disabled, and (at shutdown)

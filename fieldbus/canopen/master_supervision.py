@@ -114,8 +114,7 @@ class SupervisionMixin(MasterCore):
         self.raise_fault(0, reason)
 
     def _quick_stop_locked(self) -> None:
-        self.streaming = False
-        self._stream_t0 = self._last_sync = 0.0
+        self._streaming_off()
         for d in self.drives:
             d.active = False
             d.controlword = cia402.CW_QUICK_STOP
@@ -126,16 +125,15 @@ class SupervisionMixin(MasterCore):
 
 
     def _check(self, now: float, active: list[DriveBook]) -> None:
-        """The feedback of the drives streamed to, before this cycle's RPDOs: the master's own SYNC
-        gap first (a stalled cycle is the master's fault, not a node's), then per drive its heartbeat,
-        its TPDOs since the last SYNC, its state, its following error."""
+        """The feedback of the drives streamed to, before this cycle's RPDOs: the SYNC first (a stalled
+        cycle, or a SYNC that stopped, is the master's fault, not a node's), then per drive its
+        heartbeat, its TPDOs since the last SYNC, its state, its following error."""
         conf = self.config
-        if self._last_sync and now - self._last_sync > conf.feedback_timeout_s:
-            gap = now - self._last_sync
-            self.raise_fault(0, f"the master sent no SYNC for {1000 * gap:.0f} ms (limit "
-                                f"{1000 * conf.feedback_timeout_s:g} ms): its cycle stalled, the drives got "
-                                "no setpoint")
+        if self._sync_stalled(now):
             return
+        # TPDO ages count to the latest SYNC: the one the master sent, or (kernel SYNC) the last one its
+        # bus reader saw, which has read every TPDO sent before it
+        last_sync = self._last_sent if self._kernel_sync is None else self._reader_sync_at
         for d in active:
             hb_age = now - d.heartbeat_at
             if conf.heartbeat_producer_ms > 0 and hb_age > conf.heartbeat_consumer_ms / 1000.0:
@@ -144,7 +142,7 @@ class SupervisionMixin(MasterCore):
                 return
             # how long before the latest SYNC the drive last answered one (SYNCs, not the clock: a
             # pause of the master's own is not the drive's silence)
-            fb_age = self._last_sync - max(d.feedback_at, self._stream_t0, d.active_at)
+            fb_age = last_sync - max(d.feedback_at, self._stream_t0, d.active_at)
             if fb_age > conf.feedback_timeout_s and not d.homing:
                 self.raise_fault(d.cfg.node_id, f"no TPDO for {1000 * fb_age:.0f} ms of SYNCs "
                                                 f"(limit {1000 * conf.feedback_timeout_s:g} ms): "
@@ -173,6 +171,31 @@ class SupervisionMixin(MasterCore):
                                                 f"{d.cfg.following_error_window:g} (the drive reports it: "
                                                 f"statusword 0x{d.statusword:04X}, bit 13)")
                 return
+
+    def _sync_stalled(self, now: float) -> bool:
+        """A fault (True) when the SYNC or the setpoints stopped for ``feedback_timeout_s``: the
+        master's SYNC when its cycle stalled; with the kernel's SYNC, the SYNC itself (its task stopped,
+        the interface down) or the RPDOs (the cycle stalled while the SYNC went on)."""
+        limit = self.config.feedback_timeout_s
+        gap = now - self._last_sent if self._last_sent else 0.0
+        if self._kernel_sync is None:
+            if gap > limit:
+                self.raise_fault(0, f"the master sent no SYNC for {1000 * gap:.0f} ms (limit "
+                                    f"{1000 * limit:g} ms): its cycle stalled, the drives got no setpoint")
+                return True
+            return False
+        quiet = now - max(self._reader_sync_at, self._stream_t0)
+        if quiet > limit:
+            self.raise_fault(0, f"no SYNC on the bus for {1000 * quiet:.0f} ms (limit {1000 * limit:g} ms): "
+                                "the kernel's periodic SYNC stopped (its task removed, the interface "
+                                "down?) or the master's bus reader stalled")
+            return True
+        if gap > limit:
+            self.raise_fault(0, f"the master sent no setpoint for {1000 * gap:.0f} ms (limit "
+                                f"{1000 * limit:g} ms) while the kernel's SYNC went on: its cycle stalled, "
+                                "the drives held their last target")
+            return True
+        return False
 
     def _limit_fault(self, d: DriveBook, bits: int, why: str) -> None:
         names = " and ".join(input_names(bits))
