@@ -2,8 +2,9 @@
 with the SYNC timed by the kernel (python-can's periodic send: the broadcast manager) and by the master.
 
 ``python bench/fieldbus.py --bus socketcan [--sync both|kernel|master] [--seconds 5]`` (where vcan0
-exists; on a machine whose kernel has no CAN: ``tests/vcan/run-vm --bench --seconds 5``, in the
-emulated VM, where the figures show that the kernel's SYNC works, not how well a PC keeps time).
+exists; on a machine whose kernel has no CAN: ``tests/vcan/run-vm --bench --seconds 3 --drives 2
+--periods-ms 10``, in the emulated VM, where the figures show that the kernel's SYNC works, not how
+well a PC keeps time).
 
 Per case (drives x period x SYNC mode): the drives simulated in this process on vcan0, a sine move
 streamed for ``--seconds`` with the cycle paced as the daemon paces it (by the SYNCs it sees, with the
