@@ -269,17 +269,20 @@ class PeriodicRunner:
         tick(0.0)  # ticks from before the start (queued while nothing waited) are not this loop's
         due = time.monotonic() + period  # the next tick, at the latest
         st.started = due
+        prev: float | None = None  # the time of the last tick taken
         k = 0
         while not self._stop.is_set() and (self.cycles is None or st.cycles < self.cycles):
             got = tick(due + period)
             now = time.monotonic()
             if got is None:
                 deadline, missed = due, 1
-                due += period
+                prev, due = due, due + period
             else:
                 deadline, last, n = got
-                missed = n - 1
-                due = last + period
+                # by the ticks' times too: the step may take ticks itself (the master's cycle counts the
+                # SYNCs it sees), and those missed are this loop's as well
+                missed = n - 1 if prev is None else max(n - 1, round((last - prev) / period) - 1)
+                prev, due = last, last + period
             k += missed
             if not self._step_at(k, deadline, now, missed):
                 break
