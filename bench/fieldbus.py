@@ -16,6 +16,7 @@ refuses over 70 % there; here a case over it is marked, and runs anyway).
     python bench/fieldbus.py              # 30 s per case; per case the PDO layout that fits 1 Mbit/s
     python bench/fieldbus.py --seconds 10 --rt-priority 80 --layout compact --fe-every 4
     python bench/fieldbus.py --stress --seconds 60 --rt-priority 80   # as root: bench/fieldbus_stress.py
+    python bench/fieldbus.py --bus socketcan --seconds 5   # vcan0, kernel SYNC: bench/fieldbus_vcan.py
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -45,6 +47,29 @@ from fieldbus.canopen.drive_sim import SimDrive  # noqa: E402
 from fieldbus.canopen.master import CanopenMaster  # noqa: E402
 from fieldbus.canopen.pdo import make_layout  # noqa: E402
 from fieldbus.canopen.sim_process import SimBus  # noqa: E402
+
+
+def sine_step(master: CanopenMaster, period: float, start: tuple[float, ...]) -> Callable[[int, float], None]:
+    """The benches' move: every axis 10 mm either side of ``start`` at 0.5 Hz, one setpoint per step
+    (after a stall the trajectory continues, it does not jump)."""
+    done = [0]
+
+    def step(k: int, t: float) -> None:
+        s = 10.0 * math.sin(2 * math.pi * 0.5 * done[0] * period)
+        done[0] += 1
+        master.cycle([p + s for p in start])
+
+    return step
+
+
+def print_table(title: str, cols: list[tuple[str, str]], rows: list[dict]) -> None:
+    """Rows (dicts) as a table: ``cols`` are (key, column title)."""
+    table = Table(title=title)
+    for _, heading in cols:
+        table.add_column(heading, justify="right")
+    for r in rows:
+        table.add_row(*(r[k] for k, _ in cols))
+    Console(width=190).print(table)
 
 
 def thread_cpu(thread) -> float:
@@ -173,13 +198,7 @@ def case(n: int, period: float, seconds: float, interface: str = "virtual") -> d
         master.enable()
         start = master.positions()
 
-        done = [0]  # setpoints sent: after a stall the trajectory continues, it does not jump
-
-        def step(k: int, t: float) -> None:
-            s = 10.0 * math.sin(2 * math.pi * 0.5 * done[0] * period)  # 10 mm amplitude, 0.5 Hz
-            done[0] += 1
-            master.cycle([p + s for p in start])
-
+        step = sine_step(master, period, start)
         reader = master.network.notifier._readers[0]
         cpu0 = thread_cpu(reader)
         runner = PeriodicRunner(period, step, cycles=round(seconds / period), realtime_priority=RT,
@@ -224,9 +243,14 @@ def main() -> int:
     ap.add_argument("--fe-every", type=int, default=1, help="following error TPDO every n SYNCs (default 1)")
     ap.add_argument("--switch-interval-ms", type=float, default=0.5,
                     help="the interpreter's thread switch interval (default 0.5; Python's own is 5)")
-    ap.add_argument("--bus", choices=("virtual", "udp_multicast"), default="virtual",
+    ap.add_argument("--bus", choices=("virtual", "udp_multicast", "socketcan"), default="virtual",
                     help="udp_multicast: the drives in another process (`canon sim drives`); run it inside "
-                         "tests/netns-run")
+                         "tests/netns-run. socketcan: on --channel (vcan0), the SYNC period a listener sees "
+                         "with the kernel's SYNC and the master's (bench/fieldbus_vcan.py; --seconds default "
+                         "5)")
+    ap.add_argument("--channel", default="vcan0", help="--bus socketcan: the interface (default vcan0)")
+    ap.add_argument("--sync", choices=("both", "kernel", "master"), default="both",
+                    help="--bus socketcan: who times the SYNC (default both: each case twice)")
     ap.add_argument("--stress", action="store_true",
                     help="the stressed case (bench/fieldbus_stress.py): two CPU hogs, a 100 Hz status load, "
                          "drives in another process on udp_multicast, the C reference in the same run "
@@ -246,6 +270,14 @@ def main() -> int:
         LAYOUT, FE_EVERY = args.layout, args.fe_every
         sys.setswitchinterval(args.switch_interval_ms / 1000.0)
         return fieldbus_stress.run(args, layout_for, build_rt_floor, c_reference)
+    if args.bus == "socketcan":
+        import fieldbus_vcan
+
+        args.seconds = 5.0 if args.seconds is None else args.seconds
+        LAYOUT, FE_EVERY = args.layout, args.fe_every
+        sys.setswitchinterval(args.switch_interval_ms / 1000.0)
+        return fieldbus_vcan.run(args, layout_for, sine_step, print_table, args.rt_priority,
+                                 None if args.cpu_latency_us < 0 else args.cpu_latency_us)
     if args.bus == "udp_multicast" and os.environ.get("CANON_NETNS") != "1":
         ap.error("--bus udp_multicast joins a multicast group: run it as tests/netns-run python "
                  "bench/fieldbus.py --bus udp_multicast")
@@ -268,20 +300,15 @@ def main() -> int:
     where = "virtual bus, drives in this process" if args.bus == "virtual" else \
         "udp_multicast, drives in another process"
     tmp.cleanup()
-    table = Table(title=f"CANopen master, {where}, PDO layout {LAYOUT}, "
-                        f"{args.seconds:g} s per case, {os.cpu_count()} CPUs, load average "
-                        f"{os.getloadavg()[0]:.1f}, SCHED_FIFO {RT or 'off'}, CPU latency request "
-                        f"{'off' if LATENCY is None else f'{LATENCY} us'}, switch interval "
-                        f"{args.switch_interval_ms:g} ms")
+    title = (f"CANopen master, {where}, PDO layout {LAYOUT}, {args.seconds:g} s per case, {os.cpu_count()} "
+             f"CPUs, load average {os.getloadavg()[0]:.1f}, SCHED_FIFO {RT or 'off'}, CPU latency request "
+             f"{'off' if LATENCY is None else f'{LATENCY} us'}, switch interval "
+             f"{args.switch_interval_ms:g} ms")
     cols = [("case", "case"), ("period", "period ms"), ("p50", "late p50 us"), ("p99", "p99 us"),
             ("p999", "p99.9 us"), ("max", "max us"), ("missed", "missed cycles"),
             ("setpoints", "drive missed setpoints"), ("cpu", "master CPU %"), ("work", "cycle work us"),
             ("load", "bus load % at 1 Mbit/s"), ("layout", "PDO layout")]
-    for _, title in cols:
-        table.add_column(title, justify="right")
-    for r in rows:
-        table.add_row(*(r[k] for k, _ in cols))
-    Console(width=190).print(table)
+    print_table(title, cols, rows)
     return 0
 
 

@@ -24,6 +24,7 @@ from fieldbus.canopen.config import (
     DriveConfig,
     EmcyPolicy,
     emcy_pattern_problem,
+    sync_problem,
 )
 from fieldbus.canopen.pdo import LAYOUTS
 from motiond.configkit import Table, in_range, one_of, positive
@@ -86,6 +87,7 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
     affinity = t.get("cpu_affinity", list, [], check=_cpu_list)
     steer_gc = t.get("steer_gc", bool, True)
     drive_timeout = t.get("drive_setpoint_timeout_ms", float, 0.0, check=in_range(0.0, 60_000.0))
+    sync = t.get("sync", str, "master", check=lambda v: sync_problem(v, interface))
     options = dict(t.table("options").data)
     emcy_t = t.table("emcy")
     emcy_lists = {}
@@ -170,7 +172,7 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
         pdo_layout=layout, following_error_every=fe_every, status_refresh_ms=refresh,
         realtime_priority=rt_priority, cpu_latency_us=None if cpu_latency < 0 else cpu_latency,
         emcy=EmcyPolicy(**emcy_lists), cpu_affinity=tuple(affinity), steer_gc=steer_gc,
-        drive_setpoint_timeout_ms=drive_timeout)
+        drive_setpoint_timeout_ms=drive_timeout, sync=sync)
 
 
 def _extra_sdo(axis: Table) -> tuple[tuple[int, int, str, int, str], ...]:

@@ -216,7 +216,8 @@ def describe(m: CheckedMachine) -> list[Any]:
     hb = (f"heartbeat {c.heartbeat_producer_ms} ms (consumer {c.heartbeat_consumer_ms} ms)"
           if c.heartbeat_producer_ms else "no heartbeat")
     out.append(f"CAN: {c.bus.interface} {c.bus.channel} at {c.bus.bitrate / 1000:g} kbit/s"
-               f"{', drives simulated' if c.simulate else ''}; {c.pdo_layout} PDO layout; {hb}; bus load "
+               f"{', drives simulated' if c.simulate else ''}; {c.pdo_layout} PDO layout; {hb}; "
+               f"SYNC timed by {'the kernel' if c.kernel_sync else 'the master'}; bus load "
                f"{100 * m.bus_load.fraction:.1f} % of {100 * c.max_bus_load:.0f} % allowed "
                f"({m.bus_load.describe()})")
     if m.modbus is None:

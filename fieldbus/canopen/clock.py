@@ -112,7 +112,12 @@ class CpuLatencyRequest:
 class PeriodicRunner:
     """Call ``step(k, t)`` every ``period_s`` on its own thread (``k``: deadline number, ``t``: the
     deadline, ``time.monotonic`` seconds) until :meth:`stop`, ``cycles`` steps are done, or ``step``
-    returns ``False``."""
+    returns ``False``.
+
+    ``tick``: pace the steps by an outside clock instead of absolute deadlines (the kernel's SYNC:
+    :attr:`~fieldbus.canopen.master.CanopenMaster.sync_tick`). ``tick(until)`` waits until ``until``
+    (``time.monotonic``) for the next tick and returns (time of the first tick not yet taken, time of
+    the last, how many), or None when none came; ``tick(0.0)`` takes those already there."""
 
     def __init__(self, period_s: float, step: Callable[[int, float], bool | None], *,
                  cycles: int | None = None, late_s: float | None = None,
@@ -120,7 +125,8 @@ class PeriodicRunner:
                  keep_lateness: bool = True, name: str = "canopen-cycle",
                  realtime_priority: int = 0, cpu_latency_us: int | None = None,
                  cpu_affinity: Iterable[int] | None = None, steer_gc: bool = False,
-                 gc_full_every_s: float = 10.0) -> None:
+                 gc_full_every_s: float = 10.0,
+                 tick: Callable[[float], tuple[float, float, int] | None] | None = None) -> None:
         if period_s <= 0:
             raise ValueError("period must be > 0")
         self.period_s = period_s
@@ -139,6 +145,7 @@ class PeriodicRunner:
         self.native_id: int | None = None  # the cycle thread's kernel id, once running
         self.steer_gc = steer_gc
         self.gc_full_every_s = gc_full_every_s
+        self.tick = tick
         self.stats = CycleStats(period_s)
         self.error: BaseException | None = None
         self._stop = threading.Event()
@@ -189,41 +196,12 @@ class PeriodicRunner:
         if steer is not None and not steer.begin():
             steer = None
         st = self.stats
-        period = self.period_s
         cpu0 = time.thread_time()
-        t0 = time.monotonic() + period
-        st.started = t0
-        k = 0
         try:
-            while not self._stop.is_set() and (self.cycles is None or st.cycles < self.cycles):
-                deadline = t0 + k * period
-                now = time.monotonic()
-                if deadline - now > self.spin_s:
-                    time.sleep(deadline - now - self.spin_s)
-                while (now := time.monotonic()) < deadline:
-                    pass
-                late = now - deadline
-                if self.keep_lateness:
-                    st.lateness.append(late)
-                if late > self.late_s:
-                    st.late += 1
-                    if self.on_late is not None:
-                        self.on_late(k, late)
-                st.cycles += 1
-                result = self.step(k, deadline)
-                st.work_s += time.monotonic() - now
-                if result is False:
-                    break
-                k += 1
-                if steer is not None:
-                    steer.after_step(t0 + k * period - self.spin_s)
-                behind = int((time.monotonic() - (t0 + k * period)) // period)
-                if behind > 0:  # deadlines already gone: late, and skipped (never a burst to catch up)
-                    st.late += 1
-                    st.skipped += behind
-                    if self.on_late is not None:
-                        self.on_late(k, time.monotonic() - (t0 + k * period))
-                    k += behind
+            if self.tick is None:
+                self._run_on_clock(steer)
+            else:
+                self._run_on_ticks(self.tick, steer)
         except BaseException as exc:  # reported to the caller through .error
             self.error = exc
             log.exception("periodic step failed")
@@ -234,6 +212,83 @@ class PeriodicRunner:
                 steer.end()
             if self.cpu_latency is not None:
                 self.cpu_latency.release()
+
+    def _step_at(self, k: int, deadline: float, now: float, missed: int = 0) -> bool:
+        """Step ``k`` of ``deadline``, started at ``now`` (``missed`` ticks skipped before it): its
+        lateness recorded and reported; False when the step asks to end the loop."""
+        st = self.stats
+        late = now - deadline
+        if self.keep_lateness:
+            st.lateness.append(late)
+        if late > self.late_s or missed:
+            st.late += 1
+            st.skipped += missed
+            if self.on_late is not None:
+                self.on_late(k, late)
+        st.cycles += 1
+        result = self.step(k, deadline)
+        st.work_s += time.monotonic() - now
+        return result is not False
+
+    def _run_on_clock(self, steer: _GcSteering | None) -> None:
+        """Steps on absolute deadlines ``t0 + k * period``."""
+        st = self.stats
+        period = self.period_s
+        t0 = time.monotonic() + period
+        st.started = t0
+        k = 0
+        while not self._stop.is_set() and (self.cycles is None or st.cycles < self.cycles):
+            deadline = t0 + k * period
+            now = time.monotonic()
+            if deadline - now > self.spin_s:
+                time.sleep(deadline - now - self.spin_s)
+            while (now := time.monotonic()) < deadline:
+                pass
+            if not self._step_at(k, deadline, now):
+                break
+            k += 1
+            if steer is not None:
+                steer.after_step(t0 + k * period - self.spin_s)
+            behind = int((time.monotonic() - (t0 + k * period)) // period)
+            if behind > 0:  # deadlines already gone: late, and skipped (never a burst to catch up)
+                st.late += 1
+                st.skipped += behind
+                if self.on_late is not None:
+                    self.on_late(k, time.monotonic() - (t0 + k * period))
+                k += behind
+
+    def _run_on_ticks(self, tick: Callable[[float], tuple[float, float, int] | None],
+                      steer: _GcSteering | None) -> None:
+        """Steps paced by ``tick`` (the kernel's SYNC as the master sees it): each step right after the
+        next tick, its deadline the tick's time. Ticks that came while a step ran count as skipped (the
+        step is late), as does a tick that does not come within a period of when it was due: then the
+        step runs on the clock, so that a stopped tick source is noticed by the step (the master faults)
+        and the loop goes on."""
+        st = self.stats
+        period = self.period_s
+        tick(0.0)  # ticks from before the start (queued while nothing waited) are not this loop's
+        due = time.monotonic() + period  # the next tick, at the latest
+        st.started = due
+        prev: float | None = None  # the time of the last tick taken
+        k = 0
+        while not self._stop.is_set() and (self.cycles is None or st.cycles < self.cycles):
+            got = tick(due + period)
+            now = time.monotonic()
+            if got is None:
+                deadline, missed = due, 1
+                prev, due = due, due + period
+            else:
+                deadline, last, n = got
+                # by the ticks' times too: the step may take ticks itself (the master's cycle counts the
+                # SYNCs it sees), and those missed are this loop's as well
+                missed = n - 1 if prev is None else max(n - 1, round((last - prev) / period) - 1)
+                prev, due = last, last + period
+            k += missed
+            if not self._step_at(k, deadline, now, missed):
+                break
+            k += 1
+            if steer is not None:
+                steer.after_step(due - self.spin_s)
 
 
 class _GcSteering:
@@ -331,4 +386,4 @@ def stream(master, trajectory: Callable[[float], Sequence[float]], seconds: floa
         if fault_on_late:
             master.raise_fault(0, f"cycle {k} late by {1000 * by:.2f} ms (period {1000 * period:g} ms)")
 
-    return PeriodicRunner(period, step, cycles=n, late_s=late_s, on_late=late).start()
+    return PeriodicRunner(period, step, cycles=n, late_s=late_s, on_late=late, tick=master.sync_tick).start()

@@ -159,16 +159,41 @@ class CanopenConfig:
     #: the drives' own setpoint (RPDO) timeout as commissioned on them, in ms (0: not known); the run
     #: summary judges late cycles against it
     drive_setpoint_timeout_ms: float = 0.0
+    #: who times the SYNC (:mod:`fieldbus.canopen.sync`): "master" (the master's cycle, the default),
+    #: "kernel" (SocketCAN's broadcast manager) or "auto" (kernel on socketcan, else master)
+    sync: str = "master"
 
     @property
     def layout(self) -> PdoLayout:
         return make_layout(self.pdo_layout, self.following_error_every, self.status_refresh_ms)
+
+    @property
+    def kernel_sync(self) -> bool:
+        """True when the kernel times the SYNC (``sync`` "kernel", or "auto" on SocketCAN)."""
+        return self.sync == "kernel" or (self.sync == "auto" and self.bus.interface in KERNEL_SYNC_INTERFACES)
 
     def drive(self, axis: str) -> DriveConfig:
         for d in self.drives:
             if d.axis == axis:
                 return d
         raise KeyError(f"no drive for axis {axis!r}")
+
+
+#: ``[canopen] sync`` values
+SYNC_MODES = ("auto", "kernel", "master")
+#: python-can interfaces whose periodic send the kernel times (SocketCAN: the broadcast manager, BCM)
+KERNEL_SYNC_INTERFACES = ("socketcan",)
+
+
+def sync_problem(sync: str, interface: str) -> str | None:
+    """What is wrong with ``sync`` on this interface (a phrase the configuration reader completes with
+    the value), or None."""
+    if sync not in SYNC_MODES:
+        return f"must be one of {', '.join(SYNC_MODES)}"
+    if sync == "kernel" and interface not in KERNEL_SYNC_INTERFACES:
+        return (f"\"kernel\" needs interface = \"socketcan\" (the kernel's broadcast manager sends the "
+                f"SYNC; on {interface!r} only the master's cycle can): use \"master\" or \"auto\"")
+    return None
 
 
 #: quick stop options (0x605A) that end in Quick stop active, where "enable operation" (0x0F) is CiA 402's

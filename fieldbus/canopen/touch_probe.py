@@ -26,7 +26,8 @@ from typing import TYPE_CHECKING
 from fieldbus.canopen.pdo import TOUCH_PROBE_STATUS
 
 if TYPE_CHECKING:
-    from fieldbus.canopen.master import CanopenMaster, _Drive
+    from fieldbus.canopen.master import CanopenMaster
+    from fieldbus.canopen.master_records import DriveBook
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +48,7 @@ def objects(probe: int) -> list[tuple[int, str]]:
             (neg, f"touch probe {probe} position, negative edge")]
 
 
-def check_objects(master: CanopenMaster, d: _Drive) -> None:
+def check_objects(master: CanopenMaster, d: DriveBook) -> None:
     """Boot, before anything is written: the drive has every object of its configured touch probe
     (else a :class:`~fieldbus.canopen.master.CanopenError` naming node, axis, key and object)."""
     from fieldbus.canopen.master import CanopenError
@@ -74,7 +75,7 @@ class ProbeResult:
 class TouchProbe:
     """The configured drive's touch probe, on a booted master (see the module's text)."""
 
-    def __init__(self, master: CanopenMaster, d: _Drive) -> None:
+    def __init__(self, master: CanopenMaster, d: DriveBook) -> None:
         from fieldbus.canopen.master import CanopenError
 
         if not d.has_inputs:

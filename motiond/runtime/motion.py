@@ -196,7 +196,7 @@ class MotionCore(Cycle):
                                      realtime_priority=self.canopen.realtime_priority,
                                      cpu_latency_us=self.canopen.cpu_latency_us,
                                      cpu_affinity=self.canopen.cpu_affinity,
-                                     steer_gc=self.canopen.steer_gc)
+                                     steer_gc=self.canopen.steer_gc, tick=self.master.sync_tick)
         self.runner.start()
 
     def stop_cycle(self) -> None:

@@ -9,6 +9,9 @@ timeouts are generous: these tests check behaviour, not timing.
 from __future__ import annotations
 
 import dataclasses
+import os
+import signal
+import statistics
 import subprocess
 import sys
 import threading
@@ -19,9 +22,13 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+import itertools
+
+import can
 from canopen_helpers import Rig, make_config, wait_for
 
 from fieldbus.canopen.cia402 import State
+from fieldbus.canopen.clock import PeriodicRunner
 from fieldbus.canopen.config import CanBusConfig
 from fieldbus.canopen.master import CanopenError, CanopenMaster
 from motiond.config_canopen import canopen_from_file
@@ -38,7 +45,7 @@ pytestmark = [
                        "tests/vcan/run-vm"),
 ]
 
-SLOW = {"cycle_s": 0.02, "boot_timeout_s": 20.0, "sdo_timeout_s": 2.0, "state_timeout_s": 10.0,
+SLOW = {"cycle_s": 0.02, "boot_timeout_s": 20.0, "sdo_timeout_s": 5.0, "state_timeout_s": 10.0,
         "feedback_timeout_s": 3.0, "heartbeat_producer_ms": 200, "heartbeat_consumer_ms": 5000}
 BUS = CanBusConfig("socketcan", "vcan0")
 
@@ -48,7 +55,8 @@ def rig():
     rigs: list[Rig] = []
 
     def make(n: int = 2, **kw: object) -> Rig:
-        r = Rig(make_config(n, bus=BUS, **{**SLOW, **kw}))
+        # the kernel's SYNC unless a test says otherwise (the configuration's default is the master's)
+        r = Rig(make_config(n, bus=BUS, **{**SLOW, "sync": "kernel", **kw}))
         rigs.append(r)
         return r
 
@@ -57,9 +65,10 @@ def rig():
         r.close()
 
 
-@pytest.mark.parametrize("layout", ["standard", "compact"])
-def test_boot_stream_and_feedback_on_vcan0(rig, layout):
-    r = rig(2, pdo_layout=layout).up()
+@pytest.mark.parametrize("layout, sync", [("standard", "auto"), ("compact", "auto"), ("standard", "master")])
+def test_boot_stream_and_feedback_on_vcan0(rig, layout, sync):
+    r = rig(2, pdo_layout=layout, sync=sync).up()
+    assert r.master.sync_mode == ("master" if sync == "master" else "kernel")  # auto: kernel on socketcan
     r.run(60, lambda k: [0.01 * min(k, 40), -0.01 * min(k, 40)])
     # the emulated VM processes frames late: hold and let the feedback catch up (bounded)
     deadline = time.monotonic() + 30.0
@@ -73,7 +82,10 @@ def test_boot_stream_and_feedback_on_vcan0(rig, layout):
 
 @pytest.mark.parametrize("layout", ["standard", "compact"])
 def test_emcy_fault_quick_stop_and_reset_on_vcan0(rig, layout):
-    r = rig(2, pdo_layout=layout).up()
+    # the master's SYNC: with the kernel's, the SYNC runs on through the seconds of SDO the fault reset
+    # takes here, and the drives simulated in this process fall behind it in the emulated guest (their
+    # SDO answers time out); the kernel SYNC's own faults are the tests below
+    r = rig(2, pdo_layout=layout, sync="master").up()
     r.run(10, lambda k: [0.001 * k, 0.0])
     held = r.master.positions()
     r.sim(1).inject_fault(0x2310)
@@ -177,3 +189,163 @@ def test_touch_probe_latches_within_one_count_on_vcan0():
         assert result.tripped and abs(result.counts - trip) <= 1
     finally:
         r.close()
+
+
+# ---------------------------------------------------------------------- the kernel's SYNC
+SYNC, RPDO1 = 0x080, 0x200
+
+
+class Listener:
+    """Every frame on vcan0 with the kernel's receive time, from a socket of its own (as a drive or a
+    bus analyser sees the bus): independent of the master."""
+
+    def __init__(self) -> None:
+        self.bus = can.Bus(interface="socketcan", channel="vcan0")
+        self.frames: list[tuple[float, int]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        while not self._stop.is_set():
+            msg = self.bus.recv(0.05)
+            if msg is not None:
+                self.frames.append((msg.timestamp, msg.arbitration_id))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5.0)
+        self.bus.shutdown()
+
+    def syncs(self, after: float = 0.0, before: float = float("inf")) -> list[float]:
+        return [t for t, i in self.frames if i == SYNC and after <= t <= before]
+
+
+@pytest.fixture
+def listener():
+    lst = Listener()
+    yield lst
+    lst.close()
+
+
+def run_on_sync(master: CanopenMaster, cycles: int, positions=None, stall_at: int | None = None,
+                stall_s: float = 0.0, stalled: list[float] | None = None) -> PeriodicRunner:
+    """``cycles`` cycles paced by the kernel's SYNC (as the daemon runs them), joined. ``stall_at``: the
+    step that sleeps ``stall_s`` first (a stalled master thread; its start and end, wall clock, are
+    appended to ``stalled``)."""
+    def step(k: int, t: float) -> None:
+        if k == stall_at:
+            if stalled is not None:
+                stalled.append(time.time())
+            time.sleep(stall_s)
+            if stalled is not None:
+                stalled.append(time.time())
+        master.cycle(positions(k) if positions else None)
+
+    runner = PeriodicRunner(master.config.cycle_s, step, cycles=cycles, tick=master.sync_tick).start()
+    assert runner.join(120.0), "the cycle did not end"
+    assert runner.error is None
+    return runner
+
+
+def test_kernel_sync_comes_at_the_period_and_the_rpdos_right_after_it(rig, listener):
+    r = rig(2, feedback_timeout_s=10.0).up()  # the emulated guest stalls threads for seconds
+    assert r.master.sync_mode == "kernel" and r.master.sync_tick is not None
+    period = r.config.cycle_s
+    t0 = time.time()
+    run_on_sync(r.master, 100, lambda k: [0.001 * k, -0.001 * k])
+    t1 = time.time()
+    assert r.master.fault is None, r.master.fault
+    syncs = listener.syncs(t0, t1)
+    gaps = [b - a for a, b in itertools.pairwise(syncs)]
+    assert len(syncs) >= 90, len(syncs)
+    # the kernel's timer: its median period is the configured one (the emulated VM adds latency)
+    assert statistics.median(gaps) == pytest.approx(period, rel=0.2)
+    # each drive's RPDO goes out after a SYNC, in the period (for the next SYNC); with the master's SYNC
+    # it would come just before it, a whole period after the previous one (the emulated guest wakes the
+    # cycle thread milliseconds late)
+    after: dict[int, list[float]] = {1: [], 2: []}
+    last_sync = None
+    for t, cob in (f for f in listener.frames if t0 <= f[0] <= t1):
+        if cob == SYNC:
+            last_sync = t
+        elif cob in (RPDO1 + 1, RPDO1 + 2) and last_sync is not None:
+            after[cob - RPDO1].append(t - last_sync)
+    for node, delays in after.items():
+        assert len(delays) >= 80, (node, len(delays))
+        assert statistics.median(delays) < 0.8 * period, (node, statistics.median(delays))
+    # one RPDO per drive in most SYNC periods (the emulated guest stalls the cycle now and then: those
+    # periods have none, and the master counts them)
+    per_period = [sum(1 for t, cob in listener.frames if cob == RPDO1 + 1 and a < t < b)
+                  for a, b in itertools.pairwise(syncs)]
+    assert per_period.count(1) >= 0.5 * len(per_period), per_period
+    assert r.master.missed_setpoints >= per_period.count(0) // 2, (r.master.missed_setpoints, per_period)
+
+
+def test_a_stalled_cycle_costs_setpoints_but_no_sync(rig, listener):
+    r = rig(2, feedback_timeout_s=10.0).up()
+    period = r.config.cycle_s
+    stalled: list[float] = []
+    runner = run_on_sync(r.master, 60, lambda k: [0.001 * k, 0.0], stall_at=30, stall_s=5 * period,
+                         stalled=stalled)
+    assert r.master.fault is None, r.master.fault
+    # the SYNC went on while the master thread slept five periods (with the master's SYNC there would
+    # be none in that time)
+    assert len(listener.syncs(*stalled)) >= 3, (stalled, listener.syncs(stalled[0] - 0.1, stalled[1] + 0.1))
+    # the setpoints it missed are seen: late and skipped cycles, SYNCs that found no new RPDO
+    assert runner.stats.late >= 1 and runner.stats.skipped >= 2, runner.stats
+    assert r.master.missed_setpoints >= 2
+
+
+def test_stopping_the_master_stops_the_sync(rig, listener):
+    r = rig(1).up()
+    run_on_sync(r.master, 20)
+    assert listener.syncs()[-1] > time.time() - 5.0  # the kernel's SYNC runs
+    r.master.shutdown()
+    stopped = time.time()
+    time.sleep(20 * r.config.cycle_s)  # frames sent before the stop reach the listener meanwhile
+    assert listener.syncs(after=stopped) == []
+
+
+def test_the_sync_ends_with_the_process(tmp_path, listener):
+    # a master killed outright: the kernel removes its socket's periodic SYNC with the process
+    script = tmp_path / "m.py"
+    script.write_text(f"""
+import sys, time
+sys.path.insert(0, {str(ROOT / 'tests')!r})
+from canopen_helpers import make_config
+from fieldbus.canopen.config import CanBusConfig
+from fieldbus.canopen.master import CanopenMaster
+m = CanopenMaster(make_config(1, bus=CanBusConfig("socketcan", "vcan0"), cycle_s=0.02, sync="kernel"))
+m.open()
+m.cycle()  # the kernel's SYNC starts with the first cycle
+print("open", flush=True)
+time.sleep(120)
+""")
+    proc = subprocess.Popen([sys.executable, str(script)], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "open"
+        assert wait_for(lambda: len(listener.syncs(after=time.time() - 1.0)) >= 5, 30.0)
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(30.0)
+    killed = time.time()
+    time.sleep(0.5)
+    assert listener.syncs(after=killed) == []
+
+
+def test_a_stopped_kernel_sync_is_the_masters_fault(rig):
+    r = rig(2, feedback_timeout_s=1.0).up()
+    run_on_sync(r.master, 10)
+    r.master._kernel_sync._task.stop()  # the kernel's task gone (as if removed, or the interface down)
+    run_on_sync(r.master, 150)  # the cycle goes on, on its clock
+    assert r.master.fault is not None
+    assert r.master.fault.node == 0 and "no SYNC on the bus" in r.master.fault.reason, r.master.fault
+
+
+def test_a_cycle_stalled_beyond_the_timeout_is_the_masters_fault(rig):
+    r = rig(2, feedback_timeout_s=1.0).up()
+    run_on_sync(r.master, 20, stall_at=10, stall_s=2.0)
+    assert r.master.fault is not None
+    assert r.master.fault.node == 0, r.master.fault
+    assert "sent no setpoint" in r.master.fault.reason and "SYNC went on" in r.master.fault.reason

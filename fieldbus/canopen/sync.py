@@ -1,0 +1,175 @@
+"""The SYNC timed by the kernel: python-can's periodic send on SocketCAN, and the master's view of it.
+
+``[canopen] sync`` (:attr:`~fieldbus.canopen.config.CanopenConfig.sync`) chooses who times the SYNC:
+
+* ``"master"``: the master's cycle sends every drive's RPDO and then the SYNC (the only way on buses
+  without kernel timing: ``virtual``, ``udp_multicast``). Every stall of the Python process is then a
+  SYNC stall on the bus.
+* ``"kernel"``: on SocketCAN, ``bus.send_periodic`` is the kernel's broadcast manager (BCM): a kernel
+  timer sends the SYNC every period whatever Python does. The kernel loops the frames it sends back to
+  every other socket on the interface, so the master sees each SYNC on a socket of its own
+  (:class:`KernelSync`, filtered to the SYNC's COB-ID) and sends each drive's RPDO for the *next*
+  SYNC right after it. A stall shorter than a period (less the time the RPDOs take) costs nothing on
+  the bus; a longer one costs setpoints (the drives hold the last target), never a SYNC.
+* ``"auto"`` (the default): ``"kernel"`` on socketcan, else ``"master"``.
+
+With the kernel's SYNC the cycle thread is paced by the SYNCs it sees (:meth:`KernelSync.wait`, the
+``tick`` of :class:`~fieldbus.canopen.clock.PeriodicRunner`), not by a clock of its own: the BCM re-arms
+its timer from the moment it fired (``ktime_get() + interval`` in ``net/can/bcm.c``), so its period is
+the configured one plus the kernel's timer latency, and a loop on absolute deadlines would drift
+against it (two setpoints in one SYNC period, or none, every few hundred cycles).
+
+The master prepares the task when it opens the bus (so a bus without kernel timing is refused there)
+and the kernel starts sending at the first cycle, as the master's own SYNC starts with its cycle. The
+BCM task belongs to its socket: it ends with :meth:`KernelSync.stop` and with the process (the kernel
+removes a closed socket's tasks), so no SYNC outlives canon.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import can
+
+log = logging.getLogger(__name__)
+
+SYNC_COB_ID = 0x80
+
+
+class SyncError(Exception):
+    """The kernel's periodic SYNC could not be started on this bus."""
+
+
+class KernelSync:
+    """The SYNC sent by the kernel every ``period_s`` on ``bus`` (python-can's periodic send, which on
+    SocketCAN is the broadcast manager), and seen on a socket of its own opened from ``bus_kwargs``
+    (python-can's ``can.Bus`` arguments of the same interface and channel).
+
+    :meth:`wait` (the cycle thread) and :meth:`poll` (the master's cycle) both count the SYNCs seen:
+    :attr:`seen` is their total, :attr:`last_at` the ``time.monotonic`` time of the latest (from the
+    kernel's receive time stamp)."""
+
+    def __init__(self, bus: can.BusABC, bus_kwargs: dict[str, object], period_s: float,
+                 cob_id: int = SYNC_COB_ID) -> None:
+        self.bus = bus
+        self.bus_kwargs = bus_kwargs
+        self.period_s = period_s
+        self.cob_id = cob_id
+        self.seen = 0
+        self.last_at = 0.0
+        self._task: can.broadcastmanager.RestartableCyclicTaskABC | None = None
+        self._started = False
+        self._listener: can.BusABC | None = None
+        self._lock = threading.Lock()  # one reader of the listening socket at a time
+
+    @property
+    def running(self) -> bool:
+        return self._started
+
+    def open(self) -> None:
+        """Open the listening socket and make the kernel's periodic SYNC ready, not yet sending
+        (:meth:`start`). :class:`SyncError` when the bus's periodic send is not the kernel's (python-can
+        falls back to a Python thread there)."""
+        if self._task is not None:
+            return
+        from can.interfaces.socketcan import CyclicSendTask
+
+        filters = [{"can_id": self.cob_id, "can_mask": 0x7FF, "extended": False}]
+        try:
+            self._listener = can.Bus(**self.bus_kwargs, can_filters=filters)  # type: ignore[arg-type]
+        except (can.CanError, OSError, ValueError) as exc:
+            raise SyncError(f"cannot open a socket to see the SYNC on: {exc}") from None
+        msg = can.Message(arbitration_id=self.cob_id, data=b"", is_extended_id=False)
+        try:
+            task = self.bus.send_periodic(msg, self.period_s, store_task=False, autostart=False)
+        except (can.CanError, OSError) as exc:
+            self._close_listener()
+            raise SyncError(f"the kernel's periodic SYNC cannot be set up: {exc}") from None
+        if not isinstance(task, CyclicSendTask):
+            self._close_listener()
+            raise SyncError(f"the {type(self.bus).__name__}'s periodic send is a Python thread, not the "
+                            "kernel's broadcast manager: [canopen] sync = \"kernel\" needs socketcan")
+        self._task = task
+
+    def start(self) -> None:
+        """The kernel sends the SYNC from now on (the BCM's TX_SETUP), until :meth:`stop`. Idempotent."""
+        if self._started or self._task is None:
+            return
+        try:
+            self._task.start()
+        except (can.CanError, OSError) as exc:
+            raise SyncError(f"the kernel's periodic SYNC did not start: {exc}") from None
+        self._started = True
+        log.info("SYNC every %g ms by the kernel's broadcast manager", 1000 * self.period_s)
+
+    def stop(self) -> None:
+        """Stop the SYNC (the BCM task's TX_DELETE), then close the listening socket. Safe twice."""
+        task, self._task = self._task, None
+        started, self._started = self._started, False
+        if task is not None and started:
+            try:
+                task.stop()
+            except (can.CanError, OSError) as exc:
+                log.error("stopping the kernel's SYNC: %s (it ends with the bus or the process)", exc)
+        with self._lock:
+            self._close_listener()
+
+    def _close_listener(self) -> None:
+        listener, self._listener = self._listener, None
+        if listener is not None:
+            listener.shutdown()
+
+    @staticmethod
+    def _monotonic(msg: can.Message) -> float:
+        """The kernel's receive time stamp (wall clock) on the ``time.monotonic`` scale."""
+        return msg.timestamp - (time.time() - time.monotonic())
+
+    def _read(self, timeout: float) -> float | None:
+        """One SYNC from the listening socket within ``timeout`` (0: only one already there): its time."""
+        listener = self._listener
+        if listener is None:
+            return None
+        try:
+            msg = listener.recv(timeout)
+        except (can.CanError, OSError):
+            return None
+        if msg is None:
+            return None
+        t = self._monotonic(msg)
+        self.seen += 1
+        self.last_at = t
+        return t
+
+    def poll(self) -> int:
+        """Count the SYNCs seen since the last :meth:`poll` or :meth:`wait`, without waiting; returns how
+        many. Skipped while another thread waits (that one counts them)."""
+        self.start()
+        if not self._lock.acquire(blocking=False):
+            return 0
+        try:
+            n = 0
+            while self._read(0.0) is not None:
+                n += 1
+            return n
+        finally:
+            self._lock.release()
+
+    def wait(self, until: float) -> tuple[float, float, int] | None:
+        """Wait until ``until`` (``time.monotonic``) for the next SYNC; then take any more already
+        there. Returns (time of the first, time of the last, how many), or None when none came."""
+        try:
+            self.start()
+        except SyncError as exc:  # the cycle's poll() makes it a fault; no tick meanwhile
+            log.error("%s", exc)
+            time.sleep(max(0.0, until - time.monotonic()))
+            return None
+        with self._lock:
+            first = self._read(max(0.0, until - time.monotonic()))
+            if first is None:
+                return None
+            last, n = first, 1
+            while (t := self._read(0.0)) is not None:
+                last, n = t, n + 1
+            return first, last, n

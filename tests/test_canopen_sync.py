@@ -1,0 +1,147 @@
+"""Who times the SYNC (``[canopen] sync``), on the host: the mode chosen per bus, the key checked with
+its name, the kernel's SYNC refused on a bus without kernel timing, and the cycle paced by ticks.
+
+The kernel's SYNC itself runs on a real SocketCAN interface: tests/vcan/test_vcan.py (in the VM)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from canopen_helpers import make_config
+
+from fieldbus.canopen.clock import PeriodicRunner
+from fieldbus.canopen.config import CanBusConfig, sync_problem
+from fieldbus.canopen.master import CanopenError, CanopenMaster
+from motiond.config_canopen import read_canopen
+from motiond.configkit import ConfigError, Table
+
+ROOT = Path(__file__).resolve().parent.parent
+SOCKETCAN = CanBusConfig("socketcan", "can0")
+
+
+@pytest.mark.parametrize("sync, bus, kernel", [
+    ("auto", SOCKETCAN, True),
+    ("auto", CanBusConfig("virtual", "x"), False),
+    ("auto", CanBusConfig("udp_multicast", "239.74.163.9"), False),
+    ("master", SOCKETCAN, False),
+    ("kernel", SOCKETCAN, True),
+])
+def test_the_sync_mode_follows_the_key_and_the_bus(sync, bus, kernel):
+    config = make_config(1, bus=bus, sync=sync)
+    assert config.kernel_sync is kernel
+    assert CanopenMaster(config, check_budget=False).sync_mode == ("kernel" if kernel else "master")
+
+
+def canopen_table(**canopen: object) -> Table:
+    return Table({"canopen": {"axes": {"x": {"node_id": 1}}, **canopen}}, "m.toml")
+
+
+def test_the_sync_key_is_read_with_master_as_default():
+    # the master's SYNC until the kernel's is proven on real drives (docs/canopen.md)
+    assert read_canopen(canopen_table(), ["x"], 0.002).sync == "master"
+    assert not read_canopen(canopen_table(interface="socketcan", channel="can0"), ["x"], 0.002).kernel_sync
+    assert read_canopen(canopen_table(interface="socketcan", channel="can0", sync="master"), ["x"],
+                        0.002).sync == "master"
+    assert read_canopen(canopen_table(interface="socketcan", channel="can0", sync="kernel"), ["x"],
+                        0.002).kernel_sync
+
+
+@pytest.mark.parametrize("canopen, words", [
+    ({"sync": "kernel"}, r'"kernel" needs interface = "socketcan".*on \'virtual\'.*got \'kernel\''),
+    ({"sync": "bcm"}, r"must be one of auto, kernel, master, got 'bcm'"),
+    ({"sync": 1}, r"must be str"),
+])
+def test_a_bad_sync_names_the_key(canopen, words):
+    with pytest.raises(ConfigError, match=r"^m\.toml: canopen\.sync: " + words):
+        read_canopen(canopen_table(**canopen), ["x"], 0.002)
+    assert sync_problem("kernel", "socketcan") is None
+
+
+def test_config_check_names_the_sync_key(tmp_path):
+    text = (ROOT / "examples" / "canon.toml").read_text()
+    assert 'sync = "master"' in text
+    bad = tmp_path / "m.toml"
+    bad.write_text(text.replace('sync = "master"', 'sync = "kernel"', 1))
+    r = subprocess.run([sys.executable, "-m", "motiond.cli", "config", "check", "--config", str(bad)],
+                       capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert r.returncode == 1 and "Traceback" not in r.stderr
+    assert r.stderr.startswith(f'{bad}: canopen.sync: "kernel" needs interface = "socketcan"'), r.stderr
+    good = subprocess.run([sys.executable, "-m", "motiond.cli", "config", "check", "--config",
+                           str(ROOT / "examples" / "canon.toml")], capture_output=True, text=True,
+                          timeout=120, cwd=ROOT)
+    assert good.returncode == 0 and "SYNC timed by the master" in " ".join(good.stdout.split())
+
+
+def test_kernel_sync_on_a_bus_without_kernel_timing_is_refused_at_open():
+    # a configuration built in code skips the file's check: the master refuses by itself, and lets the
+    # bus go (python-can's periodic send on the virtual bus is a Python thread, not the kernel)
+    master = CanopenMaster(make_config(1, sync="kernel"), check_budget=False)
+    with pytest.raises(CanopenError, match=r'\[canopen\] sync = "kernel": .*Python thread.*socketcan'):
+        master.open()
+    assert master.network is None and master.sync_tick is None
+
+
+def test_master_sync_has_no_tick():
+    master = CanopenMaster(make_config(1), check_budget=False)
+    assert master.sync_mode == "master" and master.sync_tick is None
+
+
+class Ticks:
+    """A tick source as :class:`~fieldbus.canopen.sync.KernelSync` is one: ticks appear at the times the
+    test puts them; ``wait`` returns (first, last, count) of those not yet taken, or None by ``until``."""
+
+    def __init__(self) -> None:
+        self.cond = threading.Condition()
+        self.pending: list[float] = []
+
+    def put(self, n: int = 1) -> None:
+        with self.cond:
+            self.pending.extend([time.monotonic()] * n)
+            self.cond.notify_all()
+
+    def wait(self, until: float) -> tuple[float, float, int] | None:
+        with self.cond:
+            self.cond.wait_for(lambda: self.pending, max(0.0, until - time.monotonic()))
+            if not self.pending:
+                return None
+            got, self.pending = self.pending, []
+            return got[0], got[-1], len(got)
+
+
+def test_ticks_pace_the_runner_and_missed_ones_are_late_and_skipped():
+    ticks = Ticks()
+    period = 1.0  # long: a loaded machine must not make the runner give up on a tick the test sends
+    steps: list[int] = []
+    late: list[int] = []
+    stepped = threading.Semaphore(0)
+
+    def step(k: int, t: float) -> None:
+        steps.append(k)
+        stepped.release()
+
+    runner = PeriodicRunner(period, step, tick=ticks.wait, on_late=lambda k, by: late.append(k))
+    ticks.put(5)  # queued before the start: not the runner's (it takes them with tick(0.0))
+    runner.start()
+    try:
+        for _ in range(3):  # one step per tick
+            ticks.put()
+            assert stepped.acquire(timeout=10.0)
+        assert steps == [0, 1, 2] and runner.stats.skipped == 0
+        ticks.put(3)  # three ticks before the runner took one: one step, two skipped, late
+        assert stepped.acquire(timeout=10.0)
+        assert steps[-1] == 5 and runner.stats.skipped == 2 and late == [5]
+        # no tick: the runner steps on its clock a period after the tick was due, late and skipped
+        t = time.monotonic()
+        assert stepped.acquire(timeout=10.0)
+        assert time.monotonic() - t >= period
+        assert steps[-1] == 7 and runner.stats.skipped == 3 and late == [5, 7]
+    finally:
+        runner.stop()
+        ticks.put()
+        assert runner.join(5.0)
+    assert runner.error is None
