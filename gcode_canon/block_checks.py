@@ -11,6 +11,7 @@ from gcode_canon.errors import GCodeError
 from gcode_canon.lexer import Block
 from gcode_canon.modal import G_AXIS_USERS_GROUP0, ModalLine, gname
 from gcode_canon.spindle_sync import SYNC_MOTIONS, SYNC_WORDS, check_sync_block
+from gcode_canon.spline_steps import SPLINE_MOTIONS
 
 
 class BlockChecksMixin:
@@ -82,6 +83,13 @@ class BlockChecksMixin:
         if self.settings.disable_fanuc_style_sub and ms & {98, 99}:  # LinuxCNC: when the line is read
             raise GCodeError(f"DISABLE_FANUC_STYLE_SUB is set, but found M{min(ms & {98, 99})}")
         takes_ijk = g0 in (100, 120, 130) or ml.g.get(17) == 510
+        spline = motion in SPLINE_MOTIONS and (has_axes or g1 == motion)
+        if spline:  # G5: I J P Q; G5.1: I J; G5.2: P L (LinuxCNC check_other_codes)
+            if "k" in w:
+                raise GCodeError(f"K word with no G2, G3, G6.2, G33, G33.1, G76, or G87 to use it "
+                                 f"({gname(motion)})")
+            used = {50: "ijpq", 51: "ij", 52: "pl"}[motion]
+            w = {k: v for k, v in w.items() if k not in used}
         for letter in "ijk":
             if letter in w and not arc and motion != 870 and not takes_ijk:
                 raise GCodeError(f"{letter.upper()} word with no G2 or G3 to use it")

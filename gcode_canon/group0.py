@@ -41,6 +41,8 @@ class Group0Mixin:
                     self.params.set_system(5211 + k, 0.0)
             self.params.set_system(5210, 0.0)
             self._set_g92([0.0] * N_AXES)
+        elif code == 53:
+            self._nurbs_end(ml)
         elif code == 923:
             self.params.set_system(5210, 1.0)
             self._set_g92([self.params.numbered[5211 + k] for k in range(N_AXES)])

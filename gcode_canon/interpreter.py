@@ -101,6 +101,7 @@ from gcode_canon.program_loop import ProgramLoopMixin
 from gcode_canon.settings import InterpreterSettings
 from gcode_canon.source import LineSource
 from gcode_canon.spindle_sync import SpindleSyncMixin
+from gcode_canon.spline_steps import SplineMixin
 from gcode_canon.status import StatusMixin
 from gcode_canon.tool_steps import ToolSpindleMixin
 
@@ -108,7 +109,8 @@ log = logging.getLogger(__name__)
 
 
 class Interpreter(ProgramLoopMixin, BlockChecksMixin, ModeStepsMixin, ToolSpindleMixin, CutterCompMixin,
-                  MotionMixin, SpindleSyncMixin, ModalStateMixin, Group0Mixin, ParamGlueMixin, StatusMixin):
+                  MotionMixin, SpindleSyncMixin, SplineMixin, ModalStateMixin, Group0Mixin, ParamGlueMixin,
+                  StatusMixin):
     """One interpreter, one machine state; run programs one after another (state carries over)."""
 
     def __init__(self, settings: InterpreterSettings | None = None,
@@ -237,6 +239,7 @@ class Interpreter(ProgramLoopMixin, BlockChecksMixin, ModeStepsMixin, ToolSpindl
         self._fast_ok = True
         self._tail: tuple[float, ...] | None = None
         self.cycle_state = cycles.CycleState()
+        self._spline_reset()
         self.comp: cutter_comp.CutterCompensator | None = None
         self.xform = transforms.ProgramTransform()
         self.xform_on = False  # not xform.identity, cached: the property is costly on every move

@@ -421,6 +421,7 @@ class ModeStepsMixin:
                 if any(self.frames.g92):
                     self._set_g92([0.0] * N_AXES)
             self.motion = 10
+            self._spline_reset()  # LinuxCNC convert_stop: nurbs_reset_global_variables
             self.scale_code, self.rotation_code = 500, 690
             if self.xform_on or self.polar_on:  # Fanuc cancels these on reset
                 self.xform = self.xform.cancel_all()

@@ -35,6 +35,7 @@ from gcode_canon.machine import Resume
 from gcode_canon.modal import ModalLine, gname
 from gcode_canon.offsets import N_AXES, ROTARY_INDEXES
 from gcode_canon.spindle_sync import SYNC_MOTIONS
+from gcode_canon.spline_steps import SPLINE_MOTIONS
 
 _PROBE_MODES = {382: ProbeMode.TOWARD_ERROR, 383: ProbeMode.TOWARD, 384: ProbeMode.AWAY_ERROR,
                 385: ProbeMode.AWAY}
@@ -135,10 +136,17 @@ class MotionMixin:
             if explicit is not None:
                 self.motion = explicit
             return
-        motion = self.motion if explicit is None else explicit
+        previous = self.motion
+        motion = previous if explicit is None else explicit
         self.motion = motion
         w = block.words
         has_axes = block.has_axes()
+        if motion in SPLINE_MOTIONS:
+            if has_axes or explicit == 52:
+                self._spline(motion, block, previous)
+            elif explicit is not None:
+                raise GCodeError(f"All axes missing with motion code {gname(motion)}")
+            return
         if motion in cycles.CYCLE_CODES:
             if has_axes:
                 self._cycle(motion, block)
@@ -368,6 +376,13 @@ class MotionMixin:
                                              others, self.line, abs(rot)))
             self.prog = target
             return
+        self._arc_out(start, target, cx, cy, clockwise, rot)
+
+    def _arc_out(self, start: list[float], target: list[float], cx: float, cy: float, clockwise: bool,
+                 rot: int) -> None:
+        """Emit the arc from ``start`` to ``target`` (program frame, mm) around (cx, cy) in the plane,
+        ``rot`` LinuxCNC's rotation (its sign the sense, as ``clockwise``)."""
+        first, second, _ = self.plane._value_
         centre_prog = list(start)
         centre_prog[first] = cx
         centre_prog[second] = cy

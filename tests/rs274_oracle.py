@@ -91,6 +91,9 @@ _CALL = re.compile(r"^\s*\d+\s+N\S*\s+([A-Z_0-9.]+)\((.*)\)\s*$")
 _NUM = re.compile(r"-?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?|-?nan|-?inf")
 
 
+_SPLINE_DEBUG = re.compile(r"\(emc/rs274ngc/interp_convert\.cc \d+\)\s*$|^X\s+\S+, Y\s+\S+ W\s+\S+$")
+
+
 def _numbers(text: str) -> list[float]:
     return [float(v) for v in _NUM.findall(text)]
 
@@ -124,6 +127,8 @@ def parse_rs274(stdout: str, prints: list[str] | None = None) -> list[Move]:
         if m is None:
             if "NURBS_G6_FEED" in line:
                 moves.append(Move("nurbs", ()))
+            elif _SPLINE_DEBUG.search(line):
+                continue  # LinuxCNC's convert_spline prints its control points on stdout
             elif prints is not None and line.strip():
                 prints.append(line)
             continue
@@ -277,6 +282,7 @@ def run_canon(work: Path, case: Case) -> Result:
     )
     result = Result()
     machine = OracleMachine()
+    spline: tuple | None = None  # (count, file, line) of the spline whose moves are being read
     try:
         interp = Interpreter(settings, machine)
         machine.interp = interp
@@ -286,6 +292,13 @@ def run_canon(work: Path, case: Case) -> Result:
             machine.follow(cmd)
             if isinstance(cmd, (ToolChange, SetToolNumber)):
                 machine.after_change = True
+            if isinstance(cmd, (StraightFeed, ArcFeed)) and interp.splines_done and (
+                    spline is None or spline[0] != interp.splines_done or spline[1:] == (cmd.file, cmd.line)):
+                # a spline's arcs and lines: one NURBS_G5_FEED on rs274, which prints no points
+                if spline is None or spline[0] != interp.splines_done:
+                    spline = (interp.splines_done, cmd.file, cmd.line)
+                    result.moves.append(Move("nurbs", ()))
+                continue
             if isinstance(cmd, (StraightTraverse, StraightFeed, Probe)):
                 kind = {StraightTraverse: "traverse", StraightFeed: "feed"}.get(type(cmd), "probe")
                 result.moves.append(Move(kind, tuple(cmd.end[:6])))

@@ -42,7 +42,7 @@ from gcode_canon.settings import InterpreterSettings
         ("G41 D-1", "G41 D-1: negative tool number"),
         ("G81 X1 Z-1 R1", "Cannot feed with zero feed rate"),
         ("G17.1", "not supported"),
-        ("G5.1", "Unknown G code"),
+        ("G6.1", "Unknown G code"),
         ("G100", "out of range"),
         ("G1.23", "Unknown G code"),
         ("M1.5", "Unknown M code"),

@@ -1,0 +1,147 @@
+"""Splines and NURBS (G5, G5.1, G5.2/G5.3) as LinuxCNC moves them.
+
+LinuxCNC's interpreter hands the control points to its canon (``NURBS_G5_FEED``), which approximates
+the curve by arcs: the curve is sampled at ``4 x (number of control points)`` equal steps of its
+parameter, and each pair of samples with their tangents is joined by a biarc (two tangent-continuous
+arcs), or by a straight line where the biarc degenerates. This module is that computation, in the
+plane's own coordinates ``(first, second)`` (:class:`gcode_canon.commands.Plane`): the same knot
+vector (clamped, integer knots), the same basis functions (Cox-de Boor with LinuxCNC's closed
+intervals at order 1), the same tangent (a central difference of 1e-5 in the parameter) and the same
+biarc construction (equal ratio ``r = 1``), so the moves are LinuxCNC's.
+
+Where LinuxCNC emits nothing for a sample step (no real biarc: the next arc would then start where
+the machine is not), canon joins the two samples by a straight line.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+_DU = 1e-5  # LinuxCNC nurbs_G5_tangent's parameter step
+_SMALL = 1e-6  # emccanon arc(): below it the arc is a straight line
+_BETA_MAX = 1.0 / 1e-8  # emccanon biarc(): 1 / CART_FUZZ
+
+
+@dataclass(frozen=True, slots=True)
+class SplineMove:
+    """One move in plane coordinates: ``centre`` None is a straight feed; else an arc, ``ccw`` its
+    sense seen from the plane's positive normal."""
+
+    end: tuple[float, float]
+    centre: tuple[float, float] | None = None
+    ccw: bool = True
+
+
+def knot_vector(n: int, k: int) -> list[float]:
+    """Clamped uniform knots for control points 0..n and order k (LinuxCNC's
+    ``nurbs_G5_knot_vector_creator``)."""
+    return [0.0 if i < k else float(i - k + 1) if i <= n else float(n - k + 2) for i in range(n + k + 1)]
+
+
+def _basis(n_points: int, k: int, u: float, kv: list[float]) -> list[float]:
+    """N(i, k, u) for every control point i, the recursion of ``nurbs_G5_Nmix`` evaluated bottom-up
+    (order 1 holds on the closed interval, as LinuxCNC's does; 0/0 terms are left out)."""
+    size = n_points + k - 1
+    prev = [1.0 if kv[i] <= u <= kv[i + 1] else 0.0 for i in range(size)]
+    for order in range(2, k + 1):
+        cur = []
+        for i in range(size - order + 1):
+            left_den = kv[i + order - 1] - kv[i]
+            right_den = kv[i + order] - kv[i + 1]
+            left = (u - kv[i]) * prev[i] / left_den if left_den != 0 else 0.0
+            right = (kv[i + order] - u) * prev[i + 1] / right_den if right_den != 0 else 0.0
+            cur.append(left + right)
+        prev = cur
+    return prev[:n_points]
+
+
+def point(u: float, k: int, cps: list[tuple[float, float, float]], kv: list[float]) -> tuple[float, float]:
+    """The curve at parameter u (``nurbs_G5_point``); cps are (first, second, weight)."""
+    basis = _basis(len(cps), k, u, kv)
+    den = 0.0
+    for b, cp in zip(basis, cps, strict=True):
+        den += b * cp[2]
+    x = y = 0.0
+    for b, cp in zip(basis, cps, strict=True):
+        x += cp[0] * b * cp[2] / den
+        y += cp[1] * b * cp[2] / den
+    return x, y
+
+
+def tangent(u: float, k: int, cps: list[tuple[float, float, float]], kv: list[float]) -> tuple[float, float]:
+    """Unit tangent at u by a central difference (``nurbs_G5_tangent``)."""
+    umax = len(cps) - 1 - k + 2
+    lo, hi = max(0.0, u - _DU), min(float(umax), u + _DU)
+    p1, p3 = point(lo, k, cps, kv), point(hi, k, cps, kv)
+    return _unit((p3[0] - p1[0]) / (hi - lo), (p3[1] - p1[1]) / (hi - lo))
+
+
+def _unit(x: float, y: float) -> tuple[float, float]:
+    h = math.hypot(x, y)
+    return (x / h, y / h) if h != 0 else (x, y)
+
+
+def _div(a: float, b: float) -> float:
+    """a / b with IEEE results for b == 0, as the C code computes it."""
+    if b != 0:
+        return a / b
+    if a == 0 or math.isnan(a):
+        return math.nan
+    return math.copysign(math.inf, a) * math.copysign(1.0, b)
+
+
+def _arc(p0: tuple[float, float], p1: tuple[float, float], d: tuple[float, float]) -> SplineMove:
+    """The arc from p0 to p1 leaving p0 along d (emccanon's ``arc``), or a line."""
+    x, y = p1[0] - p0[0], p1[1] - p0[1]
+    den = 2 * (y * d[0] - x * d[1])
+    if abs(den) <= _SMALL:
+        return SplineMove(p1)
+    r = -(x * x + y * y) / den
+    return SplineMove(p1, (p0[0] + d[1] * r, p0[1] - d[0] * r), r < 0)
+
+
+def biarc(p0: tuple[float, float], ts: tuple[float, float], p4: tuple[float, float],
+          te: tuple[float, float], r: float = 1.0) -> list[SplineMove]:
+    """Two arcs from p0 (tangent ts) to p4 (tangent te), emccanon's ``biarc``; a straight line where it
+    has none or an infinite one."""
+    ts, te = _unit(*ts), _unit(*te)
+    vx, vy = p0[0] - p4[0], p0[1] - p4[1]
+    c = vx * vx + vy * vy
+    b = 2 * (vx * (r * ts[0] + te[0]) + vy * (r * ts[1] + te[1]))
+    a = 2 * r * (ts[0] * te[0] + ts[1] * te[1] - 1)
+    discr = b * b - 4 * a * c
+    if discr < 0:
+        return [SplineMove(p4)]  # LinuxCNC: nothing (module docstring)
+    disq = math.sqrt(discr)
+    beta1 = _div(_div(-b - disq, 2), a)
+    beta2 = _div(_div(-b + disq, 2), a)
+    if beta1 > 0 and beta2 > 0:
+        return [SplineMove(p4)]  # LinuxCNC: nothing
+    beta = beta2 if beta1 < beta2 else beta1  # std::max
+    if beta1 == math.inf or beta2 == math.inf or beta > _BETA_MAX or not math.isfinite(beta):
+        return [SplineMove(p4)]
+    alpha = beta * r
+    ab = alpha + beta
+    p1 = (p0[0] + alpha * ts[0], p0[1] + alpha * ts[1])
+    p3 = (p4[0] - beta * te[0], p4[1] - beta * te[1])
+    p2 = ((p1[0] * beta + p3[0] * alpha) / ab, (p1[1] * beta + p3[1] * alpha) / ab)
+    tm = _unit(p3[0] - p2[0], p3[1] - p2[1])
+    return [_arc(p0, p2, ts), _arc(p2, p4, tm)]
+
+
+def nurbs_moves(cps: list[tuple[float, float, float]], order: int) -> list[SplineMove]:
+    """The moves of one NURBS (emccanon's ``NURBS_G5_FEED``); cps (first, second, weight), the first
+    being where the tool stands."""
+    n = len(cps) - 1
+    umax = n - order + 2
+    div = len(cps) * 4
+    kv = knot_vector(n, order)
+    p0, t0 = point(0.0, order, cps, kv), tangent(0.0, order, cps, kv)
+    out: list[SplineMove] = []
+    for i in range(1, div + 1):
+        u = umax * i / div
+        p1, t1 = point(u, order, cps, kv), tangent(u, order, cps, kv)
+        out.extend(biarc(p0, t0, p1, t1))
+        p0, t0 = p1, t1
+    return out
