@@ -116,8 +116,8 @@ class BlockChecksMixin:
         if "h" in w and ml.g.get(8) not in (430, 432) and g0 != 100:
             raise GCodeError("H word with no G43 to use it")
         if "d" in w and motion not in (730, 830) and ml.g.get(7) not in (410, 420, 411, 421) and \
-                g0 not in (100, 120, 130):
-            raise GCodeError("D word with no G code that uses it (G41, G42, G41.1, G42.1, G73, G83)")
+                g0 not in (100, 120, 130) and ml.g.get(14) != 960:
+            raise GCodeError("D word with no G code that uses it (G41, G42, G41.1, G42.1, G73, G83, G96)")
         if self.comp is not None:
             self._check_comp(ml)
         if g0 == 100 and "l" not in w:

@@ -302,8 +302,26 @@ class UseToolLengthOffset(Canon):
 
 @dataclass(frozen=True, slots=True)
 class SetSpindleSpeed(Canon):
+    """The S word. In constant surface speed (:class:`SetSpindleMode` with ``css_max`` > 0) it is
+    the program's surface speed number (m/min in G21, ft/min in G20), as LinuxCNC passes it on; the
+    spindle's speed then follows :class:`SetSpindleMode`."""
+
     NAME: ClassVar[str] = "SET_SPINDLE_SPEED"
     rpm: float
+
+
+@dataclass(frozen=True, slots=True)
+class SetSpindleMode(Canon):
+    """G96/G97 (LinuxCNC ``SET_SPINDLE_MODE``). ``css_max`` 0: constant speed (G97), the S word in
+    rpm. Otherwise constant surface speed (G96): the spindle turns at ``surface / (2 pi r)`` rpm, r
+    the distance of the machine X position from ``x_centre`` (mm), at most ``css_max`` rpm (the D
+    word; 1e30 without one, as LinuxCNC). ``surface`` in mm of surface per minute. Issued again when
+    the S word or the X offsets change while G96 is in force (LinuxCNC resends its speed then)."""
+
+    NAME: ClassVar[str] = "SET_SPINDLE_MODE"
+    css_max: float
+    surface: float = 0.0
+    x_centre: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)

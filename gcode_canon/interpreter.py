@@ -148,6 +148,7 @@ class Interpreter(ProgramLoopMixin, BlockChecksMixin, ModeStepsMixin, ToolSpindl
         self._install_predefined()
         self.steps: list[Callable[[Block, ModalLine], None]] = [
             self._step_comment,
+            self._step_spindle_mode,
             self._step_feed_mode,
             self._step_feed,
             self._step_speed,
@@ -184,6 +185,7 @@ class Interpreter(ProgramLoopMixin, BlockChecksMixin, ModeStepsMixin, ToolSpindl
     # module added) runs on every line. Lines with the same groups and words share one step list.
     _STEP_TRIGGERS: ClassVar[dict[str, tuple[tuple[int, ...], tuple[int, ...], str, bool]]] = {
         "_step_comment": ((), (), "", True),
+        "_step_spindle_mode": ((14,), (), "", False),
         "_step_feed_mode": ((5,), (), "", False),
         "_step_feed": ((), (), "f", False),
         "_step_speed": ((), (), "s", False),
@@ -223,6 +225,7 @@ class Interpreter(ProgramLoopMixin, BlockChecksMixin, ModeStepsMixin, ToolSpindl
         self.feed_mode = FeedMode.UNITS_PER_MINUTE
         self.feed = 0.0  # mm/min (G94), mm/rev (G95), 1/min (G93)
         self.speed = 0.0
+        self.css_max = 0.0  # G97; G96: the highest rpm (1e30 without D)
         self.spindle: SpindleDirection | None = None
         self.mist = False
         self.flood = False
@@ -345,6 +348,8 @@ class Interpreter(ProgramLoopMixin, BlockChecksMixin, ModeStepsMixin, ToolSpindl
         """Keep the machine where it is: its program coordinates change instead."""
         self.frames.refresh()
         self.prog = self._from_machine(self.pos)
+        if self.css_max:  # G96: the spindle's centre line moved with the X offsets
+            self._emit(self._css_mode())
 
     def _resync(self) -> None:
         where = self.machine.current_position()

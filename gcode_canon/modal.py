@@ -41,7 +41,6 @@ G_UNSUPPORTED: dict[int, str] = {
     171: "G17.1 (UV plane)",
     181: "G18.1 (WU plane)",
     191: "G19.1 (VW plane)",
-    960: "G96 (constant surface speed)",
 }
 
 G_AXIS_USERS_GROUP0 = frozenset((100, 280, 300, 920, 520))

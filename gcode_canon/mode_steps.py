@@ -32,6 +32,7 @@ from gcode_canon.commands import (
     SetG5xOffset,
     SetMotionControlMode,
     SetOverrides,
+    SetSpindleMode,
     SpindleOff,
     UseLengthUnits,
     UserMCode,
@@ -422,6 +423,9 @@ class ModeStepsMixin:
                     self._set_g92([0.0] * N_AXES)
             self.motion = 10
             self._spline_reset()  # LinuxCNC convert_stop: nurbs_reset_global_variables
+            if self.css_max:  # LinuxCNC convert_stop: SET_SPINDLE_MODE(s, 0)
+                self.css_max = 0.0
+                self._emit(SetSpindleMode(0.0, file=f, line=n))
             self.scale_code, self.rotation_code = 500, 690
             if self.xform_on or self.polar_on:  # Fanuc cancels these on reset
                 self.xform = self.xform.cancel_all()

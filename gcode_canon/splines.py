@@ -123,6 +123,8 @@ def biarc(p0: tuple[float, float], ts: tuple[float, float], p4: tuple[float, flo
         return [SplineMove(p4)]
     alpha = beta * r
     ab = alpha + beta
+    if ab == 0:  # the samples coincide (repeated control points): nothing to move (LinuxCNC: NaN arcs)
+        return []
     p1 = (p0[0] + alpha * ts[0], p0[1] + alpha * ts[1])
     p3 = (p4[0] - beta * te[0], p4[1] - beta * te[1])
     p2 = ((p1[0] * beta + p3[0] * alpha) / ab, (p1[1] * beta + p3[1] * alpha) / ab)

@@ -38,7 +38,7 @@ class StatusMixin:
             gname(self.retract), G5X_NAMES[self.frames.g5x_index],
             {MotionControlMode.EXACT_PATH: "G61", MotionControlMode.EXACT_STOP_MODAL: "G61.1"}.get(
                 self.control[0], "G64"),
-            "G97", "G7" if self.diameter_mode else "G8",
+            "G96" if self.css_max else "G97", "G7" if self.diameter_mode else "G8",
         ]
         if extensions:
             codes.extend(self._active_extension_gcodes())

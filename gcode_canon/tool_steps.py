@@ -9,6 +9,7 @@ from gcode_canon.commands import (
     Coolant,
     Pose,
     SelectTool,
+    SetSpindleMode,
     SetSpindleSpeed,
     SetToolNumber,
     SpindleDirection,
@@ -28,6 +29,27 @@ from gcode_canon.offsets import N_AXES
 class ToolSpindleMixin:
     """S T M6 M61 M3 M4 M5 M19 M7 M8 M9 (module docstring)."""
 
+    def _step_spindle_mode(self, block: Block, ml: ModalLine) -> None:
+        """G96 D (constant surface speed, D the highest rpm) and G97: LinuxCNC's
+        ``convert_spindle_mode``, the first step of a line after its comment."""
+        code = ml.g.get(14)
+        if code == 970:
+            self.css_max = 0.0
+            self._emit(SetSpindleMode(0.0, file=self.file, line=self.line))
+        elif code == 960:
+            if "s" not in block.words:
+                raise GCodeError("S word missing with G96")
+            d = block.take("d")
+            self.css_max = abs(d) if d is not None else 1e30
+            # the line's S word comes next (_step_speed): it issues the mode with its surface speed
+
+    def _css_mode(self) -> SetSpindleMode:
+        """The G96 state as a command: the surface speed in mm/min, the X where the radius is 0."""
+        f = self.frames
+        surface = self.speed * (304.8 if self.inch else 1000.0)
+        return SetSpindleMode(self.css_max, surface, f.g5x[0] + f.g92[0] + f.tool[0], file=self.file,
+                              line=self.line)
+
     def _step_speed(self, block: Block, ml: ModalLine) -> None:
         value = block.take("s")
         if value is None:
@@ -35,6 +57,8 @@ class ToolSpindleMixin:
         if value < 0.0:
             raise GCodeError(f"Negative spindle speed used: S{value:g}")
         self.speed = value
+        if self.css_max:
+            self._emit(self._css_mode())
         self._emit(SetSpindleSpeed(value, file=self.file, line=self.line))
 
     def _tool(self, number: int):

@@ -160,3 +160,9 @@ def test_against_rs274(program: str, tmp_path: Path) -> None:
     theirs, ours = oracle.run_both(oracle.Case("p", d, "p.ngc"), BINARY)
     assert oracle.compare(theirs, ours) is None
     assert sum(m.kind == "nurbs" for m in theirs.moves) == sum(m.kind == "nurbs" for m in ours.moves)
+
+
+def test_repeated_control_points_move_nothing_between_them() -> None:
+    moves = _moves("G21 F100\nG5.2 X0 Y0 P1\nX0 Y0 P1\nX5 Y5 P1\nX10 Y0 P1 L3\nG5.3")
+    assert moves[-1].end[:2] == pytest.approx((10.0, 0.0))
+    assert all(math.isfinite(v) for m in moves for v in m.end)
