@@ -8,6 +8,7 @@ from gcode_canon import cycles
 from gcode_canon.codes import PLANE_BY_CODE
 from gcode_canon.commands import Plane
 from gcode_canon.errors import GCodeError
+from gcode_canon.lathe_cycles import LATHE_WORDS
 from gcode_canon.lexer import Block
 from gcode_canon.modal import G_AXIS_USERS_GROUP0, ModalLine, gname
 from gcode_canon.spindle_sync import SYNC_MOTIONS, SYNC_WORDS, check_sync_block
@@ -83,6 +84,8 @@ class BlockChecksMixin:
         if self.settings.disable_fanuc_style_sub and ms & {98, 99}:  # LinuxCNC: when the line is read
             raise GCodeError(f"DISABLE_FANUC_STYLE_SUB is set, but found M{min(ms & {98, 99})}")
         takes_ijk = g0 in (100, 120, 130) or ml.g.get(17) == 510
+        if motion in LATHE_WORDS and (has_axes or g1 == motion):  # G70-G72: their words used
+            w = {k: v for k, v in w.items() if k not in LATHE_WORDS[motion]}
         spline = motion in SPLINE_MOTIONS and (has_axes or g1 == motion)
         if spline:  # G5: I J P Q; G5.1: I J; G5.2: P L (LinuxCNC check_other_codes)
             if "k" in w:

@@ -86,6 +86,7 @@ from gcode_canon.dialect import Dialect
 from gcode_canon.errors import GCodeError
 from gcode_canon.expressions import ExpressionReader, near_int
 from gcode_canon.group0 import Group0Mixin
+from gcode_canon.lathe_cycles import LatheCycleMixin
 from gcode_canon.lexer import AXIS_LETTERS, Block
 from gcode_canon.machine import DryRunMachine, MachineCallbacks, Resume
 from gcode_canon.messages import LogFiles
@@ -109,8 +110,8 @@ log = logging.getLogger(__name__)
 
 
 class Interpreter(ProgramLoopMixin, BlockChecksMixin, ModeStepsMixin, ToolSpindleMixin, CutterCompMixin,
-                  MotionMixin, SpindleSyncMixin, SplineMixin, ModalStateMixin, Group0Mixin, ParamGlueMixin,
-                  StatusMixin):
+                  MotionMixin, SpindleSyncMixin, SplineMixin, LatheCycleMixin, ModalStateMixin, Group0Mixin,
+                  ParamGlueMixin, StatusMixin):
     """One interpreter, one machine state; run programs one after another (state carries over)."""
 
     def __init__(self, settings: InterpreterSettings | None = None,

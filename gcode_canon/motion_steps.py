@@ -30,6 +30,7 @@ from gcode_canon.commands import (
     StraightTraverse,
 )
 from gcode_canon.errors import GCodeError
+from gcode_canon.lathe_cycles import LATHE_CYCLES
 from gcode_canon.lexer import AXIS_LETTERS, Block
 from gcode_canon.machine import Resume
 from gcode_canon.modal import ModalLine, gname
@@ -141,6 +142,10 @@ class MotionMixin:
         self.motion = motion
         w = block.words
         has_axes = block.has_axes()
+        if motion in LATHE_CYCLES:
+            if has_axes or explicit == motion:
+                self._lathe_cycle(motion, block)
+            return
         if motion in SPLINE_MOTIONS:
             if has_axes or explicit == 52:
                 self._spline(motion, block, previous)

@@ -252,7 +252,9 @@ class ProgramLoopMixin:
             if len(self._modal_lines) >= 4096:
                 self._modal_lines.clear()
             self._modal_lines[codes] = ml
-        self._check_block(block, ml, codes)
+        capture = self._g7x is not None  # reading a G70-G72 profile: no checks, nothing executed
+        if not capture:
+            self._check_block(block, ml, codes)
         for key, _ in block.assigns:
             self.params.check_assignable(key)
         for key, value in block.assigns:
@@ -265,6 +267,9 @@ class ProgramLoopMixin:
             self.diameter_mode = lathe == 70
         if self.diameter_mode and "x" in block.words:
             block = _radius_x(block)
+        if capture:
+            self._profile_line(block, ml)
+            return self._drain_list()
         words = block.words
         key = (codes, "f" in words, "s" in words, "t" in words, bool(block.comments))
         steps = self._step_cache.get(key)
@@ -304,7 +309,7 @@ class ProgramLoopMixin:
         return (self.feed_mode is not FeedMode.INVERSE_TIME and self.frames.rotation == 0.0
                 and not self._missing_axes & {"x", "y", "z"} and self.cycle_state.motion is None
                 and self.comp is None and not self._after_comp and not self.polar_on
-                and not self.xform_on and not self.diameter_mode)
+                and not self.xform_on and not self.diameter_mode and self._g7x is None)
 
     def _drain_list(self) -> list[Canon | Resume]:
         out, self._out = self._out, []

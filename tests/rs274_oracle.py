@@ -91,7 +91,7 @@ _CALL = re.compile(r"^\s*\d+\s+N\S*\s+([A-Z_0-9.]+)\((.*)\)\s*$")
 _NUM = re.compile(r"-?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?|-?nan|-?inf")
 
 
-_SPLINE_DEBUG = re.compile(r"\(emc/rs274ngc/interp_convert\.cc \d+\)\s*$|^X\s+\S+, Y\s+\S+ W\s+\S+$")
+_SPLINE_DEBUG = re.compile(r"\(emc/rs274ngc/interp_convert\.cc \d+\)\s*$|^X\s+\S+, Y\s+\S+ W\s+\S+$|^Oops \(")
 
 
 def _numbers(text: str) -> list[float]:
@@ -395,6 +395,20 @@ def run_both(case: Case, binary: Path) -> tuple[Result, Result]:
         work = stage(case, Path(tmp) / "b")
         ours = run_canon(work, case)
     return theirs, ours
+
+
+def run_program(text: str, tmp: Path, binary: Path) -> tuple[Result, Result]:
+    """Both interpreters on a program given as text (staged in a directory of its own under tmp)."""
+    d = tmp / "case"
+    d.mkdir()
+    (d / "p.ngc").write_text(text + "\n")
+    return run_both(Case("p", d, "p.ngc"), binary)
+
+
+def nc_file_case(name: str) -> Case:
+    """One of LinuxCNC's nc_files by its name relative to nc_files."""
+    (case,) = [c for c in nc_file_cases(linuxcnc_tree() / "nc_files") if c.name == name]
+    return case
 
 
 def _drop_null(moves: list[Move]) -> list[Move]:

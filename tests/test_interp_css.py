@@ -66,5 +66,4 @@ BINARY = oracle.rs274_binary()
                                   "nurbs/G5/Curva_Mazatrol #1=1_G5.ngc"])
 def test_linuxcnc_programs_that_start_in_g96(name: str) -> None:
     assert BINARY is not None
-    (case,) = [c for c in oracle.nc_file_cases(oracle.linuxcnc_tree() / "nc_files") if c.name == name]
-    assert oracle.compare(*oracle.run_both(case, BINARY)) is None
+    assert oracle.compare(*oracle.run_both(oracle.nc_file_case(name), BINARY)) is None

@@ -154,10 +154,7 @@ BINARY = oracle.rs274_binary()
 ])
 def test_against_rs274(program: str, tmp_path: Path) -> None:
     assert BINARY is not None
-    d = tmp_path / "case"
-    d.mkdir()
-    (d / "p.ngc").write_text(program + "\n")
-    theirs, ours = oracle.run_both(oracle.Case("p", d, "p.ngc"), BINARY)
+    theirs, ours = oracle.run_program(program, tmp_path, BINARY)
     assert oracle.compare(theirs, ours) is None
     assert sum(m.kind == "nurbs" for m in theirs.moves) == sum(m.kind == "nurbs" for m in ours.moves)
 

@@ -1,0 +1,123 @@
+"""G70, G71, G72 (LinuxCNC's lathe cycles, gcode_canon/lathe_cycles.py and lathe_profile.py).
+
+The plain tests check what a roughing cycle must do, worked out from the profile here: layers I
+apart, never into the finished part plus its allowance D, ending on the profile; the differential
+test compares with rs274 on LinuxCNC's own programs (tests/interp g71-*, g72-*, nc_files lathe_g7x*)
+and on programs written here."""
+
+from __future__ import annotations
+
+import itertools
+from pathlib import Path
+
+import pytest
+
+from gcode_canon.commands import ArcFeed, StraightFeed, StraightTraverse
+from tests import rs274_oracle as oracle
+from tests.test_interp_helpers import error, run
+
+# a stepped shaft: radius 5 from Z0 to Z-10, radius 8 from Z-10 to Z-20, stock radius 10
+PROFILE = "O100 SUB\nG1 X5 Z0\nZ-10\nX8\nZ-20\nX10\nO100 ENDSUB\n"
+
+
+def _radius_at(z: float) -> float:
+    return 5.0 if z > -10.0 else 8.0
+
+
+def _moves(text: str) -> list:
+    return [c for c in run(text) if isinstance(c, (StraightFeed, StraightTraverse, ArcFeed))]
+
+
+def test_g71_cuts_layers_i_apart_and_leaves_d_on_the_profile() -> None:
+    moves = _moves(f"G18 G21 F100\n{PROFILE}G0 X12 Z2\nG71 Q100 X10 Z1 D0.5 I1 R0.3")
+    feeds = [m for m in moves if isinstance(m, StraightFeed)]
+    assert feeds
+    for m in feeds:  # no cut goes into the part plus its allowance
+        x, z = m.end[0], m.end[2]
+        if -20.0 < z < 0.0:
+            assert x >= _radius_at(z) + 0.5 - 1e-6 or abs(x - (_radius_at(z) + 0.5)) < 1e-6, (x, z)
+    # roughing layers along Z at X = 10 - k * I (from the start X down), I = 1
+    levels = sorted({round(m.end[0], 6) for m in feeds if m.end[2] < -1.0 and m.end[0] < 10})
+    assert {9.0, 8.0, 7.0, 6.0} <= set(levels)
+    # the last pass runs along the profile offset by D (also along Z at the shoulder): radius 5.5 to
+    # Z-9.5, a rounded corner, radius 8.5 to Z-19.5
+    assert any(m.end[0] == pytest.approx(5.5) and m.end[2] == pytest.approx(-9.5) for m in feeds)
+    assert any(m.end[0] == pytest.approx(8.5) and m.end[2] == pytest.approx(-19.5) for m in feeds)
+
+
+def test_g71_1_cuts_no_pockets_and_g72_cuts_along_x() -> None:
+    pocket = "O100 SUB\nG1 X5 Z0\nZ-5\nX3 Z-8\nZ-12\nX5 Z-15\nZ-20\nX10\nO100 ENDSUB\n"
+    full = _moves(f"G18 G21 F100\n{pocket}G0 X12 Z2\nG71 Q100 X10 Z1 D0 I1 R0.3")
+    outer = _moves(f"G18 G21 F100\n{pocket}G0 X12 Z2\nG71.1 Q100 X10 Z1 D0 I1 R0.3")
+    pockets = _moves(f"G18 G21 F100\n{pocket}G0 X12 Z2\nG71.2 Q100 X10 Z1 D0 I1 R0.3")
+
+    def in_pocket(moves: list) -> list:
+        return [m for m in moves if -12.001 <= m.end[2] <= -7.999]
+
+    # the pocket (radius 3 between Z-8 and Z-12) is cut by G71 and G71.2, not by G71.1; G71.2 cuts
+    # less than G71 (only the pocket)
+    assert min(m.end[0] for m in in_pocket(full)) == pytest.approx(3.0)
+    assert min(m.end[0] for m in in_pocket(pockets)) == pytest.approx(3.0)
+    assert not in_pocket(outer)
+    assert len(pockets) < len(full)
+    facing = _moves(f"G18 G21 F100\n{PROFILE}G0 X12 Z2\nG72 Q100 X10 Z1 D0 I1 R0.3")
+    feeds = [m for m in facing if isinstance(m, StraightFeed)]
+    # G72 faces: its layers are Z levels I apart, cut along X
+    along_x = [(a, b) for a, b in itertools.pairwise(feeds)
+               if abs(a.end[2] - b.end[2]) < 1e-9 and abs(a.end[0] - b.end[0]) > 1]
+    assert len({round(a.end[2], 6) for a, _ in along_x}) >= 5
+
+
+def test_g70_finishes_along_the_profile_in_p_passes() -> None:
+    moves = _moves(f"G18 G21 F100\n{PROFILE}G0 X12 Z2\nG70 Q100 X10 Z1 D1 E0 P2")
+    feeds = [m for m in moves if isinstance(m, StraightFeed)]
+    # two passes from D1 to E0: (P - 1) x (D - E) / P + E = 0.5 mm off the profile, then on it
+    assert any(m.end[0] == pytest.approx(5.5) and m.end[2] == pytest.approx(-9.5) for m in feeds)
+    assert any(m.end[0] == pytest.approx(5.0) and m.end[2] == pytest.approx(-10.0) for m in feeds)
+    assert feeds[-1].end[0] == pytest.approx(10.0) and feeds[-1].end[2] == pytest.approx(-20.0)
+
+
+def test_the_profile_sub_runs_its_control_flow_and_sees_its_own_position() -> None:
+    # #<_x> inside the profile is where the profile has got to (LinuxCNC moves its current point)
+    prof = ("O100 SUB\nG1 X5 Z0\nO101 REPEAT [2]\nG1 Z[#<_z>-5]\nO101 ENDREPEAT\nX[#<_x>+5]\nO100 ENDSUB\n")
+    moves = _moves(f"G18 G21 F100\n{prof}G0 X12 Z2\nG70 Q100 X12 Z1 P1")
+    assert moves[-1].end[0] == pytest.approx(10.0) and moves[-1].end[2] == pytest.approx(-10.0)
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("G18 F100\nG71 X10 Z1", "requires a Q word"),
+    (f"G17 F100\n{PROFILE}G71 Q100 X10 Z1", "can only be used in XZ plane (G18)"),
+    (f"G18 F100\n{PROFILE}G71 Q100 X10 Z1 I0", "I must be greater than zero"),
+    ("G18 F100\nO100 SUB\nG91 G1 U1\nO100 ENDSUB\nG91 G71 Q100 X1 Z1", "Cannot use U in incremental mode"),
+    ("G18 F100\nO100 SUB\nG1 X1 Z1 A1 C1\nO100 ENDSUB\nG71 Q100 X1 Z3", "Both A and C parameters"),
+    (f"G18 F100\n{PROFILE}G71 Q100 X10 Z1 P2", "P word"),
+])
+def test_refusals(text: str, message: str) -> None:
+    assert message in str(error(text))
+
+
+BINARY = oracle.rs274_binary()
+
+
+@pytest.mark.rs274
+@pytest.mark.skipif(BINARY is None, reason=f"rs274 is not built in {oracle.rs274_dir()}")
+@pytest.mark.parametrize("name", ["lathe_g70_71_demo.ngc", "lathe_g7x_face_boring.ngc",
+                                  "lathe_g7x_quadrants.ngc"])
+def test_linuxcnc_lathe_programs(name: str) -> None:
+    assert BINARY is not None
+    assert oracle.compare(*oracle.run_both(oracle.nc_file_case(name), BINARY)) is None
+
+
+@pytest.mark.rs274
+@pytest.mark.skipif(BINARY is None, reason=f"rs274 is not built in {oracle.rs274_dir()}")
+@pytest.mark.parametrize("program", [
+    f"G18 G21 F100\n{PROFILE}G0 X12 Z2\nG71 Q100 X10 Z1 D0.5 I1 R0.3\nG70 Q100 X10 Z1 D0.5 P2\nM2",
+    "G18 G21 F100\nO100 SUB\nG1 X5 Z0\nZ-5\nX3 Z-8\nZ-12\nG2 X5 Z-15 R4\nG1 Z-20 A1\nX10\nO100 ENDSUB\n"
+    "G0 X12 Z2\nG71 Q100 X10 Z1 D0.2 I0.7 R0.2\nG71.1 Q100 X10 Z1 D0 I1\nG71.2 Q100 X10 Z1 D0 I1\nM2",
+    f"G18 G20 F4\n{PROFILE}G0 X12 Z2\nG72 Q100 X10 Z1 D0.02 I0.1 R0.01\nG72.1 Q100 X10 Z1 I0.2\nM2",
+])
+def test_against_rs274(program: str, tmp_path: Path) -> None:
+    assert BINARY is not None
+    theirs, ours = oracle.run_program(program, tmp_path, BINARY)
+    assert oracle.compare(theirs, ours) is None
+    assert len(theirs.moves) > 10
