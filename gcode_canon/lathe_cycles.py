@@ -9,8 +9,10 @@ executed), then cut: D the allowance left on the profile, I the depth of cut (de
 retract (0.5), U W a shift of the finished profile. G7x.1 leaves the pockets out, G7x.2 cuts only
 them. ``G70 Q<n> X Z D E P``: P passes (1) from D down to E (0) along the profile.
 
-Where canon differs from LinuxCNC: G70 with cutter compensation on is refused (LinuxCNC compensates
-its passes); a G2/G3 with R too small for its ends is refused (LinuxCNC computes a NaN centre).
+Where canon differs from LinuxCNC: G70 with cutter compensation of a radius other than 0 is refused
+(LinuxCNC starts each pass with an uncompensated rapid and compensates the rest; with radius 0 the
+passes go through the compensation and agree); a G2/G3 with R too small for its ends is refused
+(LinuxCNC computes a NaN centre).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
+from gcode_canon import cutter_comp
 from gcode_canon import lathe_profile as lp
 from gcode_canon.arcs import centre_ijk
 from gcode_canon.commands import Plane, StraightFeed, StraightTraverse
@@ -59,6 +62,21 @@ class _Moves:
         t[0], t[2] = p.imag * self.i.scale, p.real * self.i.scale
         return t
 
+    def _compensated(self, target: list[float], centre: tuple[float, float] | None = None,
+                     ccw: bool = False, rapid: bool = False) -> None:
+        """G70 with cutter compensation on: the move goes through the compensation as a G0/G1/G2/G3
+        of the program would (in the XZ plane: Z first, X second, Y normal)."""
+        i = self.i
+        others = tuple(target[k] for k in range(len(target)) if k not in (2, 0, 1))
+        end = (target[2], target[0])
+        if centre is None:
+            seg = cutter_comp.Line2(i.comp.programmed, end, target[1], others, i.line, rapid)
+        else:
+            i._comp_normal = i.prog[1]
+            seg = cutter_comp.Arc2(i.comp.programmed, end, centre, ccw, target[1], others, i.line)
+        i._comp_move(seg)
+        i.prog = target
+
     def _line(self, p: complex, feed: bool) -> None:
         i = self.i
         target = self._target(p)
@@ -67,6 +85,10 @@ class _Moves:
             raise GCodeError("Coordinate out of range")
         if feed:
             i._require_feed(self.block, "G1")
+        self.last = 10 if feed else 0
+        if i.comp is not None:
+            self._compensated(target, rapid=not feed)
+            return
         i.prog, i.pos = target, end
         i._emit((StraightFeed if feed else StraightTraverse)(end, file=i.file, line=i.line))
         self.last = 10 if feed else 0
@@ -83,6 +105,10 @@ class _Moves:
         if abs(i.prog[2] / s - end.real) < _EQUAL and abs(i.prog[0] / s - end.imag) < _EQUAL:
             return  # LinuxCNC's motion_machine leaves out arcs that end where they start
         i._require_feed(self.block, "G3" if ccw else "G2")
+        self.last = 30 if ccw else 20
+        if i.comp is not None:
+            self._compensated(self._target(end), (centre.real * s, centre.imag * s), ccw)
+            return
         i._arc_out(list(i.prog), self._target(end), centre.real * s, centre.imag * s, not ccw,
                    1 if ccw else -1)
         self.last = 30 if ccw else 20
@@ -99,8 +125,12 @@ class LatheCycleMixin:
         q = block.take("q")
         if q is None:
             raise GCodeError("G7x.x  requires a Q word")
-        if self.comp is not None:  # type: ignore[attr-defined]
+        comp = self.comp  # type: ignore[attr-defined]
+        if comp is not None and cycle != 70:
             raise GCodeError(f"{name} cannot be used with cutter compensation enabled")
+        if comp is not None and comp.radius != 0.0:
+            # LinuxCNC starts each pass with an uncompensated rapid, then compensates: not mirrored
+            raise GCodeError("G70 with cutter compensation of a tool radius other than 0 is not supported")
         if self.plane is not Plane.XZ:  # type: ignore[attr-defined]
             raise GCodeError(f"{name} can only be used in XZ plane (G18)")
         scale = self.scale  # type: ignore[attr-defined]

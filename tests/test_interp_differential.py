@@ -22,7 +22,6 @@ NOT_BUILT = f"rs274 is not built in {oracle.rs274_dir()}: run tools/build-rs274 
 
 # Known differences, by case: the reason (docs/interpreter.md says more). "canon:" where canon is right.
 KNOWN_INTERP = {
-    "g71-endless-loop_2/g71-endless-loop_2.ngc": "G70 with cutter compensation is refused",
     "g84/g18/g98/g18-g98-g84.ngc": "canon: LinuxCNC permutes the G84 axes twice in G18/G19",
     "g84/g18/g99/g18-g99-g84.ngc": "canon: LinuxCNC permutes the G84 axes twice in G18/G19",
     "g84/g19/g98/g19-g98-g84.ngc": "canon: LinuxCNC permutes the G84 axes twice in G18/G19",

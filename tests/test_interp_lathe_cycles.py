@@ -91,6 +91,8 @@ def test_the_profile_sub_runs_its_control_flow_and_sees_its_own_position() -> No
     ("G18 F100\nO100 SUB\nG91 G1 U1\nO100 ENDSUB\nG91 G71 Q100 X1 Z1", "Cannot use U in incremental mode"),
     ("G18 F100\nO100 SUB\nG1 X1 Z1 A1 C1\nO100 ENDSUB\nG71 Q100 X1 Z3", "Both A and C parameters"),
     (f"G18 F100\n{PROFILE}G71 Q100 X10 Z1 P2", "P word"),
+    (f"G18 F100\n{PROFILE}G0 X12 Z2\nG42.1 D1\nG71 Q100 X10 Z1", "cannot be used with cutter compensation"),
+    (f"G18 F100\n{PROFILE}G0 X12 Z2\nG42.1 D1\nG70 Q100 X10 Z1", "radius other than 0 is not supported"),
 ])
 def test_refusals(text: str, message: str) -> None:
     assert message in str(error(text))
@@ -115,6 +117,7 @@ def test_linuxcnc_lathe_programs(name: str) -> None:
     "G18 G21 F100\nO100 SUB\nG1 X5 Z0\nZ-5\nX3 Z-8\nZ-12\nG2 X5 Z-15 R4\nG1 Z-20 A1\nX10\nO100 ENDSUB\n"
     "G0 X12 Z2\nG71 Q100 X10 Z1 D0.2 I0.7 R0.2\nG71.1 Q100 X10 Z1 D0 I1\nG71.2 Q100 X10 Z1 D0 I1\nM2",
     f"G18 G20 F4\n{PROFILE}G0 X12 Z2\nG72 Q100 X10 Z1 D0.02 I0.1 R0.01\nG72.1 Q100 X10 Z1 I0.2\nM2",
+    f"G18 G21 F100\n{PROFILE}G0 X12 Z2\nG42.1 D0\nG70 Q100 X10 Z1 D0.5 P2\nG40\nG0 X15\nM2",
 ])
 def test_against_rs274(program: str, tmp_path: Path) -> None:
     assert BINARY is not None
