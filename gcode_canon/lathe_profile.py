@@ -482,9 +482,12 @@ class Profile:
             cycle = 3
         while p < n:
             self._step()
+            layers = 0
             while x - TOL > loc.p.imag:
                 x -= self.delta
-                self._step()
+                layers += 1
+                if layers > 10 * _MAX_STEPS:
+                    raise ProfileError("the cycle does not converge on this profile")
             if segs[p].dive(loc, x, out, p == 0):
                 if cycle == 1:  # no pockets: along the final contour to the end
                     for s in segs[p:]:

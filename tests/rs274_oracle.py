@@ -400,7 +400,7 @@ def run_both(case: Case, binary: Path) -> tuple[Result, Result]:
 def run_program(text: str, tmp: Path, binary: Path) -> tuple[Result, Result]:
     """Both interpreters on a program given as text (staged in a directory of its own under tmp)."""
     d = tmp / "case"
-    d.mkdir()
+    d.mkdir(parents=True)
     (d / "p.ngc").write_text(text + "\n")
     return run_both(Case("p", d, "p.ngc"), binary)
 

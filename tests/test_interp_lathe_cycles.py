@@ -124,3 +124,60 @@ def test_against_rs274(program: str, tmp_path: Path) -> None:
     theirs, ours = oracle.run_program(program, tmp_path, BINARY)
     assert oracle.compare(theirs, ours) is None
     assert len(theirs.moves) > 10
+
+
+def _random_profile_program(seed: int) -> str:
+    """A stepped shaft (X growing as Z goes down: what the cycles accept) with random steps, arcs and
+    corners, and one of the cycles with random depth."""
+    import random
+
+    r = random.Random(seed)
+    x = r.uniform(1, 4)
+    lines = ["O100 SUB", f"G1 X{x:.3f} Z0"]
+    z = 0.0
+    for _ in range(r.randint(2, 6)):
+        dz, dx = r.choice((0.0, r.uniform(0.5, 6.0))), r.choice((0.0, r.uniform(0.3, 2.0)))
+        if dz == 0.0 and dx == 0.0:
+            dz = 2.0
+        z, x = z - dz, x + dx
+        chord = (dz * dz + dx * dx) ** 0.5
+        moves = [f"G1 X{x:.3f} Z{z:.3f}"]
+        if dz > 0 and dx > 0:
+            moves += [f"G{k} X{x:.3f} Z{z:.3f} R{chord * r.uniform(0.8, 3):.3f}" for k in (2, 3)]
+        corner = r.choice(("", "", f" A{r.uniform(0.1, 0.5):.2f}", f" C{r.uniform(0.1, 0.5):.2f}"))
+        lines.append(r.choice(moves) + corner)
+    lines.append(f"G1 X{x + 2:.3f}\nO100 ENDSUB")
+    code = r.choice(("G70", "G71", "G71.1", "G71.2", "G72", "G72.1", "G72.2"))
+    depth = r.choice((0.05, 0.3, 1.0, 2.5))
+    return ("G18 G21 F100\n" + "\n".join(lines)
+            + f"\nG0 X{x + 4:.3f} Z2\n{code} Q100 X{x + 2:.3f} Z1 D0.2 I{depth} R0.2\nM2")
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_random_profiles_end_or_refuse_cleanly(seed: int) -> None:
+    """Any profile: moves, or a G-code error that names the problem; no internal error, no hang."""
+    from gcode_canon.errors import GCodeError
+
+    try:
+        run(_random_profile_program(seed))
+    except GCodeError as exc:
+        assert "internal error" not in str(exc), str(exc)
+
+
+@pytest.mark.rs274
+@pytest.mark.skipif(BINARY is None, reason=f"rs274 is not built in {oracle.rs274_dir()}")
+def test_random_profiles_against_rs274(tmp_path: Path) -> None:
+    """What rs274 accepts moves the same; what it refuses canon refuses, a profile with the same G7X
+    message (canon's line in error sends nothing, LinuxCNC has sent the line's rapid: not compared)."""
+    assert BINARY is not None
+    accepted = 0
+    for seed in range(60):
+        theirs, ours = oracle.run_program(_random_profile_program(seed), tmp_path / str(seed), BINARY)
+        if theirs.error is None:
+            accepted += 1
+            assert oracle.compare(theirs, ours) is None, (seed, oracle.compare(theirs, ours))
+        else:
+            assert ours.error is not None, (seed, theirs.error)
+            if theirs.error.startswith("G7X error"):
+                assert theirs.error.split(":")[-1] in ours.error, (seed, theirs.error, ours.error)
+    assert accepted >= 5
