@@ -87,8 +87,8 @@ class ParamGlueMixin:
             "_tool_offset": lambda: b(any(v != 0.0 for v in self.frames.tool)),
             "_retract_r_plane": lambda: b(self.retract == 990),
             "_retract_old_z": lambda: b(self.retract == 980),
-            "_spindle_rpm_mode": lambda: 1.0,
-            "_spindle_css_mode": lambda: 0.0,
+            "_spindle_rpm_mode": lambda: b(not self.css_max),
+            "_spindle_css_mode": lambda: b(bool(self.css_max)),
             "_ijk_absolute_mode": lambda: b(self.ijk_absolute),
             "_lathe_diameter_mode": lambda: b(self.diameter_mode),
             "_lathe_radius_mode": lambda: b(not self.diameter_mode),  # LinuxCNC: 1 in G8

@@ -43,9 +43,11 @@ def test_program_end_and_status() -> None:
     interp = Interpreter(InterpreterSettings(dry_run=True, require_program_end=False))
     run("G96 D2000 S100", interp)
     assert "G96" in interp.active_gcodes()
+    assert (interp.parameter("_spindle_css_mode"), interp.parameter("_spindle_rpm_mode")) == (1.0, 0.0)
     out = run("M2", interp)
     assert any(isinstance(c, SetSpindleMode) and c.css_max == 0.0 for c in out)
     assert "G97" in interp.active_gcodes()
+    assert (interp.parameter("_spindle_css_mode"), interp.parameter("_spindle_rpm_mode")) == (0.0, 1.0)
 
 
 @pytest.mark.parametrize(("text", "message"), [
