@@ -7,7 +7,10 @@ With no section named, all three run.
 ``--table`` (issue 17's programs, generated here, on the demo mill at 2 ms): for each program its
     cycle time, the ratio to its reference (one line; the spiral written with 8 decimals; the
     feed/acceleration lower bound; for the square the deviation against v^2/a), planning CPU time
-    over motion time, and the peak memory the planning took. Targets are printed beside them.
+    over motion time, and the peak memory the planning took. Targets are printed beside them. Beside
+    the issue's table: tiny moves under G61.1, where every move must stop, against
+    :func:`exact_stop_bound`, and chords of circles in G64 P0.01, G64 without P and G61 against one
+    G3 in the same mode.
 ``--throughput``: a 0.05 mm-segment spiral of 10k, 50k and 150k moves (the same radii, more turns:
     the same geometry per move) and the surfacing raster: planning speed as a multiple of real time
     (CPU of one core), CPU per move and peak memory of each run (target: at least 50x, cost per move

@@ -32,6 +32,7 @@ from planner.segments import (
     ARC_TRY,
     ARC_TRY_EXACT,
     MERGE_EXACT,
+    MERGE_EXACT_ARC,
     MERGE_MAX_PIECES,
     MERGE_MAX_TIME,
     MERGE_SHARE,
@@ -71,6 +72,12 @@ def _line_distance(p: Sequence[float], a: Sequence[float], u: Sequence[float]) -
     along = sum([x * y for x, y in zip(d, u, strict=True)])
     norm = math.hypot(*d)
     return math.sqrt(max(norm * norm - along * along, 0.0))
+
+
+def _arc_tol(run: _Run) -> float:
+    """How far the programmed points may lie from a merged arc: the run's tolerance, and in G64 without
+    P and G61 at least MERGE_EXACT_ARC (4-decimal rounding plus a chord's own sagitta)."""
+    return run.tol if run.tol_mode > 0.0 else max(run.tol, MERGE_EXACT_ARC)
 
 
 class MergingMixin:
@@ -173,7 +180,7 @@ class MergingMixin:
         n = len(run.cmds)
         run.points.append(run.end)
         if run.arc is None or n + 1 - run.arc_n >= max(1, n // 2):
-            fit = fit_arc(run.start, run.points, end, run.tol, self._arc_planes, run.tol_mode <= 0.0)
+            fit = fit_arc(run.start, run.points, end, _arc_tol(run), self._arc_planes, run.tol_mode <= 0.0)
             if fit is None:
                 run.points.pop()
                 return False
@@ -223,7 +230,7 @@ class MergingMixin:
         if run.arc is not None:
             fit, k = run.arc, n
             if run.arc_n < n:
-                full = fit_arc(s, run.points, run.end, run.tol, self._arc_planes, run.tol_mode <= 0.0)
+                full = fit_arc(s, run.points, run.end, _arc_tol(run), self._arc_planes, run.tol_mode <= 0.0)
                 if full is not None:
                     fit = full
                 else:
