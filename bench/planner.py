@@ -7,7 +7,10 @@ With no section named, all three run.
 ``--table`` (issue 17's programs, generated here, on the demo mill at 2 ms): for each program its
     cycle time, the ratio to its reference (one line; the spiral written with 8 decimals; the
     feed/acceleration lower bound; for the square the deviation against v^2/a), planning CPU time
-    over motion time, and the peak memory the planning took. Targets are printed beside them.
+    over motion time, and the peak memory the planning took. Targets are printed beside them. Beside
+    the issue's table: tiny moves under G61.1, where every move must stop, against
+    :func:`exact_stop_bound`, and chords of circles in G64 P0.01, G64 without P and G61 against one
+    G3 in the same mode.
 ``--throughput``: a 0.05 mm-segment spiral of 10k, 50k and 150k moves (the same radii, more turns:
     the same geometry per move) and the surfacing raster: planning speed as a multiple of real time
     (CPU of one core), CPU per move and peak memory of each run (target: at least 50x, cost per move
@@ -256,9 +259,10 @@ def spiral(segments: int, step: float, feed: float, decimals: int, r0: float = 3
     yield ProgramEnd(file="spiral.ngc", line=segments + 2)
 
 
-def tiny(segments: int, step: float, feed: float) -> Iterator:
-    """``segments`` moves of ``step`` mm along the XY diagonal, written with 4 decimals (G64 P0.01)."""
-    yield G64P
+def tiny(segments: int, step: float, feed: float, mode: SetMotionControlMode = G64P) -> Iterator:
+    """``segments`` moves of ``step`` mm along the XY diagonal, written with 4 decimals (G64 P0.01
+    unless ``mode``)."""
+    yield mode
     yield SetFeedRate(feed)
     c = step / math.sqrt(2.0)
     for k in range(1, segments + 1):
@@ -266,10 +270,11 @@ def tiny(segments: int, step: float, feed: float) -> Iterator:
     yield ProgramEnd(file="tiny.ngc", line=segments + 1)
 
 
-def arc_chords(radius: float, pieces: int, step: float, feed: float, as_arc: bool = False) -> Iterator:
+def arc_chords(radius: float, pieces: int, step: float, feed: float, as_arc: bool = False,
+               mode: SetMotionControlMode = G64P) -> Iterator:
     """``pieces`` chords of ``step`` mm on a circle of ``radius`` about the origin from (radius, 0),
-    4 decimals (G64 P0.01); with ``as_arc`` the same path as one G3."""
-    yield G64P
+    4 decimals (G64 P0.01 unless ``mode``); with ``as_arc`` the same path as one G3."""
+    yield mode
     yield SetFeedRate(feed)
     yield StraightFeed(Pose(radius, 0, 0), file="arc.ngc", line=1)
     dth = step / radius
@@ -282,6 +287,28 @@ def arc_chords(radius: float, pieces: int, step: float, feed: float, as_arc: boo
             yield StraightFeed(Pose(_r(radius * math.cos(k * dth), 4), _r(radius * math.sin(k * dth), 4), 0),
                                file="arc.ngc", line=k + 1)
     yield ProgramEnd(file="arc.ngc", line=pieces + 2)
+
+
+def exact_stop_bound(prog: list, machine=DEMO_MACHINE) -> float:
+    """A lower bound for a program that stops exactly at the end of every straight move (G61.1): each
+    move from rest to rest, time-optimal under its projected axis velocity, acceleration and jerk limits
+    (ruckig, 1 DoF, the full jerk), rounded up to whole cycles (each stop is met by a setpoint)."""
+    otg, inp = Ruckig(1), InputParameter(1)
+    total = 0.0
+    for cmd, length, u, feed, _tol in straight_lines(prog, machine):
+        limits = [(a.max_velocity / abs(x), a.max_acceleration / abs(x), a.max_jerk / abs(x))
+                  for a, x in zip(machine.axes, u, strict=True) if x != 0.0]
+        v = min(x[0] for x in limits)
+        if isinstance(cmd, StraightFeed):
+            v = min(v, feed)
+        inp.current_position, inp.target_position = [0.0], [length]
+        inp.max_velocity = [v]
+        inp.max_acceleration = [min(x[1] for x in limits)]
+        inp.max_jerk = [min(x[2] for x in limits)]
+        traj = Trajectory(1)
+        otg.calculate(inp, traj)
+        total += math.ceil(traj.duration / machine.cycle_s - 1e-9) * machine.cycle_s
+    return total
 
 
 def wave(seed: int, feed: float) -> list:
@@ -424,11 +451,20 @@ def table(check: bool) -> None:
     bound = lower_bound(list(tiny(20000, 0.001, 6000)))
     _row("20,000 x 0.001 mm, F6000", _measure(lambda: tiny(20000, 0.001, 6000), check), bound,
          "acceleration bound", "<= 1.5")
-    for radius, pieces, step in ((20.0, 20000, 0.001), (10.0, 6000, 0.01)):
-        ref = _measure(lambda r=radius, n=pieces, h=step: arc_chords(r, n, h, 6000, as_arc=True), check)
-        _row(f"R{radius:g} arc as {pieces:,} x {step:g} mm chords, F6000",
-             _measure(lambda r=radius, n=pieces, h=step: arc_chords(r, n, h, 6000), check),
-             ref["cycles"] * T, "one G3", "<= 1.03")
+    exact_stop = SetMotionControlMode(MotionControlMode.EXACT_STOP_MODAL)
+    bound = exact_stop_bound(list(tiny(2000, 0.001, 6000, exact_stop)))
+    _row("2,000 x 0.001 mm, F6000, G61.1", _measure(lambda: tiny(2000, 0.001, 6000, exact_stop), check),
+         bound, "exact-stop bound", "<= 1.03 (a stop at each)")
+    g61 = SetMotionControlMode(MotionControlMode.EXACT_PATH)
+    arcs = ((20.0, 20000, 0.001, G64P, "P0.01"), (10.0, 6000, 0.01, G64P, "P0.01"),
+            (10.0, 600, 0.05, G64P, "P0.01"), (20.0, 300, 0.1, G64P, "P0.01"),
+            (20.0, 2000, 0.01, G64, "G64"), (20.0, 600, 0.05, G64, "G64"),
+            (20.0, 2000, 0.01, g61, "G61"), (10.0, 600, 0.05, g61, "G61"))
+    for radius, pieces, step, mode, name in arcs:
+        ref = _measure(lambda r=radius, n=pieces, h=step, m=mode: arc_chords(r, n, h, 6000, True, m), check)
+        _row(f"R{radius:g} arc as {pieces:,} x {step:g} mm chords, F6000, {name}",
+             _measure(lambda r=radius, n=pieces, h=step, m=mode: arc_chords(r, n, h, 6000, False, m), check),
+             ref["cycles"] * T, f"one G3 in {name}", "<= 1.03")
     feeds = (2000, 2500, 3000, 4000)
     slower, worst = 0, 0.0
     for seed in range(8):

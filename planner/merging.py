@@ -29,8 +29,10 @@ from planner.arcfit import ArcFit, fit_arc
 from planner.geometry import MergedArc, MergedLine
 from planner.segments import (
     ARC_DENSE,
-    ARC_MIN_PIECES,
+    ARC_TRY,
+    ARC_TRY_EXACT,
     MERGE_EXACT,
+    MERGE_EXACT_ARC,
     MERGE_MAX_PIECES,
     MERGE_MAX_TIME,
     MERGE_SHARE,
@@ -70,6 +72,12 @@ def _line_distance(p: Sequence[float], a: Sequence[float], u: Sequence[float]) -
     along = sum([x * y for x, y in zip(d, u, strict=True)])
     norm = math.hypot(*d)
     return math.sqrt(max(norm * norm - along * along, 0.0))
+
+
+def _arc_tol(run: _Run) -> float:
+    """How far the programmed points may lie from a merged arc: the run's tolerance, and in G64 without
+    P and G61 at least MERGE_EXACT_ARC (4-decimal rounding plus a chord's own sagitta)."""
+    return run.tol if run.tol_mode > 0.0 else max(run.tol, MERGE_EXACT_ARC)
 
 
 class MergingMixin:
@@ -159,18 +167,20 @@ class MergingMixin:
 
     def _extend_arc(self, run: _Run, end: tuple[float, ...], cmd: C.Canon) -> bool:
         """Add ``end`` if the run stays within its tolerance of one arc (``planner.arcfit``). The fit
-        costs O(run): it is redone for every piece of a short run, and past 64 pieces once every n/8
-        (amortised O(1) per line); the pieces in between are checked when the run is emitted
+        costs O(run): it is redone for every piece of a short run and past that each time the run has
+        grown by half (amortised O(1) per line, about 3 point checks per piece; every n/8 pieces cost
+        9, half the spiral's planning); the pieces in between are checked when the run is emitted
         (:meth:`_emit_one`), which falls back to the last arc that was checked."""
-        if run.rapid or (run.arc is None and len(run.cmds) < ARC_DENSE):
+        try_from = ARC_TRY if run.tol_mode > 0.0 else ARC_TRY_EXACT
+        if run.rapid or (run.arc is None and len(run.cmds) < try_from):
             return False
         travel = run.travel + math.dist(run.end, end)
         if travel > MERGE_MAX_TIME * run.feed:
             return False
         n = len(run.cmds)
         run.points.append(run.end)
-        if run.arc is None or n <= 64 or n + 1 - run.arc_n >= n // 8:
-            fit = fit_arc(run.start, run.points, end, run.tol, self._arc_planes)
+        if run.arc is None or n + 1 - run.arc_n >= max(1, n // 2):
+            fit = fit_arc(run.start, run.points, end, _arc_tol(run), self._arc_planes, run.tol_mode <= 0.0)
             if fit is None:
                 run.points.pop()
                 return False
@@ -220,13 +230,13 @@ class MergingMixin:
         if run.arc is not None:
             fit, k = run.arc, n
             if run.arc_n < n:
-                full = fit_arc(s, run.points, run.end, run.tol, self._arc_planes)
+                full = fit_arc(s, run.points, run.end, _arc_tol(run), self._arc_planes, run.tol_mode <= 0.0)
                 if full is not None:
                     fit = full
                 else:
                     k = run.arc_n
             ends = [*run.points, run.end]
-            if k < ARC_MIN_PIECES:
+            if k < ARC_DENSE:
                 # too few pieces to gain from an arc: the line they were, then the rest again
                 k = run.line_n
                 self._emit_line(run, ends[k - 1], run.points[: k - 1], run.cmds[:k])

@@ -41,10 +41,12 @@ SMOOTH_CHAIN_SPANS = 32  # spans under one profile at most: the queue's length s
 SMOOTH_MERGE_ACC = 0.3  # path acceleration may fall further: it only matters where the speed changes
 MERGE_SHARE = 0.25  # lines within this share of G64 P (without Q) of one line are merged into it
 MERGE_EXACT = 1e-4  # ... within this (mm) in G64 without P and in G61: coordinate rounding only
+MERGE_EXACT_ARC = 2e-4  # ... and of one arc (rounding 7.1e-5 plus the chords' own sagitta; checker: 1e-3)
 MERGE_MAX_PIECES = 20_000  # programmed lines in one merged line at most
 MERGE_MAX_TIME = 2.0  # seconds of motion at its feed in one merged line at most
-ARC_MIN_PIECES = 3  # programmed lines merged into one arc at least (fewer stay lines)
-ARC_DENSE = 16  # ... and only where this many in a row already lie on one line (dense points)
+ARC_TRY = 4  # an arc is tried once this many programmed lines in a row lie on one line (dense points)
+ARC_TRY_EXACT = 1  # ... in G64 without P and G61 (no smoothed chains for arcs to break)
+ARC_DENSE = 16  # programmed lines merged into one arc at least (fewer stay lines)
 MAX_OVERRIDE = 2.0
 # Which online inputs a move obeys (LinuxCNC's FS/AF/FH "enables", queued with each move by M48-M53).
 OVR_FEED = 1  # the feed override (M48/M49, M50 P1/P0)
