@@ -78,6 +78,7 @@ def bus(request: pytest.FixtureRequest) -> Bus:
 
 
 EXTRA_AXES = "uvw"  # beyond x y z, for six drives
+DYNAMICS = "max_acceleration = 1000.0\nmax_jerk = 20000.0\n"  # the planner's (a machine's tests)
 
 
 def machine_file(tmp_path: Path, bus: Bus, cycle_ms: float = 2.0, layout: str = "standard", *,
@@ -90,11 +91,14 @@ def machine_file(tmp_path: Path, bus: Bus, cycle_ms: float = 2.0, layout: str = 
 cycle_ms = {bus.cycle_ms(cycle_ms)}
 [axes.x]
 max_velocity = 200.0
+{DYNAMICS}
 [axes.y]
 max_velocity = 200.0
+{DYNAMICS}
 [axes.z]
 max_velocity = 100.0
-{"".join(f"[axes.{a}]{chr(10)}max_velocity = 100.0{chr(10)}" for a in more)}
+{DYNAMICS}
+{"".join(f"[axes.{a}]{chr(10)}max_velocity = 100.0{chr(10)}{DYNAMICS}" for a in more)}
 [canopen]
 interface = "{bus.interface}"
 channel = "{bus.channel()}"
@@ -444,3 +448,30 @@ def test_touch_probe_of_a_drive_in_the_drive_process_latches_within_one_count(se
     assert tp.status & 0x7F7F == 0x0003 << 8 * (probe - 1)
     result = tp.result()
     assert result.tripped and abs(result.position - height) <= 1.0001 / 5000
+
+
+def test_g38_2_on_a_machine_whose_drives_are_in_another_process(tmp_path, bus):
+    """The whole path: a program's G38.2 on the daemon's machine (planner, cycle thread, probing), the
+    drives in the other process: #5063 is the drive's latch, within one count of the trip point."""
+    from test_touch_probe import HEIGHT, run
+
+    from motiond.config import load_machine
+    from motiond.runtime import Machine
+
+    path = machine_file(tmp_path, bus, 4.0, z="touch_probe = 1\ntouch_probe_level_bit = 7\n")
+    drives = DriveProcess(path, "--probe", f"z={HEIGHT}", start_s=bus.start_s)
+    m = Machine(load_machine(str(path)), lc=None, var_file=tmp_path / "p.var",
+                feedback_timeout_s=bus.feedback_timeout_s).start()
+    try:
+        m.bring_up()
+        result = run(m, tmp_path, "G21 G90 G94\nG38.2 Z-5 F300\n#3 = [#5063]\nG0 Z0\nM2\n")
+        assert result.ok, result.error
+        assert abs(m.interp.parameter(3) - HEIGHT) <= 1.0001 / 5000
+        assert m.interp.parameter(5070) == 1.0
+        # a second one from where it stopped, in contact: refused before anything moves
+        result = run(m, tmp_path, "G21 G90 G94\nG0 Z-4\nG38.2 Z-5 F300\nM2\n")
+        assert not result.ok and "p.ngc:3: G38.2: the probe (touch probe of axis z) is already tripped" \
+            in result.error, result.error
+    finally:
+        m.shutdown()
+        drives.stop()
