@@ -55,6 +55,10 @@ def _probe(text: str) -> tuple[str, float]:
         raise argparse.ArgumentTypeError(f"not AXIS=POSITION: {text!r} (e.g. z=-3.2)") from None
 
 
+HOME_SWITCH_HALF_WIDTH = 0.5
+"""``--home``: the home switch is active this far (machine units) either side of its position."""
+
+
 def limit_counts(scale: AxisScale, lo: float | None, hi: float | None) -> tuple[int | None, int | None]:
     """``(negative, positive)`` limit switch positions in the drive's counts for switches at machine
     positions ``lo``/``hi``: with a negative scale (direction -1) the machine's maximum is the drive's
@@ -89,6 +93,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the probe input of that axis's drive (its touch probe, 0x60B8-0x60BD) is "
                              "active at and below this machine position, e.g. z=-3.2 for a surface at Z-3.2 "
                              "(instead of the file's canopen.axes.<a>.sim_probe_position)")
+    parser.add_argument("--home", type=_probe, action="append", default=[], metavar="AXIS=POSITION",
+                        help="a home switch of that axis's drive (0x60FD bit 2), active within "
+                             f"{HOME_SWITCH_HALF_WIDTH:g} mm of this machine position, for homing by the "
+                             "drive (homing = \"cia402\", methods 19-30); repeatable")
     parser.add_argument("--strict", action="store_true",
                         help="take 'enable operation' in Quick stop active at once, during the stop ramp "
                              "(CiA 402 transition 16, as strict drives do)")
@@ -124,16 +132,23 @@ def run(args: argparse.Namespace) -> int:
             from motiond.cli import UserError
 
             raise UserError(f"--limit {axis}=...: {exc}") from None
-    if args.probe is not None and args.probe[0] not in axes:
-        from motiond.cli import UserError
+    named = [("--home", a) for a, _ in args.home]
+    if args.probe is not None:
+        named.append(("--probe", args.probe[0]))
+    for option, axis in named:
+        if axis not in axes:
+            from motiond.cli import UserError
 
-        raise UserError(f"--probe {args.probe[0]}=...: no axis {args.probe[0]!r} (axes: {', '.join(axes)})")
+            raise UserError(f"{option} {axis}=...: no axis {axis!r} (axes: {', '.join(axes)})")
+    homes = {a: {"home_switch_counts": AxisScale(axes[a]).to_counts(at),
+                 "home_switch_window_counts": round(HOME_SWITCH_HALF_WIDTH * abs(AxisScale(axes[a]).scale))}
+             for a, at in args.home}
     drives = [SimDrive(d.node_id, d.eds_path, lag_s=args.lag_ms / 1000.0, order=args.order,
                        boot_delay_s=args.boot_delay_ms / 1000.0, rpdo_timeout_syncs=args.rpdo_timeout_syncs,
                        absent_objects=args.absent,
                        negative_limit_counts=switches.get(d.axis, (None, None))[0],
                        positive_limit_counts=switches.get(d.axis, (None, None))[1],
-                       parameters={**motor_for(d, d.eds_path), **dict(args.param)},
+                       parameters={**motor_for(d, d.eds_path), **dict(args.param)}, **homes.get(d.axis, {}),
                        **sim_probe(d, args.probe[1] if args.probe is not None and args.probe[0] == d.axis
                                    else None))
               for d in config.drives]

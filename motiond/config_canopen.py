@@ -150,12 +150,16 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
             sdo=_extra_sdo(a),
             touch_probe=a.get("touch_probe", int, 0, check=one_of(0, 1, 2)),
             sim_probe_position=a.get("sim_probe_position", float, None),
+            touch_probe_level_bit=a.get("touch_probe_level_bit", int, None, check=one_of(6, 7, 14, 15)),
             **lim,
         )
         if drive.touch_probe and probe_axis:
             raise a.error("touch_probe", f"axis {probe_axis} has the machine's probe input already "
                                          f"(canopen.axes.{probe_axis}.touch_probe): G38.x uses one probe")
         probe_axis = probe_axis or (name if drive.touch_probe else "")
+        if drive.touch_probe_level_bit is not None and not drive.touch_probe:
+            raise a.error("touch_probe_level_bit", "the level of the drive's touch probe input: set "
+                                                   "touch_probe = 1 or 2 on this axis too")
         if drive.sim_probe_position is not None and not drive.touch_probe:
             raise a.error("sim_probe_position", "the simulated probe input is the drive's touch probe: set "
                                                 "touch_probe = 1 on this axis too")

@@ -119,14 +119,20 @@ def machine_file(tmp_path: Path, probe: str = f"touch_probe = 1\nsim_probe_posit
     return path
 
 
+def z_table(direction: int = 1, probe: int = 1, level_bit: int | None = 7) -> str:
+    """The probe's lines of ``[canopen.axes.z]``: the simulated drive shows the probe input's level in
+    0x60B9 bits 7 and 15."""
+    level = "" if level_bit is None else f"touch_probe_level_bit = {level_bit}\n"
+    return f"touch_probe = {probe}\nsim_probe_position = {HEIGHT}\ndirection = {direction}\n{level}"
+
+
 @pytest.fixture
 def machine(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Any]:
-    """The probe machine; parametrized indirectly with z's ``direction`` (default 1)."""
+    """The probe machine; parametrized indirectly with :func:`z_table`'s arguments (a dict)."""
     from motiond.config import load_machine
     from motiond.runtime import Machine
 
-    path = machine_file(tmp_path, f"touch_probe = 1\nsim_probe_position = {HEIGHT}\n"
-                                  f"direction = {getattr(request, 'param', 1)}")
+    path = machine_file(tmp_path, z_table(**getattr(request, "param", {})))
     m = Machine(load_machine(str(path)), lc=None, var_file=tmp_path / "p.var").start()
     try:
         m.bring_up()
@@ -146,7 +152,8 @@ def run(m: Any, tmp_path: Path, text: str) -> Any:
     return result
 
 
-@pytest.mark.parametrize("machine", [1, -1], indirect=True, ids=["z up", "z counts down"])
+@pytest.mark.parametrize("machine", [{}, {"direction": -1}, {"probe": 2, "level_bit": 15}], indirect=True,
+                         ids=["z up", "z counts down", "touch probe 2"])
 def test_g38_2_stops_at_the_surface_and_stores_the_latched_height(machine: Any, tmp_path: Path) -> None:
     m = machine
     m.trace = []  # (cycle, time, setpoint, events) of every cycle
@@ -182,6 +189,38 @@ def test_g38_3_without_contact_goes_on_and_g38_2_without_contact_is_an_error(mac
     assert "p.ngc:4:" in result.error and "without making contact" in result.error
 
 
+@pytest.mark.parametrize("code, start, state", [("G38.2", -4, "tripped (in contact)"),
+                                                ("G38.4", 0, "clear (out of contact)")])
+def test_g38_2_and_g38_4_with_the_probe_already_in_that_state_are_errors(machine: Any, tmp_path: Path,
+                                                                         code: str, start: float,
+                                                                         state: str) -> None:
+    """As LinuxCNC ("Probe is already tripped when starting G38.2 ..."): a probe that cannot make the
+    edge the move seeks is an error before anything moves, naming the file and line."""
+    m = machine
+    m.trace = []
+    result = run(m, tmp_path, f"G21 G90 G94\nG0 Z{start}\n\n{code} Z-10 F300\nM2\n")
+    assert not result.ok
+    assert f"p.ngc:4: {code}: the probe (touch probe of axis z) is already {state} at the start of the " \
+           "move; nothing moved" in result.error, result.error
+    zs = [positions[1] for _, _, positions, _ in m.trace]
+    assert min(zs, default=0.0) >= min(start, 0) - 1e-9  # the G0 went there; G38 moved nothing
+    assert m.motion.position()[1] == pytest.approx(start, abs=1e-3)
+
+
+@pytest.mark.parametrize("code, start, end", [("G38.3", -4.0, -10), ("G38.5", 0.0, 5)])
+def test_g38_3_and_g38_5_with_the_probe_already_in_that_state_trip_where_the_machine_stands(
+        machine: Any, tmp_path: Path, code: str, start: float, end: float) -> None:
+    m = machine
+    m.trace = []
+    result = run(m, tmp_path, f"G21 G90 G94\nG0 X1 Z{start}\n{code} X3 Z{end} F300\n#1 = [#5061]\n"
+                              "#3 = [#5063]\nG0 Z[#5063]\nM2\n")
+    assert result.ok, result.error
+    assert m.interp.parameter(5070) == 1.0
+    assert (m.interp.parameter(1), m.interp.parameter(3)) == pytest.approx((1.0, start))
+    zs = [positions[1] for _, _, positions, _ in m.trace]
+    assert min(start, 0.0) - 1e-9 <= min(zs, default=0.0) and max(zs, default=0.0) <= max(start, 0.0) + 1e-9
+
+
 def test_touch_probe_key_is_checked_naming_it(tmp_path: Path) -> None:
     from motiond.config import load_machine
     from motiond.config_canopen import canopen_for_machine
@@ -196,6 +235,12 @@ def test_touch_probe_key_is_checked_naming_it(tmp_path: Path) -> None:
         canopen_for_machine(load_machine(str(path)))
     with pytest.raises(ConfigError, match=r"canopen\.axes\.z\.sim_probe_position.*set touch_probe = 1"):
         canopen_for_machine(load_machine(str(machine_file(tmp_path, "sim_probe_position = -1.0"))))
+    level = r"canopen\.axes\.z\.touch_probe_level_bit"
+    with pytest.raises(ConfigError, match=level + r".*set touch_probe = 1 or 2"):
+        canopen_for_machine(load_machine(str(machine_file(tmp_path, "touch_probe_level_bit = 7"))))
+    with pytest.raises(ConfigError, match=level + r".*6, 7, 14, 15"):
+        bit_1 = machine_file(tmp_path, "touch_probe = 1\ntouch_probe_level_bit = 1")
+        canopen_for_machine(load_machine(str(bit_1)))
 
 
 def test_g38_in_mdi_is_refused_with_a_drive_touch_probe(machine: Any) -> None:

@@ -76,6 +76,10 @@ class DriveConfig:
     quick_stop_option: int | None = None
     #: the machine's probe input (G38.x) is this drive's touch probe 1 or 2 (0x60B8-0x60BD); 0: none
     touch_probe: int = 0
+    #: the bit of 0x60B9 (touch probe status) in which the drive shows the probe input's level
+    #: (manufacturer-specific: 6, 7, 14 or 15); None: not shown, a probing move cannot know that the
+    #: probe is already in contact when it starts
+    touch_probe_level_bit: int | None = None
     #: simulated drives only: the probe input is active at and below this machine position (None: the
     #: simulated probe never trips)
     sim_probe_position: float | None = None

@@ -41,7 +41,8 @@ Behaviour a real drive has and the tests rely on:
 
 Faults are injected from tests: :meth:`inject_fault`, :meth:`drop_heartbeat`, :meth:`abort_sdo`,
 ``boot_delay_s``, :meth:`stall`, the local quick-stop input :meth:`set_quick_stop_input` (also by SDO:
-0x2F00:03 = 1/0, ``canon sim inject --quick-stop on|off``). From another process, as a test bench
+0x2F00:03 = 1/0, ``canon sim inject --quick-stop on|off``), a warning EMCY :meth:`send_warning` (also
+by SDO: 0x2F00:04 = the code). From another process, as a test bench
 does on a real bus, by SDO to the simulation-only object 0x2F00 (:data:`SIM_INJECT`): sub 2 a delay in
 ms, then sub 1 an EMCY code; the drive faults with that code exactly as :meth:`inject_fault` does
 (``canon sim inject``).
@@ -89,6 +90,7 @@ from fieldbus.canopen.drive_sim_faults import (
     SIM_INJECT_CODE,
     SIM_INJECT_DELAY_MS,
     SIM_QUICK_STOP_INPUT,
+    SIM_WARNING,
     FaultInjectionMixin,
 )
 from fieldbus.canopen.drive_sim_homing import HomingMixin
@@ -475,6 +477,8 @@ class SimDrive(StateMachineMixin, CyclicMixin, HomingMixin, TouchProbeMixin, Fau
                 self._injected_by_sdo(struct.unpack_from("<H", data)[0])
             elif index == SIM_INJECT and subindex == SIM_QUICK_STOP_INPUT:
                 self.set_quick_stop_input(bool(data[0]))
+            elif index == SIM_INJECT and subindex == SIM_WARNING:
+                self.send_warning(struct.unpack_from("<H", data)[0])
             else:
                 self._params_dirty = True
             self._event_tpdos()

@@ -17,6 +17,8 @@ SIM_INJECT = 0x2F00
 SIM_INJECT_CODE, SIM_INJECT_DELAY_MS = 1, 2
 #: sub 3: the drive's local quick-stop input (1 active, 0 released), as a wired button or limit switch
 SIM_QUICK_STOP_INPUT = 3
+#: sub 4: send a warning EMCY with this code (error register 0); the drive goes on as it is
+SIM_WARNING = 4
 
 
 class FaultInjectionMixin:

@@ -7,7 +7,9 @@ shifted by 8 for probe 2: bit 0 enable, bit 1 continuous (else the first event o
 trigger source (0: the probe input; other sources never trigger here), bit 4/5 sample the positive
 (inactive -> active) / negative edge. Enabling a probe or an edge (a 0 -> 1 of its bit) arms it and
 clears what it had stored. 0x60B9 (status): bit 0 enabled, bit 1/2 positive/negative edge position
-stored; 0x60BA/0x60BB (probe 1) and 0x60BC/0x60BD (probe 2) the latched positions.
+stored; 0x60BA/0x60BB (probe 1) and 0x60BC/0x60BD (probe 2) the latched positions. Bits 7 and 15
+(manufacturer-specific) show the probe input's level, as many drives do (the master reads it with
+``touch_probe_level_bit = 7`` or 15).
 
 The latch is exact, as a drive latches its encoder count in hardware on the input's edge: the edge
 falls between two position samples of a SYNC period (or of the drive's own clock), and the position
@@ -29,6 +31,8 @@ TOUCH_PROBE_FUNCTION, TOUCH_PROBE_STATUS = 0x60B8, 0x60B9
 TOUCH_PROBE_POSITIONS = {1: (0x60BA, 0x60BB), 2: (0x60BC, 0x60BD)}
 TP_ENABLE, TP_CONTINUOUS, TP_SOURCE, TP_POSITIVE, TP_NEGATIVE = 0x01, 0x02, 0x0C, 0x10, 0x20
 TP_STATUS_ENABLED, TP_STATUS_POSITIVE, TP_STATUS_NEGATIVE = 0x01, 0x02, 0x04
+#: 0x60B9 bits of this drive's (manufacturer-specific): the probe input is active
+TP_STATUS_LEVEL = 0x8080
 PROBE_OBJECTS = frozenset({TOUCH_PROBE_STATUS, *(i for pair in TOUCH_PROBE_POSITIONS.values() for i in pair)})
 
 
@@ -86,7 +90,7 @@ class TouchProbeMixin:
 
     def _probe_read(self, index: int) -> int:
         if index == TOUCH_PROBE_STATUS:
-            return self._tp_status
+            return self._tp_status | (TP_STATUS_LEVEL if self.probe_input() else 0)
         return self._tp_latched.get(index, 0)
 
     def _probe_sample(self, before: float) -> None:

@@ -106,16 +106,20 @@ class TouchProbe:
         if len(data) >= self._struct.size:
             self.status = self._struct.unpack_from(data)[self._at]
 
-    def arm(self, toward: bool) -> None:
+    def arm(self, toward: bool) -> bool | None:
         """Arm for one probing move (job thread, SDO): the first positive edge (``toward``: contact
         made, G38.2/G38.3) or negative edge (contact lost, G38.4/G38.5) latches. Disabled first, so
-        that the edge's stored bit and position of an earlier probing are cleared."""
+        that the edge's stored bit and position of an earlier probing are cleared. Returns the probe
+        input's level now (True: in contact), where the drive shows it in the status
+        (``touch_probe_level_bit``), else None: a probe already in contact makes no edge."""
         d = self.drive
         self._edge = POSITIVE_STORED if toward else NEGATIVE_STORED
         function = (ENABLE | (POSITIVE if toward else NEGATIVE)) << self.shift
         self.master._sdo(d, "touch probe function (off)", FUNCTION, 0, "H", 0)
         self.master._sdo(d, "touch probe function (arm)", FUNCTION, 0, "H", function)
         self.status = self.master._sdo(d, "touch probe status", STATUS, 0, "H")
+        bit = d.cfg.touch_probe_level_bit
+        return None if bit is None else bool(self.status >> bit & 1)
 
     @property
     def tripped(self) -> bool:

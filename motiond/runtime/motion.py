@@ -237,9 +237,11 @@ class MotionCore(Cycle):
         """Job thread: queue a canonical command (or :data:`END`), waiting while the queue is full;
         False when ``cancel`` is set first. A probing move with a drive's touch probe: first the
         motion before it comes to rest and the probe is armed (:mod:`motiond.runtime.probing`)."""
-        if isinstance(item, C.Probe) and self.drive_probe is not None \
-                and not self.drive_probe.before_move(item, cancel):
-            return False
+        if isinstance(item, C.Probe) and self.drive_probe is not None:
+            if not self.drive_probe.before_move(item, cancel):
+                return False
+            if self.drive_probe.tripped_at_start:
+                return True  # G38.3/G38.5 with the probe already in that state: the move is not made
         while not cancel.is_set():
             try:
                 self._cmdq.put(item, timeout=0.05)

@@ -17,12 +17,18 @@ machine's probe. Its parts run on two threads:
   only; the others are on the commanded line). If the probe's axis does not move in this G38, the
   other axes are where the motion stopped.
 
+A probe already in the state the move seeks when it is armed (in contact for G38.2/G38.3, clear for
+G38.4/G38.5) makes no edge; where the drive shows the input's level (``touch_probe_level_bit``) it is
+handled as LinuxCNC does: G38.2/G38.4 are an error naming the file and line, G38.3/G38.5 trip at once
+where the machine stands (the move is not queued).
+
 The probed position is thus exact to the drive's encoder count, whatever the speed; the machine
 itself stops past it by the stopping distance, and the next move starts from where it stopped.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from dataclasses import dataclass
@@ -66,6 +72,8 @@ class DriveProbing:
         self._stopping = False
         self._held = False
         self._start: tuple[float, ...] | None = None
+        #: the probe was in the state the move seeks when it was armed (G38.3/G38.5): no move (job thread)
+        self.tripped_at_start = False
 
     def _end(self, cmd: C.Probe) -> tuple[float, ...]:
         return tuple(cmd.end[k] for k in self.core.limits.pose_index)
@@ -80,11 +88,25 @@ class DriveProbing:
                 return False
             time.sleep(IDLE_POLL_S)
         try:
-            self.probe.arm(toward=cmd.mode.toward)
+            level = self.probe.arm(toward=cmd.mode.toward)
         except CanopenError as exc:
             raise GCodeError(f"G{cmd.mode.value}: arming the touch probe: {exc}", cmd.file,
                              cmd.line) from None
         self._start = core.position()
+        # the probe already in the state the move seeks (in contact for G38.2/G38.3, clear for
+        # G38.4/G38.5), where the drive shows its level: as LinuxCNC, G38.2/G38.4 are an error and
+        # G38.3/G38.5 trip at once where the machine stands, nothing moving
+        self.tripped_at_start = level is not None and level == cmd.mode.toward
+        if self.tripped_at_start:
+            if cmd.mode.error_on_miss:
+                self.tripped_at_start = False
+                with contextlib.suppress(CanopenError):
+                    self.probe.disarm()
+                state = "tripped (in contact)" if cmd.mode.toward else "clear (out of contact)"
+                raise GCodeError(f"G{cmd.mode.value}: the probe (touch probe of axis {self.probe.axis}) is "
+                                 f"already {state} at the start of the move; nothing moved", cmd.file,
+                                 cmd.line)
+            return True
 
         def watch() -> None:
             self._armed, self._stopping = cmd, False
@@ -117,6 +139,16 @@ class DriveProbing:
         from fieldbus.canopen.master import CanopenError
 
         core = self.core
+        if self.tripped_at_start:
+            self.tripped_at_start = False
+            try:
+                self.probe.disarm()
+            except CanopenError as exc:
+                raise GCodeError(f"G{cmd.mode.value}: disarming the touch probe: {exc}", cmd.file,
+                                 cmd.line) from None
+            assert self._start is not None
+            here = self._start[self.index]
+            return Probed(True, self._start, self.probe.axis, here, self.probe.drive.scale.to_counts(here))
 
         def unwatch() -> None:
             self._armed = None

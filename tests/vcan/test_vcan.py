@@ -1,4 +1,6 @@
-"""The CANopen scenarios on a real SocketCAN ``vcan0``: in one process, and drives in another.
+"""The CANopen scenarios on a real SocketCAN ``vcan0``, master and drives in one process; with the drives
+in another process, ``tests/test_canopen_multiprocess.py`` (its ``vcan0`` half, which
+``tests/vcan/run-vm`` runs too).
 
 Runs where vcan0 exists (a Linux PC: ``ip link add dev vcan0 type vcan && ip link set up vcan0``);
 ``tests/vcan/run-vm`` runs it inside a virtme-ng VM on a machine whose kernel has no CAN. The VM is
@@ -8,7 +10,6 @@ timeouts are generous: these tests check behaviour, not timing.
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import signal
 import statistics
@@ -31,8 +32,6 @@ from fieldbus.canopen.cia402 import State
 from fieldbus.canopen.clock import PeriodicRunner
 from fieldbus.canopen.config import CanBusConfig
 from fieldbus.canopen.master import CanopenError, CanopenMaster
-from motiond.config_canopen import canopen_from_file
-from motiond.configkit import load_toml
 
 ROOT = Path(__file__).resolve().parent.parent.parent
 HAVE_VCAN0 = Path("/sys/class/net/vcan0").exists()
@@ -108,68 +107,6 @@ def test_sdo_abort_during_boot_on_vcan0(rig):
     r.sim(1).abort_sdo(0x6060, 0, 0x06090030)
     with pytest.raises(CanopenError, match=r"node 1 \(axis x\).*0x6060:00.*0x06090030"):
         r.master.boot()
-
-
-def test_drives_in_another_process_on_vcan0(tmp_path):
-    machine = tmp_path / "machine.toml"
-    machine.write_text("""
-[machine]
-cycle_ms = 10
-[axes.x]
-[axes.y]
-[canopen]
-interface = "socketcan"
-channel = "vcan0"
-heartbeat_producer_ms = 200
-heartbeat_consumer_ms = 2000
-boot_timeout_s = 20.0
-sdo_timeout_s = 2.0
-state_timeout_s = 10.0
-[canopen.axes.x]
-node_id = 1
-[canopen.axes.y]
-node_id = 2
-""")
-    proc = subprocess.Popen([sys.executable, "-m", "motiond.cli", "sim", "drives", "--config", str(machine)],
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    ready = threading.Event()
-
-    def read() -> None:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            if line.startswith("simulating drives"):
-                ready.set()
-
-    threading.Thread(target=read, daemon=True).start()
-    master = None
-    try:
-        assert ready.wait(60.0), "canon sim drives did not start"
-        config = canopen_from_file(load_toml(machine), str(machine))
-        config = dataclasses.replace(config, feedback_timeout_s=1.0)
-        master = CanopenMaster(config)
-        master.boot()
-        master.enable()
-        t = time.monotonic()
-        for k in range(80):
-            master.cycle([0.01 * min(k, 50), 0.005 * min(k, 50)])
-            t += 0.01
-            time.sleep(max(0.0, t - time.monotonic()))
-        want = pytest.approx((0.5, 0.25), abs=2e-3)
-        deadline = time.monotonic() + 30.0  # the emulated VM lags: hold until the feedback catches up
-        while time.monotonic() < deadline and master.feedback().positions != want:
-            master.cycle(None)
-            time.sleep(0.01)
-        assert master.fault is None, master.fault
-        assert master.feedback().positions == pytest.approx((0.5, 0.25), abs=2e-3)
-    finally:
-        if master is not None:
-            master.shutdown()
-        proc.terminate()
-        try:
-            proc.wait(10.0)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(10.0)
 
 
 def test_touch_probe_latches_within_one_count_on_vcan0():
