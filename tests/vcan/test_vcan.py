@@ -168,10 +168,14 @@ def listener():
 def run_on_sync(master: CanopenMaster, cycles: int, positions=None, stall_at: int | None = None,
                 stall_s: float = 0.0, stalled: list[float] | None = None) -> PeriodicRunner:
     """``cycles`` cycles paced by the kernel's SYNC (as the daemon runs them), joined. ``stall_at``: the
-    step that sleeps ``stall_s`` first (a stalled master thread; its start and end, wall clock, are
-    appended to ``stalled``)."""
+    executed step (from 0) that sleeps ``stall_s`` first (a stalled master thread; its start and end,
+    wall clock, are appended to ``stalled``). Counted in steps run, not in the runner's ``k``: ``k``
+    counts ticks and jumps over those a slow guest missed, which can skip ``stall_at`` itself."""
+    done = [0]
+
     def step(k: int, t: float) -> None:
-        if k == stall_at:
+        done[0] += 1
+        if done[0] - 1 == stall_at:
             if stalled is not None:
                 stalled.append(time.time())
             time.sleep(stall_s)
