@@ -167,6 +167,8 @@ class MotionSnapshot:
     tool_prepared: int
     jogging: bool
     drives: tuple[DriveView, ...]
+    #: the spindle drive's feedback (:class:`~fieldbus.canopen.master_spindle.SpindleFeedback`), or None
+    spindle_drive: Any = None
 
 
 class MotionCore(Cycle):
@@ -187,6 +189,10 @@ class MotionCore(Cycle):
 
         probe = TouchProbe.of(self.master)
         self.drive_probe = None if probe is None else DriveProbing(self, probe)
+        if self.canopen.spindle is not None:
+            from motiond.runtime.spindle_drive import SpindleDriveControl
+
+            self.spindle_drive = SpindleDriveControl(self, self.canopen.spindle)
 
     def start_cycle(self) -> None:
         from fieldbus.canopen.clock import PeriodicRunner
@@ -342,7 +348,11 @@ class MotionCore(Cycle):
         from planner.core import Planner
 
         start = self.master.positions()
-        p = Planner(self.limits, start=start, waits=self.hooks.planner_waits())
+        waits = self.hooks.planner_waits()
+        if self.spindle_drive is not None:
+            waits = (*waits, *self.spindle_drive.wait_types)
+        p = Planner(self.limits, start=start, waits=waits)
+        p.follow_taps = self.spindle_drive is not None  # G33.1 follows the spindle drive's position
         for cmd in self.hooks.planner_prime():
             p.feed(cmd)
         self.planner = p
@@ -381,6 +391,8 @@ class MotionCore(Cycle):
 
         def on_cycle() -> None:
             self.hooks.cancel_stream(reason, True)
+            if self.spindle_drive is not None:
+                self.spindle_drive.cancel()
             self.planner = None
             self.aborting = self.stop_then_disable = False
 
@@ -390,6 +402,8 @@ class MotionCore(Cycle):
         """The job cancelled and a jerk-limited stop on the path (``hooks.aborted`` once at rest)."""
         def on_cycle() -> None:
             self.hooks.cancel_stream("aborted by the operator", True)
+            if self.spindle_drive is not None:
+                self.spindle_drive.cancel()
             if self.planner is not None:
                 self.planner.abort()
                 self.aborting = True
@@ -493,7 +507,8 @@ class MotionCore(Cycle):
             following_error=tuple(self.following_error), line=line, file=file, modal=self.modal,
             feed_override=float(p.feed_override) if p is not None else 1.0, spindle=self.spindle,
             coolant=self.coolant, tool_prepared=int(self.tool_prepared), jogging=self.jogging,
-            drives=self._drives())
+            drives=self._drives(),
+            spindle_drive=self.spindle_drive.feedback if self.spindle_drive is not None else None)
 
     def _drives(self) -> tuple[DriveView, ...]:
         master = self.master
