@@ -23,6 +23,10 @@ synchronized moves follow them as LinuxCNC's do its spindle index and encoder:
   revolutions since the index plus a constant (the acceleration's lead-in, the same on every pass), so
   every pass of a thread is cut in the same groove whatever the spindle's speed does; a slower spindle
   slows the axis with it.
+* G95 (feed per revolution): a move runs on the spindle's clock as well, without the index, and
+  never faster than planned (at most the commanded speed's pace: the axes' limits hold): a spindle
+  slower than commanded (lagging its ramp, loaded) slows the feed with it, so each revolution
+  advances F.
 * G33.1 (``follow_taps``): the tap is not planned as moves but queued as a :class:`FollowedTap` sync
   point; the machine runs it, the axis position being the start plus the pitch times the revolutions
   since the spindle stood (``motiond.runtime.spindle_drive``).
@@ -70,9 +74,10 @@ class SpindleSyncMixin:
     T: float
     #: G33.1 queued as a :class:`FollowedTap` for the machine to run (its spindle feedback)
     follow_taps: bool = False
-    # measured-position following (follow_spindle): synchronized commands' (pitch, rpm, sign) by id,
+    # measured-position following (follow_spindle): synchronized commands' (pitch, rpm, sign, locked:
+    # G33 / G76 rather than G95) by id,
     # the segment followed, its time on the spindle's clock, the last revolutions, the index awaited
-    _synced_cmds: dict[int, tuple[float, float, int]]
+    _synced_cmds: dict[int, tuple[float, float, int, bool]]
     _sp_seg: Any = None
     _sp_tau = 0.0
     _sp_last = 0.0
@@ -100,11 +105,19 @@ class SpindleSyncMixin:
         if self._spindle_rpm <= 0:
             raise PlannerError("spindle-synchronized motion (G33, G33.1, G76) needs a turning spindle",
                                cmd.file, cmd.line)
-        if not hasattr(self, "_synced_cmds") or len(self._synced_cmds) > 4096:
-            self._synced_cmds = {}
-        sign = 1 if self._spindle_dir is C.SpindleDirection.CW else -1
-        self._synced_cmds[id(cmd)] = (self._sync_pitch, self._spindle_rpm, sign)
+        self._note_synced(cmd, self._sync_pitch, locked=True)
         return self._sync_pitch * self._spindle_rpm / 60.0
+
+    def _per_rev_speed(self, cmd: C.Canon, rate: float) -> float:
+        """Path speed of a G95 move (units/s): F per revolution at the commanded speed."""
+        self._note_synced(cmd, rate, locked=False)
+        return rate * self._spindle_rpm / 60.0
+
+    def _note_synced(self, cmd: C.Canon, pitch: float, locked: bool) -> None:
+        if not hasattr(self, "_synced_cmds") or len(self._synced_cmds) > 4096:
+            self._synced_cmds = {}  # ids of moves long run (bounded: a move is followed while it runs)
+        sign = 1 if self._spindle_dir is C.SpindleDirection.CW else -1
+        self._synced_cmds[id(cmd)] = (pitch, self._spindle_rpm, sign, locked)
 
     def follow_spindle(self, revolutions: float) -> None:
         """Before :meth:`next_setpoint`, every cycle, on a machine with the spindle's position: its
@@ -116,14 +129,14 @@ class SpindleSyncMixin:
             self._sp_seg = None
             self._sp_last = revolutions
             return
-        _pitch, rpm, sign = info
+        _pitch, rpm, sign, locked = info
         t_next = (self._k + 1) * self.T
         if act.seg is not self._sp_seg:  # a synchronized move began with the last setpoint
             self._sp_seg = act.seg
             from_rest = abs(act.traj.at_time(0.0)[1][0]) < 1e-12 and act.s_off <= act.seg.s0 + 1e-12
             self._sp_tau = max(0.0, t_next - self.T - act.t0)  # its time so far (one cycle's at most)
             self._sp_index = None
-            if from_rest:  # wait for the spindle's index: the next whole revolution
+            if from_rest and locked:  # wait for the spindle's index: the next whole revolution
                 self._sp_tau = 0.0
                 self._sp_index = math.floor(revolutions) + 1.0 if sign > 0 else math.ceil(revolutions) - 1.0
         turned = (revolutions - self._sp_last) * sign
@@ -133,7 +146,8 @@ class SpindleSyncMixin:
             if past >= 0.0:
                 self._sp_index = None
         self._sp_last = revolutions
-        self._sp_tau += max(0.0, turned) * 60.0 / rpm
+        step = max(0.0, turned) * 60.0 / rpm
+        self._sp_tau += step if locked else min(step, self.T)
         act.t0 = t_next - self._sp_tau
         act.t_end = act.t0 + act.traj.duration
 

@@ -330,3 +330,16 @@ def test_g76_cuts_every_pass_in_the_same_groove_of_the_lagging_spindle(tmp_path)
     off = [min(abs(p - ref), pitch - abs(p - ref)) for p in phases]
     within = sum(o <= speed for o in off) / len(off)
     assert within >= 0.98 and max(off) <= 5 * speed, (within, max(off), speed)
+
+
+def test_g95_feeds_per_measured_revolution_while_the_spindle_lags_its_ramp(tmp_path) -> None:
+    # S900 takes effect with the second move, planned at 900 rpm; the spindle needs 0.4 s to get there
+    program = "G21 G18 G90\nM3 S300\nG0 X5 Z0\nG95 G1 Z-0.5 F0.05\nS900\nG1 Z-2.5\nG94\nM5\nM2\n"
+    z, revs, rpm = traced_lathe(tmp_path, program)
+    zmap = dict(z)
+    # over 5 cycles (a cycle's travel is 15 Z counts or so: one count is 7 %)
+    ratios = [(zmap[n - 5] - zz) / (revs[n] - revs[n - 5]) for n, zz in z
+              if n - 5 in zmap and -2.4 < zz < -0.6 and rpm[n - 5] > 320 and rpm[n] < 880]
+    assert len(ratios) > 40  # the spindle speeding up under the second move
+    good = sum(abs(r - 0.05) <= 0.0015 for r in ratios) / len(ratios)
+    assert good >= 0.95, (good, min(ratios), max(ratios))  # 0.05 mm per revolution as it turns
