@@ -343,3 +343,37 @@ def test_g95_feeds_per_measured_revolution_while_the_spindle_lags_its_ramp(tmp_p
     assert len(ratios) > 40  # the spindle speeding up under the second move
     good = sum(abs(r - 0.05) <= 0.0015 for r in ratios) / len(ratios)
     assert good >= 0.95, (good, min(ratios), max(ratios))  # 0.05 mm per revolution as it turns
+
+
+def test_an_abort_mid_tap_holds_the_axes_in_the_work_and_is_a_fault(tmp_path) -> None:
+    import time
+
+    from motiond.states import State
+
+    machine = start_lathe(tmp_path)
+    z_sim = machine.sim_drives[1]
+    z_sim.record_targets = True
+    prog = tmp_path / "p.ngc"
+    prog.write_text("G21 G18 G90\nM3 S300\nG0 X0 Z2\nG33.1 Z-10 K1.5\nM2\n")
+    try:
+        job = machine.run(prog)
+        deadline = time.monotonic() + 30.0
+        while machine.motion.commanded[1] > -3.0 and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert machine.motion.commanded[1] <= -3.0, "the tap never got in"
+        n0 = z_sim.syncs
+        machine.abort()
+        machine.wait_job(job, 30.0)
+        deadline = time.monotonic() + 10.0
+        while machine.states.snapshot().state is not State.FAULTED and time.monotonic() < deadline:
+            time.sleep(0.01)
+        state = machine.states.snapshot()
+        time.sleep(0.3)
+    finally:
+        machine.shutdown()
+    assert state.state is State.FAULTED
+    assert "rigid tap interrupted" in machine.last_error
+    after = [t / 10000.0 for n, t in z_sim.latched if n > n0]
+    # held in the work: never back toward the start (2.0) at once; no drive fault (a jump faults 0x8400)
+    assert after and max(after) < -2.5
+    assert z_sim.emcys == []

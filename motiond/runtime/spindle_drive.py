@@ -77,6 +77,8 @@ class SpindleDriveControl:
         """The planner's next setpoint, its synchronized moves run on the spindle's revolutions; during
         a rigid tap, the tap's position instead."""
         revs, _fb = self._predicted()
+        if self._tap is not None and p is not self._tap.planner:
+            self._tap = None  # a new planner: it starts where the axes stand
         if self._tap is None:
             p.follow_spindle(revs)
             return p.next_setpoint()
@@ -110,7 +112,7 @@ class SpindleDriveControl:
                         f"beyond its max_acceleration {lim.max_acceleration:g}")
         turns = length / w.pitch
         self._tap = _Tap(w, [t / length for t in travel], length,
-                         1 if w.direction is C.SpindleDirection.CW else -1)
+                         1 if w.direction is C.SpindleDirection.CW else -1, self.c.planner)
         self._tap.deadline = time.monotonic() + 2 * self.cfg.at_speed_timeout_s + 4.0 * turns * 60.0 / max(
             1e-9, min(w.rpm, w.rpm * w.scale))
         self._command(0.0)
@@ -122,6 +124,8 @@ class SpindleDriveControl:
         assert t is not None
         w = t.cmd
         fb = self.c.master.spindle_feedback()
+        if t.phase == "held":
+            return t.last
         if t.phase == "stop":
             if abs(fb.rpm) >= STILL_RPM:
                 return None
@@ -140,7 +144,8 @@ class SpindleDriveControl:
                 p.release()
             return tuple(w.start)
         d = max(0.0, d)
-        return tuple(s + u * d for s, u in zip(w.start, t.unit, strict=True))
+        t.last = tuple(s + u * d for s, u in zip(w.start, t.unit, strict=True))
+        return t.last
 
     # --- events -------------------------------------------------------------------------------------
     def _command(self, rpm: float) -> float:
@@ -194,11 +199,21 @@ class SpindleDriveControl:
         return False
 
     def cancel(self) -> None:
-        """The job ended (E-stop, fault, abort): no wait; the master's stop already set speed 0."""
+        """The job ended (E-stop, abort): no wait. A rigid tap in the work cannot just end (the planner
+        would take the axes back to the tap's start at once): the spindle is stopped, the axes hold
+        where the tap left them, and it is a fault (the drives are disabled and the next planner starts
+        where they stand; back the tap out by hand)."""
         self._wait = None
         self._orient = None
-        self._tap = None
-        self._dir = 0
+        t = self._tap
+        if t is not None and t.phase in ("in", "out"):
+            t.phase = "held"
+            self._command(0.0)
+            self._dir = 0
+            self.c.post_fault(f"{t.cmd.file}:{t.cmd.line}: rigid tap interrupted with the tap in the work: "
+                              "spindle stopped, axes held where they are (back it out by hand)", "spindle")
+        else:
+            self._tap = None
 
     def on_cycle(self, now: float | None = None) -> None:
         self.feedback = fb = self.c.master.spindle_feedback()
@@ -206,12 +221,12 @@ class SpindleDriveControl:
             return
         if self._orient is not None:
             self._orient_step(fb)
-        if self._tap is not None and time.monotonic() > self._tap.deadline:
-            w = self._tap.cmd
-            self._tap = None
+        t = self._tap
+        if t is not None and t.phase != "held" and time.monotonic() > t.deadline:
+            t.phase = "held"  # the axes stay where the tap is
             self._command(0.0)
-            self.c.post_fault(f"{w.file}:{w.line}: rigid tap not done in time (spindle at {fb.rpm:.1f} rpm)",
-                              "spindle")
+            self.c.post_fault(f"{t.cmd.file}:{t.cmd.line}: rigid tap not done in time (spindle at "
+                              f"{fb.rpm:.1f} rpm); axes held where they are", "spindle")
         w = self._wait
         if w is None:
             return
@@ -274,10 +289,13 @@ class SpindleDriveControl:
 
 
 class _Tap:
-    """A followed rigid tap in progress: ``phase`` "stop" (the spindle comes to a stand), "in", "out"."""
+    """A followed rigid tap in progress: ``phase`` "stop" (the spindle comes to a stand), "in", "out",
+    "held" (interrupted: the axes stay at ``last``)."""
 
-    def __init__(self, cmd: FollowedTap, unit: list[float], length: float, sign: int) -> None:
+    def __init__(self, cmd: FollowedTap, unit: list[float], length: float, sign: int, planner: Any) -> None:
         self.cmd = cmd
+        self.planner = planner
+        self.last = tuple(cmd.start)
         self.unit = unit
         self.length = length
         self.sign = sign
