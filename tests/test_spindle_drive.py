@@ -377,3 +377,17 @@ def test_an_abort_mid_tap_holds_the_axes_in_the_work_and_is_a_fault(tmp_path) ->
     # held in the work: never back toward the start (2.0) at once; no drive fault (a jump faults 0x8400)
     assert after and max(after) < -2.5
     assert z_sim.emcys == []
+
+
+def test_canon_sim_drives_serves_the_spindle_drive_of_the_file(tmp_path) -> None:
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    r = subprocess.run([sys.executable, "-m", "motiond.cli", "sim", "drives", "--config",
+                        lathe_file(tmp_path), "--seconds", "0.3"],
+                       capture_output=True, text=True, timeout=120, cwd=root)
+    assert r.returncode == 0, r.stderr
+    assert "x=1, z=2, spindle=3" in r.stdout
+    assert "node 3:" in r.stderr
