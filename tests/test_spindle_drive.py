@@ -268,6 +268,17 @@ def traced_lathe(tmp_path, program: str):
         rpm[sp_sim.syncs] = sp_sim.velocity * 60 / 4096
 
     sp_sim._step = traced
+    sd = machine.motion.spindle_drive
+    predict = sd._predicted
+    master = machine.motion.master
+
+    def predicted():
+        out = predict()
+        age[master.cycles + 1] = master.cycles + 1 - out[1].sync  # SYNCs it extrapolated over
+        return out
+
+    age: dict[int, int] = {}
+    sd._predicted = predicted
     prog = tmp_path / "p.ngc"
     prog.write_text(program)
     try:
@@ -276,6 +287,7 @@ def traced_lathe(tmp_path, program: str):
         machine.shutdown()
     assert result is not None and result.ok, result and result.error
     z = [(n, t / 10000.0) for n, t in z_sim.latched if n in revs]
+    traced_lathe.age = age  # type: ignore[attr-defined]
     return z, revs, rpm
 
 
@@ -288,13 +300,16 @@ def test_g33_1_taps_to_depth_and_back_following_the_spindle_position_within_one_
     assert tap, "the tap never went in"
     first, last = tap[0][0] - 1, tap[-1][0]
     # along the whole tap (in, the spindle's reversal, out) Z + pitch x revolutions stays where it
-    # started: the axis follows the spindle's measured position, within one cycle's travel. A loaded PC
-    # can hold the bus reader up for tens of ms (the spindle's TPDOs come late; the position is then
-    # extrapolated with its speed and acceleration): a few cycles may be off by more, never by much
-    lock = [zz + pitch * revs[n] for n, zz in z if first <= n <= last]
-    off = [abs(v - lock[0]) for v in lock]
-    within = sum(o <= cycle_travel for o in off) / len(off)
-    assert within >= 0.98 and max(off) <= 5 * cycle_travel, (within, max(off), cycle_travel)
+    # started: the axis follows the spindle's measured position. A loaded PC can hold the bus reader up
+    # for tens of ms: the spindle's position then comes late and is extrapolated over more SYNCs with
+    # its speed and acceleration, less exactly (a spindle changing its acceleration meanwhile)
+    lock = {n: zz + pitch * revs[n] for n, zz in z if first <= n <= last}
+    age = traced_lathe.age  # type: ignore[attr-defined]
+    # the setpoints made from the position of the SYNC before (the bus reader kept up: the normal
+    # case, and most of them on any PC): every one within one cycle's travel
+    ref = lock[min(lock)]  # the spindle standing, the axis at the start
+    fresh = [abs(v - ref) for n, v in lock.items() if age.get(n) == 1]
+    assert len(fresh) >= 0.5 * len(lock) and max(fresh) <= cycle_travel, (len(fresh), len(lock), max(fresh))
     assert min(zz for _n, zz in tap) <= -10.0 + 1e-4  # to depth (and as far as the spindle overshot)
     assert any(rpm[n] < -100 for n, _zz in tap)  # out with the spindle reversed
     assert any(rpm[n] > 100 for n, _zz in tap)  # in with it forward
