@@ -406,3 +406,23 @@ def test_canon_sim_drives_serves_the_spindle_drive_of_the_file(tmp_path) -> None
     assert r.returncode == 0, r.stderr
     assert "x=1, z=2, spindle=3" in r.stdout
     assert "node 3:" in r.stderr
+
+
+def test_the_door_hold_stops_the_spindle_drive_and_restores_its_speed() -> None:
+    from types import SimpleNamespace
+
+    import gcode_canon.commands as C
+    from motiond.runtime.spindle_drive import SpindleDriveControl
+
+    sent: list[float] = []
+    master = SimpleNamespace(set_spindle_speed=lambda rpm: sent.append(rpm) or rpm)
+    sd = SpindleDriveControl(SimpleNamespace(master=master, T=0.002, planner=None),
+                             SpindleDriveConfig(node_id=3, max_rpm=2000.0))
+    sd.on_event(C.SpindleOn(C.SpindleDirection.CCW, 800.0))
+    sd.hold(True)  # the door opened
+    sd.hold(False)  # closed, cycle start
+    assert sent == [-800.0, 0.0, -800.0]
+    sd.feedback = SimpleNamespace(rpm=-795.0)
+    assert sd.at_speed()  # within 2 %
+    sd.feedback = SimpleNamespace(rpm=-700.0)
+    assert not sd.at_speed()

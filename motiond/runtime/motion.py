@@ -25,7 +25,8 @@ In (task -> motion)
   * urgent calls, explicit methods that act within a cycle and never queue behind the commands:
     :meth:`~MotionCore.quick_stop` (any thread, at once), :meth:`~MotionCore.estop`,
     :meth:`~MotionCore.abort`, :meth:`~MotionCore.pause`, :meth:`~MotionCore.resume`,
-    :meth:`~MotionCore.feed_override`; and the manual ones, :meth:`~MotionCore.jog`,
+    :meth:`~MotionCore.feed_override`, :meth:`~MotionCore.spindle_hold` (the door: the spindle drive
+    stopped and back), :meth:`~MotionCore.spindle_at_speed`; and the manual ones, :meth:`~MotionCore.jog`,
     :meth:`~MotionCore.jog_stop`.
   * control of the stream: ``hold_stream`` (the drives get no setpoint: a service operation talks to
     them), ``optional_stop``, :meth:`~MotionCore.new_planner`, :meth:`~MotionCore.drop_planner`,
@@ -427,6 +428,16 @@ class MotionCore(Cycle):
             p.resume()
 
         self.run_on_cycle(on_cycle)
+
+    def spindle_hold(self, on: bool) -> None:
+        """The door: the spindle drive stopped (``on``), or back at its speed (a machine without one:
+        nothing)."""
+        if self.spindle_drive is not None:
+            self.run_on_cycle(lambda: self.spindle_drive.hold(on), wait=False)
+
+    def spindle_at_speed(self) -> bool:
+        """The spindle drive turns at the speed it is to (True without one)."""
+        return self.spindle_drive is None or self.spindle_drive.at_speed()
 
     def feed_override(self, factor: float) -> None:
         self.run_on_cycle(lambda: self.planner.set_feed_override(factor) if self.planner is not None

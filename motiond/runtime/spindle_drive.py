@@ -169,6 +169,17 @@ class SpindleDriveControl:
             self._dir = 0
             self._command(0.0)
 
+    def hold(self, on: bool) -> None:
+        """The door: speed 0 (``on``), or back to the speed S and M3/M4 asked for."""
+        self._command(0.0 if on else self._dir * self._rpm)
+
+    def at_speed(self) -> bool:
+        fb = self.feedback
+        if fb is None:
+            return False
+        want = max(-self.cfg.max_rpm, min(self.cfg.max_rpm, self._dir * self._rpm))
+        return abs(fb.rpm - want) <= max(self.cfg.at_speed_tolerance * abs(want), STILL_RPM)
+
     # --- sync points --------------------------------------------------------------------------------
     def on_wait(self, w: C.Canon, now: float | None = None) -> bool:
         """The planner stands at ``w``: True when the spindle drive completes it (:meth:`on_cycle`
@@ -246,8 +257,7 @@ class SpindleDriveControl:
 
     def _done(self, cmd: C.Canon, fb: Any) -> bool:
         if isinstance(cmd, C.SpindleOn):
-            want = max(-self.cfg.max_rpm, min(self.cfg.max_rpm, self._dir * self._rpm))
-            return abs(fb.rpm - want) <= max(self.cfg.at_speed_tolerance * abs(want), STILL_RPM)
+            return self.at_speed()
         if self._orient is None:
             return False
         # oriented on three positions in a row (a late TPDO repeats an old one)
