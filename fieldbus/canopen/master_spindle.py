@@ -85,10 +85,9 @@ class SpindleBook:
         self.cfg = cfg
         self.node = node
         self.syncs = syncs  # the master's SYNCs sent so far
-        self.sync = 0  # the SYNC the last position answered
         self.sync_base: int | None = None  # SYNCs sent at its NMT start (None: not started)
         self.cycle_s = 0.002  # the SYNC period (the master's cycle)
-        self.accel = 0.0  # counts/s^2, from the last two velocities
+        self._vel = (0, 0.0)  # velocity actual 0x606C (counts/s), its change from the SYNC before (/s)
         rpdo = SPINDLE_LAYOUT.rpdos[0]
         self.rpdo_id = rpdo.cob_id(cfg.node_id)
         self.rpdo_struct = rpdo.struct
@@ -96,9 +95,8 @@ class SpindleBook:
         self.commanded_rpm = 0.0  # what the machine asks (signed, M3 positive)
         self.ramp_rpm = 0.0  # csv: the target sent this cycle, ramped toward commanded_rpm
         self.statusword = 0
-        self.velocity = 0  # counts/s, 0x606C
         self.position: int | None = None  # counts, 0x6064 as last received
-        self.counts = 0  # counts since boot, unwrapped
+        self._pos = (0, 0, 0.0)  # counts since boot (unwrapped), the SYNC they answer, when they came
         self.feedback_at = 0.0
         self.heartbeat_at = 0.0
         self.nmt_state = -1
@@ -125,31 +123,47 @@ class SpindleBook:
                                      self.target_counts())
 
     def on_tpdo(self, cob_id: int, data: bytearray, timestamp: float) -> None:
-        """Reader thread: TPDO1 (statusword, velocity) or TPDO2 (position, unwrapped)."""
+        """Reader thread: TPDO1 (statusword, velocity) or TPDO2 (position, unwrapped). Each frame's
+        values are replaced as one tuple: the cycle thread never reads a position with another
+        SYNC's date."""
         base = cob_id - self.cfg.node_id
         if base == 0x180 and len(data) >= 6:
-            before = self.velocity
-            self.statusword, self.velocity = SPINDLE_LAYOUT.tpdos[0].struct.unpack_from(data)
-            self.accel = (self.velocity - before) / self.cycle_s
+            sw, velocity = SPINDLE_LAYOUT.tpdos[0].struct.unpack_from(data)
+            self.statusword = sw
+            self._vel = (velocity, (velocity - self._vel[0]) / self.cycle_s)
         elif base == 0x280 and len(data) >= 4:
             (pos,) = SPINDLE_LAYOUT.tpdos[1].struct.unpack_from(data)
-            if self.position is not None:
-                self.counts += (pos - self.position + 2**31) % 2**32 - 2**31
-            else:
-                self.counts = pos
+            counts, sync, _at = self._pos
+            counts = pos if self.position is None else counts + (pos - self.position + 2**31) % 2**32 - 2**31
             self.position = pos
-            if self.sync_base is None:
-                self.sync = self.syncs()
-            else:
-                self.sync = max(self.sync, self.sync_base) + 1
-            self.feedback_at = time.monotonic()
+            sync = self.syncs() if self.sync_base is None else max(sync, self.sync_base) + 1
+            now = time.monotonic()
+            self._pos = (counts, sync, now)
+            self.feedback_at = now
+
+    @property
+    def velocity(self) -> int:
+        return self._vel[0]
+
+    @property
+    def counts(self) -> int:
+        return self._pos[0]
+
+    @property
+    def sync(self) -> int:
+        return self._pos[1]
+
+    def restart_count(self, base: int | None) -> None:
+        """The SYNCs its TPDOs answer count from ``base`` (its NMT start; None: not started)."""
+        self.sync_base = base
+        self._pos = (self._pos[0], 0, self._pos[2])
 
     def feedback(self) -> SpindleFeedback:
         cfg = self.cfg
-        revolutions = self.counts * cfg.direction / cfg.counts_per_revolution
-        return SpindleFeedback(cfg.rpm(self.velocity), revolutions,
-                               cia402.decode(self.statusword), self.ramp_rpm, self.feedback_at, self.sync,
-                               cfg.rpm(self.accel))
+        counts, sync, at = self._pos
+        velocity, accel = self._vel
+        return SpindleFeedback(cfg.rpm(velocity), counts * cfg.direction / cfg.counts_per_revolution,
+                               cia402.decode(self.statusword), self.ramp_rpm, at, sync, cfg.rpm(accel))
 
 
 class SpindleMixin(MasterCore):
@@ -180,7 +194,7 @@ class SpindleMixin(MasterCore):
             return
         cfg, conf = sb.cfg, self.config
         sb.booted.clear()
-        sb.sync_base = None
+        sb.restart_count(None)
         sb.node.nmt.send_command(0x82)
         if not sb.booted.wait(conf.boot_timeout_s):
             raise CanopenError(f"{sb.describe()}: no boot-up message within {conf.boot_timeout_s:g} s after "
@@ -222,8 +236,7 @@ class SpindleMixin(MasterCore):
             raise CanopenError(f"{sb.describe()}: modes of operation display is {shown}, not {mode} "
                                f"({cfg.mode}) after writing 0x6060 = {mode}")
         with self._lock:  # the SYNCs its TPDOs answer count from here (no SYNC goes out in between)
-            sb.sync_base = self.cycles
-            sb.sync = 0
+            sb.restart_count(self.cycles)
             sb.node.nmt.send_command(0x01)
         deadline = time.monotonic() + conf.boot_timeout_s
         while sb.nmt_state != 5:
