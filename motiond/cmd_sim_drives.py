@@ -154,6 +154,10 @@ def run(args: argparse.Namespace) -> int:
               for d in config.drives]
     for d in drives:
         d.reenable_during_quick_stop_ramp = args.strict
+    if config.spindle is not None:  # [canopen.spindle]: its simulated drive, with the file's inertia
+        from fieldbus.canopen.drive_sim_velocity import sim_spindle
+
+        drives.append(sim_spindle(config.spindle, boot_delay_s=args.boot_delay_ms / 1000.0))
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -165,6 +169,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"cannot open {bus.interface} bus {bus.channel!r}: {exc}") from None
     try:
         names = ", ".join(f"{d.axis}={d.node_id}" for d in config.drives)
+        if config.spindle is not None:
+            names += f", spindle={config.spindle.node_id}"
         print(f"simulating drives {names} on {bus.interface} {bus.channel}", flush=True)
         stop.wait(args.seconds or None)
     finally:

@@ -19,10 +19,12 @@ from fieldbus.canopen.config import (
     CANON_OWNED,
     HOLDING_QUICK_STOP_OPTIONS,
     SDO_TYPES,
+    SPINDLE_MODES,
     CanBusConfig,
     CanopenConfig,
     DriveConfig,
     EmcyPolicy,
+    SpindleDriveConfig,
     emcy_pattern_problem,
     sync_problem,
 )
@@ -113,18 +115,8 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
             raise axes.error(name, "missing: every axis needs a drive ([canopen.axes."
                                    f"{name}] with node_id)")
         a = axes.table(name)
-        node_id = a.get("node_id", int, check=in_range(1, 127))
-        if node_id == master_id:
-            raise a.error("node_id", f"{node_id} is the master's own node id (canopen.master_node_id)")
-        if node_id in used:
-            raise a.error("node_id", f"{node_id} is already the node id of axis {used[node_id]}")
+        node_id, eds = _node_and_eds(a, base, master_id, used)
         used[node_id] = name
-        eds = a.get("eds", str, "")
-        if eds:
-            path = Path(eds) if Path(eds).is_absolute() else base / eds
-            if not path.is_file():
-                raise a.error("eds", f"no such file: {path}")
-            eds = str(path)
         lim = _limits(name, axis_limits)
         qs_option = a.get("quick_stop_option", int, None, check=one_of(1, 2, 3, 4, 5, 6, 7, 8))
         if layout == "standard" and qs_option in HOLDING_QUICK_STOP_OPTIONS:
@@ -167,6 +159,7 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
         drives.append(drive)
         a.check_unknown()
     axes.check_unknown()
+    spindle = _spindle(t.table("spindle"), base, master_id, used) if "spindle" in t.data else None
     t.check_unknown()
     return CanopenConfig(
         CanBusConfig(interface, channel, bitrate, options), tuple(drives), cycle_s=cycle_s,
@@ -176,7 +169,53 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
         pdo_layout=layout, following_error_every=fe_every, status_refresh_ms=refresh,
         realtime_priority=rt_priority, cpu_latency_us=None if cpu_latency < 0 else cpu_latency,
         emcy=EmcyPolicy(**emcy_lists), cpu_affinity=tuple(affinity), steer_gc=steer_gc,
-        drive_setpoint_timeout_ms=drive_timeout, sync=sync)
+        drive_setpoint_timeout_ms=drive_timeout, sync=sync, spindle=spindle)
+
+
+def _node_and_eds(t: Table, base: Path, master_id: int, used: dict[int, str]) -> tuple[int, str]:
+    """A drive's ``node_id`` (1-127, not the master's, not another drive's) and ``eds`` (a file,
+    relative to the machine file's folder; "" the shipped one)."""
+    node_id = t.get("node_id", int, check=in_range(1, 127))
+    if node_id == master_id:
+        raise t.error("node_id", f"{node_id} is the master's own node id (canopen.master_node_id)")
+    if node_id in used:
+        raise t.error("node_id", f"{node_id} is already the node id of axis {used[node_id]}")
+    eds = t.get("eds", str, "")
+    if eds:
+        path = Path(eds) if Path(eds).is_absolute() else base / eds
+        if not path.is_file():
+            raise t.error("eds", f"no such file: {path}")
+        eds = str(path)
+    return node_id, eds
+
+
+def _spindle(s: Table, base: Path, master_id: int, used: dict[int, str]) -> SpindleDriveConfig:
+    """``[canopen.spindle]``: the spindle as a CiA 402 drive in a velocity mode (docs/canopen.md)."""
+    node_id, eds = _node_and_eds(s, base, master_id, used)
+    acceleration = s.get("acceleration", float, 1000.0, check=positive)
+    cfg = SpindleDriveConfig(
+        node_id=node_id, eds=eds, mode=s.get("mode", str, "csv", check=one_of(*SPINDLE_MODES)),
+        counts_per_revolution=s.get("counts_per_revolution", int, 4096, check=in_range(1, 2**24)),
+        direction=s.get("direction", int, 1, check=one_of(1, -1)),
+        max_rpm=s.get("max_rpm", float, 3000.0, check=positive),
+        acceleration=acceleration,
+        quick_stop_deceleration=s.get("quick_stop_deceleration", float, 3.0 * acceleration, check=positive),
+        at_speed_tolerance=s.get("at_speed_tolerance", float, 0.02, check=in_range(0.001, 0.5)),
+        at_speed_timeout_s=s.get("at_speed_timeout_s", float, 10.0, check=positive),
+        orient_rpm=s.get("orient_rpm", float, 60.0, check=positive),
+        orient_tolerance_deg=s.get("orient_tolerance_deg", float, 1.0, check=in_range(0.01, 90.0)),
+        orient_timeout_s=s.get("orient_timeout_s", float, 10.0, check=positive),
+        vendor_id=s.get("vendor_id", int, None, check=in_range(0, U32)),
+        product_code=s.get("product_code", int, None, check=in_range(0, U32)),
+        sim_acceleration=s.get("sim_acceleration", float, None, check=positive),
+    )
+    top = cfg.counts_per_s(cfg.max_rpm)
+    if abs(top) > I32[1]:
+        raise s.error("counts_per_revolution", f"{cfg.counts_per_revolution} counts/rev x max_rpm "
+                      f"{cfg.max_rpm:g} is {abs(top):,.0f} counts/s, beyond the drive's target velocity "
+                      f"(0x60FF, INTEGER32)")
+    s.check_unknown()
+    return cfg
 
 
 def _extra_sdo(axis: Table) -> tuple[tuple[int, int, str, int, str], ...]:

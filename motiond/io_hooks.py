@@ -17,6 +17,13 @@ side calls them through its ``MotionHooks``: ``io_cycle``, ``io_event``, ``io_wa
 * :meth:`IoHooks.refuse_estop_reset`, :meth:`IoHooks.refuse_resume`: the input-side refusals;
 * :meth:`IoHooks.stopped`: E-stop, fault or abort: the wait is gone; on E-stop and fault the spindle,
   coolant and machine enable are switched off.
+
+The door (``door_open``) opened on a running program holds the motion (feed hold, as the command) and
+stops the spindle and the coolant (their outputs off; a spindle drive to speed 0), as a machine
+builder's door interlock does. Once it is closed, cycle start restores them as they were and the
+motion resumes when the spindle is at speed again (the at-speed input or the measured speed; the
+spindle drive's measured speed), at most ``at_speed_timeout_s`` (else a fault); with no at-speed signal
+at once.
 """
 
 from __future__ import annotations
@@ -42,6 +49,8 @@ class IoHooks:
         self.map = io
         self.empty = io.empty  # no map: the hooks cost nothing per cycle
         self.mio = MachineIO(io, None, tuple(machine.names))
+        self._door_held = False  # the door stopped the spindle and coolant (restored on cycle start)
+        self._resume_at: float | None = None  # cycle start after the door: resume once at speed, by then
 
     def start(self, executor: Any) -> None:
         """The Modbus executor is up: the functions on Modbus points can be read and written."""
@@ -66,6 +75,23 @@ class IoHooks:
             velocity=velocity, drive_inputs=drive_inputs)
         for act in self.mio.poll(st):
             self._act(act)
+        if self._resume_at is not None:
+            self._resume_when_at_speed()
+
+    def _resume_when_at_speed(self) -> None:
+        m = self.m
+        ready = self.mio.spindle_ready()
+        if ready is not False and m.motion.spindle_at_speed():
+            self._resume_at = None
+            try:
+                m.resume()
+            except CommandRefused as exc:
+                m.event("WARNING", f"cycle start: {exc}", kind="io_refused", source="modbus")
+        elif time.monotonic() > self._resume_at:
+            self._resume_at = None
+            m._post_fault(f"cycle start after the door: the spindle not at speed again within "
+                          f"{self.map.spindle.at_speed_timeout_s:g} s ([io.spindle] at_speed_timeout_s)",
+                          "modbus")
 
     def _act(self, act: Any) -> None:
         m = self.m
@@ -82,7 +108,19 @@ class IoHooks:
             with contextlib.suppress(CommandRefused):
                 m.pause()
                 m.event("INFO", f"paused: {act.reason}", kind="io_pause", source="modbus")
+                if act.reason.startswith("door open") and not self._door_held:
+                    self._door_held = True  # the spindle and coolant stop with the motion
+                    self.mio.hold_spindle()
+                    m.motion.spindle_hold(True)
         elif act.kind == RESUME:
+            if self._door_held and not self.mio.door_open:
+                self._door_held = False  # spindle and coolant back; the motion once at speed
+                self.mio.restore_spindle()
+                m.motion.spindle_hold(False)
+                self._resume_at = time.monotonic() + self.map.spindle.at_speed_timeout_s
+                m.event("INFO", f"{act.reason}: spindle and coolant restored, resuming once at speed",
+                        kind="io_resume", source="modbus")
+                return
             try:
                 m.resume()
             except CommandRefused as exc:
@@ -142,6 +180,8 @@ class IoHooks:
     def stopped(self, *, outputs_off: bool) -> None:
         """The job ended early (E-stop, fault, abort): forget the wait; on E-stop and fault switch the
         spindle, coolant and machine enable off."""
+        self._door_held = False
+        self._resume_at = None
         if outputs_off:
             self.mio.drop_outputs()
         else:
@@ -167,6 +207,9 @@ class IoHooks:
     def refuse_resume(self) -> None:
         if self.mio.door_open:
             raise CommandRefused("cannot resume: the door is open (door_open); close it, then cycle start")
+        if self._door_held:
+            raise CommandRefused("cannot resume: the door stopped the spindle; press cycle start (it "
+                                 "restarts the spindle and resumes once it is at speed)")
 
     def status(self, s: Any) -> None:
         names, values = self.mio.status()

@@ -376,6 +376,46 @@ class MachineIO:
             out.append(done)
         return out
 
+    # --- the door -----------------------------------------------------------------------------------
+
+    _HELD = ("spindle_on", "spindle_cw", "spindle_ccw", "coolant_mist", "coolant_flood")
+
+    def hold_spindle(self) -> None:
+        """The door opened on a running program: spindle and coolant off, as they were kept for
+        :meth:`restore_spindle`."""
+        self._held = {n: v for n in self._HELD if n in self.f and (v := self._values.get(n, 0.0))}
+        for name in self._held:
+            self._set(name, 0.0)
+
+    def restore_spindle(self) -> None:
+        """Door closed, cycle start: spindle and coolant as they were (the at-speed check starts)."""
+        held, self._held = getattr(self, "_held", {}), {}
+        futures: list[concurrent.futures.Future[float]] = []
+        for name, value in held.items():
+            self._set(name, value, futures=futures)
+        self._restore_futures = futures
+
+    def spindle_ready(self) -> bool | None:
+        """After :meth:`restore_spindle`: the spindle at speed again (True), not yet (False), or no way
+        to tell (None: no at-speed signal bound; the machine goes on at once)."""
+        on = any(self._values.get(n) for n in ("spindle_on", "spindle_cw", "spindle_ccw"))
+        b = self.f.get("spindle_at_speed")
+        if not on or (b is None and "spindle_speed_measured" not in self.f):
+            return None
+        futures = getattr(self, "_restore_futures", [])
+        if not all(f.done() for f in futures):
+            return False
+        written = max((f.result() for f in futures if f.exception() is None), default=0.0)
+        if self.ex is not None:
+            dev = _dev(b if b is not None else self.f["spindle_speed_measured"])
+            if self.ex.worker.snapshot.polls.get(dev, (0, -1.0))[1] <= written:
+                return False  # the input must come from a poll after the writes
+        if b is not None:
+            return bool(self._read(b))
+        rpm = self._spindle_rpm
+        return self._near(self.f["spindle_speed_measured"], rpm, max(self.io.spindle.at_speed_tolerance * rpm,
+                                                                      1e-9))
+
     def _set_enable(self, on: bool) -> None:
         self._set("machine_enable", on)  # written when it changes (or was reset to safe by a recovery)
 

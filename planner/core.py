@@ -360,7 +360,7 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
             if rate <= 0 or self._spindle_rpm <= 0:
                 raise PlannerError(f"feed per revolution (G95) needs F > 0 and a turning spindle (F{rate:g}, "
                                    f"S{self._spindle_rpm:g})", cmd.file, cmd.line)
-            return rate * self._spindle_rpm / 60.0
+            return self._per_rev_speed(cmd, rate)  # planner.spindle_sync: follows a measured spindle
         if rate <= 0:
             raise PlannerError("feed rate is 0: set F before a feed move", cmd.file, cmd.line)
         return rate / 60.0

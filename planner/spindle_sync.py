@@ -11,15 +11,52 @@ spindle restored: each reversal a spindle start (a sync point). Motion comes to 
 and where it leaves synchronization (LinuxCNC waits for the spindle's index there and never blends a
 synchronized move with a free one): a blend would cut across the thread's start or end. Within it (G76's
 tapered entry into the full pitch) moves blend as usual.
+
+With the spindle's measured position (a spindle drive, ``[canopen.spindle]``), the machine calls
+:meth:`SpindleSyncMixin.follow_spindle` before every setpoint with the spindle's revolutions, and the
+synchronized moves follow them as LinuxCNC's do its spindle index and encoder:
+
+* G33 and G76's passes: a synchronized move that starts at rest waits for the spindle's index (the
+  next whole revolution) and then runs its planned profile on the spindle's clock instead of the wall
+  clock: each cycle its time advances by the revolutions the spindle turned, divided by the
+  revolutions per second it was planned at. In the cruise the path position is the pitch times the
+  revolutions since the index plus a constant (the acceleration's lead-in, the same on every pass), so
+  every pass of a thread is cut in the same groove whatever the spindle's speed does; a slower spindle
+  slows the axis with it.
+* G95 (feed per revolution): a move runs on the spindle's clock as well, without the index, and
+  never faster than planned (at most the commanded speed's pace: the axes' limits hold): a spindle
+  slower than commanded (lagging its ramp, loaded) slows the feed with it, so each revolution
+  advances F.
+* G33.1 (``follow_taps``): the tap is not planned as moves but queued as a :class:`FollowedTap` sync
+  point; the machine runs it, the axis position being the start plus the pitch times the revolutions
+  since the spindle stood (``motiond.runtime.spindle_drive``).
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import gcode_canon.commands as C
 from planner.segments import OVR_FEED, PlannerError
+
+
+@dataclass(frozen=True, slots=True)
+class FollowedTap(C.Canon):
+    """G33.1 on a machine that follows the spindle's measured position: a sync point the machine
+    completes. ``start`` and ``end``: machine positions (the planner's axis order); ``pitch`` per
+    revolution; the spindle at ``rpm`` in ``direction`` going in, ``scale`` times as fast reversed
+    coming out; the spindle is restored to ``rpm`` / ``direction`` afterwards."""
+
+    NAME: ClassVar[str] = "RIGID_TAP_FOLLOWED"
+    SYNC: ClassVar[bool] = True
+    start: tuple[float, ...]
+    end: tuple[float, ...]
+    pitch: float
+    rpm: float
+    direction: C.SpindleDirection
+    scale: float = 1.0
 
 
 class SpindleSyncMixin:
@@ -32,6 +69,19 @@ class SpindleSyncMixin:
     _pose: list[float]
     _exact_next: bool
     _pending: list[C.Canon]
+    _active: Any
+    _k: int
+    T: float
+    #: G33.1 queued as a :class:`FollowedTap` for the machine to run (its spindle feedback)
+    follow_taps: bool = False
+    # measured-position following (follow_spindle): synchronized commands' (pitch, rpm, sign, locked:
+    # G33 / G76 rather than G95) by id,
+    # the segment followed, its time on the spindle's clock, the last revolutions, the index awaited
+    _synced_cmds: dict[int, tuple[float, float, int, bool]]
+    _sp_seg: Any = None
+    _sp_tau = 0.0
+    _sp_last = 0.0
+    _sp_index: float | None = None
 
     def _spindle_sync(self, cmd: C.Canon) -> None:
         if isinstance(cmd, C.RigidTap):
@@ -55,7 +105,51 @@ class SpindleSyncMixin:
         if self._spindle_rpm <= 0:
             raise PlannerError("spindle-synchronized motion (G33, G33.1, G76) needs a turning spindle",
                                cmd.file, cmd.line)
+        self._note_synced(cmd, self._sync_pitch, locked=True)
         return self._sync_pitch * self._spindle_rpm / 60.0
+
+    def _per_rev_speed(self, cmd: C.Canon, rate: float) -> float:
+        """Path speed of a G95 move (units/s): F per revolution at the commanded speed."""
+        self._note_synced(cmd, rate, locked=False)
+        return rate * self._spindle_rpm / 60.0
+
+    def _note_synced(self, cmd: C.Canon, pitch: float, locked: bool) -> None:
+        if not hasattr(self, "_synced_cmds") or len(self._synced_cmds) > 4096:
+            self._synced_cmds = {}  # ids of moves long run (bounded: a move is followed while it runs)
+        sign = 1 if self._spindle_dir is C.SpindleDirection.CW else -1
+        self._synced_cmds[id(cmd)] = (pitch, self._spindle_rpm, sign, locked)
+
+    def follow_spindle(self, revolutions: float) -> None:
+        """Before :meth:`next_setpoint`, every cycle, on a machine with the spindle's position: its
+        revolutions (M3 counting up) at the time the next setpoint takes effect. A synchronized move
+        runs on the spindle's clock (module docstring); other motion is not touched."""
+        act = self._active
+        info = None if act is None else getattr(self, "_synced_cmds", {}).get(id(act.seg.cmd))
+        if info is None:
+            self._sp_seg = None
+            self._sp_last = revolutions
+            return
+        _pitch, rpm, sign, locked = info
+        t_next = (self._k + 1) * self.T
+        if act.seg is not self._sp_seg:  # a synchronized move began with the last setpoint
+            self._sp_seg = act.seg
+            from_rest = abs(act.traj.at_time(0.0)[1][0]) < 1e-12 and act.s_off <= act.seg.s0 + 1e-12
+            self._sp_tau = max(0.0, t_next - self.T - act.t0)  # its time so far (one cycle's at most)
+            self._sp_index = None
+            if from_rest and locked:  # wait for the spindle's index: the next whole revolution
+                self._sp_tau = 0.0
+                self._sp_index = math.floor(revolutions) + 1.0 if sign > 0 else math.ceil(revolutions) - 1.0
+        turned = (revolutions - self._sp_last) * sign
+        if self._sp_index is not None:  # still before the index: the move has not begun
+            past = (revolutions - self._sp_index) * sign
+            turned = max(0.0, past)
+            if past >= 0.0:
+                self._sp_index = None
+        self._sp_last = revolutions
+        step = max(0.0, turned) * 60.0 / rpm
+        self._sp_tau += step if locked else min(step, self.T)
+        act.t0 = t_next - self._sp_tau
+        act.t_end = act.t0 + act.traj.duration
 
     def _seg_ovr(self, rapid: bool) -> int:
         """The override switches a new move obeys: a spindle-synchronized feed ignores the feed
@@ -77,6 +171,13 @@ class SpindleSyncMixin:
         where: dict[str, Any] = {"file": cmd.file, "line": cmd.line}
         back = C.Pose(*self._pose)
         rpm, forward = self._spindle_rpm, self._spindle_dir
+        if self.follow_taps:
+            start = tuple(self._end)  # type: ignore[attr-defined]
+            end = tuple(self._target(cmd, cmd.end))  # type: ignore[attr-defined]  # checks the soft limits
+            self._pose = list(back)  # the tap ends where it started
+            self._sync(FollowedTap(start, end, self._sync_pitch, rpm, forward, cmd.scale,  # type: ignore[attr-defined]
+                                   **where))
+            return
         reverse = C.SpindleDirection.CCW if forward is C.SpindleDirection.CW else C.SpindleDirection.CW
         self._exact_next = True
         self._motion(  # type: ignore[attr-defined]

@@ -162,6 +162,31 @@ def test_door_opened_mid_program_holds_and_resumes_on_close_and_cycle_start(rig:
     assert abs(rig.x() - 100.0) < 1e-9
 
 
+def test_the_door_stops_spindle_and_coolant_and_cycle_start_restores_them_before_the_motion(rig: Rig) -> None:
+    n = after_start(rig)
+    job = rig.machine.run(rig.program("%\nG21 G90 G94\nM3 S1000 M8\nG1 X100 F3000\nM5 M9\nM2\n%\n"))
+    wait_for(lambda: rig.x() > 2.0, "the axis moving")
+    rig.sim.set("discrete_input", 14, 1)  # door open
+    wait_for(lambda: rig.machine.states.state is State.PAUSED, "PAUSED on the door")
+    first_write(rig, "coil", 9, 0, n)  # spindle off
+    first_write(rig, "coil", 13, 0, n)  # flood off
+    wait_for(lambda: not any(rig.machine.motion.velocity), "motion held")
+    held = rig.x()
+    rig.sim.set("discrete_input", 14, 0)  # closed: the spindle stays off until cycle start
+    wait_for(lambda: not rig.machine.io_hooks.mio.door_open, "the door read closed")
+    with pytest.raises(CommandRefused, match="door stopped the spindle"):
+        rig.machine.resume()
+    n2 = len(rig.sim.writes)
+    rig.sim.set("discrete_input", 11, 1)  # cycle start: spindle and coolant back, then the motion
+    t_on = first_write(rig, "coil", 9, 1, n2)
+    first_write(rig, "coil", 13, 1, n2)
+    result = rig.machine.wait_job(job, 30.0)
+    assert result is not None and result.ok, result.error if result else "timeout"
+    delay = rig.machine.io_hooks.map.spindle.sim_delay_s
+    moved = [t for _c, t, pos, _ev in rig.machine.trace if pos[0] > held + 1e-6]
+    assert moved and moved[0] >= t_on + delay, (moved[0] - t_on, delay)  # at speed first
+
+
 def test_m101_sets_its_output_and_waits_for_its_input(rig: Rig) -> None:
     rig.sim.rules[:] = [r for r in rig.sim.rules if r.when_address != 14]  # nobody answers but us
     job = rig.machine.run(rig.program("%\nG21 G90 G94\nG1 X2 F3000\nM101\nG1 X4\nM2\n%\n"))

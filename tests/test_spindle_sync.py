@@ -193,9 +193,9 @@ def test_real_machine_refuses_synchronized_motion_without_spindle_feedback() -> 
     from motiond.runtime.cycle import refuse_unfollowed_sync
 
     cmd = C.SpindleSync(1.5, file="p.ngc", line=7)
-    refuse_unfollowed_sync(cmd, simulated=True)
+    refuse_unfollowed_sync(cmd, followed=True)  # the simulated spindle, or a spindle drive
     with pytest.raises(GCodeError) as info:
-        refuse_unfollowed_sync(cmd, simulated=False)
+        refuse_unfollowed_sync(cmd, followed=False)
     assert info.value.line == 7 and "no spindle feedback" in info.value.message
 
 

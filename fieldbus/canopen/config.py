@@ -89,6 +89,61 @@ class DriveConfig:
         return self.eds or str(SHIPPED_EDS)
 
 
+#: ``[canopen.spindle] mode``: CiA 402 modes of operation for a spindle drive
+SPINDLE_MODES = {"pv": 3, "csv": 9}
+
+
+@dataclass(frozen=True)
+class SpindleDriveConfig:
+    """The spindle as a CiA 402 drive on the same bus (``[canopen.spindle]``), in profile velocity
+    (``pv``: the drive ramps to each new target velocity at 0x6083/0x6084) or cyclic synchronous
+    velocity (``csv``: the master sends a target velocity every SYNC, ramped at ``acceleration``).
+    Velocities on the bus are counts per second (0x60FF, 0x606C); the position actual (0x6064) gives
+    the spindle's revolutions, which spindle-synchronized motion follows."""
+
+    node_id: int
+    eds: str = ""
+    mode: str = "csv"
+    #: encoder counts per spindle revolution (the drive's position unit)
+    counts_per_revolution: int = 4096
+    #: M4 turns the other way (-1: the drive's positive direction is M4)
+    direction: int = 1
+    max_rpm: float = 3000.0
+    #: rpm/s: the master's ramp in csv, 0x6083/0x6084 in pv
+    acceleration: float = 1000.0
+    #: rpm/s: 0x6085, on a quick stop or fault
+    quick_stop_deceleration: float = 3000.0
+    #: at speed (M3/M4 wait): measured within this fraction of the commanded speed ...
+    at_speed_tolerance: float = 0.02
+    #: ... within this time, else a fault naming the line
+    at_speed_timeout_s: float = 10.0
+    #: M19: the spindle stops, then turns at this speed to the angle (rpm)
+    orient_rpm: float = 60.0
+    #: M19 done when within this many degrees of the angle, within ``orient_timeout_s``
+    orient_tolerance_deg: float = 1.0
+    orient_timeout_s: float = 10.0
+    vendor_id: int | None = None
+    product_code: int | None = None
+    #: simulated drives only: the acceleration the spindle's inertia allows (rpm/s; None:
+    #: ``acceleration``); below ``acceleration`` the simulated spindle lags the commanded ramp
+    sim_acceleration: float | None = None
+
+    @property
+    def eds_path(self) -> str:
+        return self.eds or str(SHIPPED_EDS)
+
+    @property
+    def mode_number(self) -> int:
+        return SPINDLE_MODES[self.mode]
+
+    def counts_per_s(self, rpm: float) -> float:
+        """A spindle speed (rpm, signed: M3 positive) in the drive's velocity unit (counts/s)."""
+        return rpm * self.counts_per_revolution * self.direction / 60.0
+
+    def rpm(self, counts_per_s: float) -> float:
+        return counts_per_s * 60.0 * self.direction / self.counts_per_revolution
+
+
 @dataclass(frozen=True)
 class EmcyPolicy:
     """Which EMCY messages stop the machine. Patterns are four hex digits with ``x`` for any digit
@@ -166,6 +221,8 @@ class CanopenConfig:
     #: who times the SYNC (:mod:`fieldbus.canopen.sync`): "master" (the master's cycle, the default),
     #: "kernel" (SocketCAN's broadcast manager) or "auto" (kernel on socketcan, else master)
     sync: str = "master"
+    #: the spindle as a drive on this bus (None: none; the I/O map may still drive a spindle)
+    spindle: SpindleDriveConfig | None = None
 
     @property
     def layout(self) -> PdoLayout:

@@ -33,6 +33,9 @@ Behaviour a real drive has and the tests rely on:
   latched where the motion crossed it inside the period (``drive_sim_probe``).
 * Optional objects absent (``absent_objects``): SDO access aborts 0x06020000 and the drive keeps its
   own defaults for them.
+* Profile velocity (3) and cyclic synchronous velocity (9), for a spindle drive
+  (``drive_sim_velocity``): target velocity 0x60FF, velocity actual 0x606C, the motor's inertia
+  (``inertia_acceleration``) making the spindle lag its commanded ramp.
 * A small motor's limits, from the EDS (0x6080 3000 rpm, 0x608F 50000 counts/rev, 0x60C5/0x60C6,
   0x607D, 0x6502 with CSP) or ``parameters``.
 * RPDO deadline monitoring (``rpdo_timeout_syncs``): in Operation enabled, that many SYNCs in a row
@@ -50,7 +53,8 @@ ms, then sub 1 an EMCY code; the drive faults with that code exactly as :meth:`i
 The drive is one class, :class:`SimDrive`, written by concern: this module holds its wiring, NMT,
 heartbeat and dictionary; ``drive_sim_cia402`` the state machine and the CSP motion of a SYNC
 period; ``drive_sim_pdo`` the SYNC and the PDOs; ``drive_sim_homing`` homing mode;
-``drive_sim_probe`` the touch probe; ``drive_sim_faults`` fault injection.
+``drive_sim_probe`` the touch probe; ``drive_sim_velocity`` the velocity modes (a spindle);
+``drive_sim_faults`` fault injection.
 """
 
 from __future__ import annotations
@@ -96,6 +100,7 @@ from fieldbus.canopen.drive_sim_faults import (
 from fieldbus.canopen.drive_sim_homing import HomingMixin
 from fieldbus.canopen.drive_sim_pdo import CyclicMixin, PdoMap
 from fieldbus.canopen.drive_sim_probe import PROBE_OBJECTS, TOUCH_PROBE_FUNCTION, TouchProbeMixin
+from fieldbus.canopen.drive_sim_velocity import VELOCITY_MODES, VelocityMixin
 
 __all__ = [
     "DI_HOME", "DI_INTERLOCK", "DI_NEGATIVE_LIMIT", "DI_POSITIVE_LIMIT", "EMCY_FOLLOWING_ERROR",
@@ -108,7 +113,7 @@ log = logging.getLogger(__name__)
 
 NO_SUCH_OBJECT = 0x06020000  # SDO abort: object does not exist in the object dictionary
 
-_LIVE = {0x6041, 0x6061, 0x6062, 0x6064, 0x60F4, 0x603F, 0x1001, 0x60FD, *PROBE_OBJECTS}
+_LIVE = {0x6041, 0x6061, 0x6062, 0x6064, 0x606C, 0x60F4, 0x603F, 0x1001, 0x60FD, *PROBE_OBJECTS}
 
 
 def motor_for(cfg: DriveConfig, eds: str | Path = SHIPPED_EDS) -> dict[tuple[int, int], int]:
@@ -136,7 +141,8 @@ def motor_for(cfg: DriveConfig, eds: str | Path = SHIPPED_EDS) -> dict[tuple[int
     return out
 
 
-class SimDrive(StateMachineMixin, CyclicMixin, HomingMixin, TouchProbeMixin, FaultInjectionMixin):
+class SimDrive(StateMachineMixin, CyclicMixin, HomingMixin, TouchProbeMixin, VelocityMixin,
+               FaultInjectionMixin):
     """One simulated drive. Attach it to a ``canopen.Network``; call :meth:`tick` every few ms."""
 
     def __init__(self, node_id: int, eds: str | Path = SHIPPED_EDS, *, lag_s: float = 0.002,
@@ -144,7 +150,7 @@ class SimDrive(StateMachineMixin, CyclicMixin, HomingMixin, TouchProbeMixin, Fau
                  home_switch_counts: int = 0, rpdo_timeout_syncs: int = 0,
                  negative_limit_counts: int | None = None, positive_limit_counts: int | None = None,
                  home_switch_window_counts: int = 0, probe_trip_counts: int | None = None,
-                 probe_active_below: bool = True,
+                 probe_active_below: bool = True, inertia_acceleration: float | None = None,
                  absent_objects: Iterable[int] = (), parameters: Mapping[tuple[int, int], int] | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
         if order not in (1, 2):
@@ -169,6 +175,8 @@ class SimDrive(StateMachineMixin, CyclicMixin, HomingMixin, TouchProbeMixin, Fau
         self.probe_trip_counts = probe_trip_counts
         self.probe_active_below = probe_active_below
         self._probe_reset()
+        # velocity modes (a spindle): the acceleration the motor's load allows, counts/s^2 (None: any)
+        self.inertia_acceleration = inertia_acceleration
         # RPDO deadline monitoring, as EPOS4-style drives have: in Operation enabled (CSP), this many
         # SYNCs in a row without a target fault the drive with EMCY 0x8250 (0: off)
         self.rpdo_timeout_syncs = rpdo_timeout_syncs
@@ -437,6 +445,8 @@ class SimDrive(StateMachineMixin, CyclicMixin, HomingMixin, TouchProbeMixin, Fau
                 return round(self.demand)
             if index == 0x6064:
                 return round(self.actual)
+            if index == 0x606C:
+                return round(self.velocity) if self.in_velocity_mode else 0
             if index == 0x60F4:
                 return round(self.demand - self.actual)
             if index == 0x603F:
@@ -460,9 +470,11 @@ class SimDrive(StateMachineMixin, CyclicMixin, HomingMixin, TouchProbeMixin, Fau
                 self._probe_function(struct.unpack_from("<H", data)[0])
             elif index == 0x607A:
                 self._pending_target = struct.unpack_from("<i", data)[0]
+            elif index == 0x60FF:
+                self._set_target_velocity(struct.unpack_from("<i", data)[0])
             elif index == 0x6060:
                 mode = struct.unpack_from("<b", data)[0]
-                if mode not in (cia402.MODE_CSP, cia402.MODE_HOMING):
+                if mode not in (cia402.MODE_CSP, cia402.MODE_HOMING, *VELOCITY_MODES):
                     raise SdoAbortedError(0x06090030)  # value range exceeded
                 if mode != self.mode:
                     # as drives do on a mode change: the demand starts where the motor is (no jump,
@@ -470,6 +482,8 @@ class SimDrive(StateMachineMixin, CyclicMixin, HomingMixin, TouchProbeMixin, Fau
                     self.demand = self.actual
                     self.target = round(self.actual)
                     self._pending_target = None
+                    self._pending_velocity = None
+                    self._target_velocity = 0
                     self.velocity = 0.0
                 self.mode = mode
                 self._homing = False

@@ -41,6 +41,8 @@ class StateMachineMixin:
                     extra |= cia402.SW_BIT12 | cia402.SW_TARGET_REACHED
                 if self._homing_error:
                     extra |= cia402.SW_BIT13
+            elif self.in_velocity_mode:
+                extra |= self._velocity_statusword()
         elif self.state == State.QUICK_STOP_ACTIVE and self.velocity == 0:
             extra |= cia402.SW_TARGET_REACHED  # halted at the end of the quick stop ramp
         return cia402.statusword_for(self.state, extra)
@@ -137,7 +139,9 @@ class StateMachineMixin:
         s = self.state
         new = self._pending_target
         self._pending_target = None
-        if s == State.OPERATION_ENABLED and self.mode == cia402.MODE_CSP:
+        if s == State.OPERATION_ENABLED and self.in_velocity_mode:
+            self._velocity_step(dt)
+        elif s == State.OPERATION_ENABLED and self.mode == cia402.MODE_CSP:
             if new is None:
                 self.missed_setpoints += 1
                 self._syncs_without_target += 1
@@ -186,6 +190,9 @@ class StateMachineMixin:
         self._actual_velocity = v
 
     def _decelerate(self, dt: float) -> None:
+        if self.in_velocity_mode:
+            self._velocity_stop(dt)
+            return
         v = self.velocity
         dv = self._qs_decel * dt
         v = 0.0 if abs(v) <= dv else v - math.copysign(dv, v)

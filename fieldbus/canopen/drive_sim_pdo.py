@@ -98,6 +98,8 @@ class CyclicMixin:
                         self._controlword(value)
                     elif index == 0x607A:
                         self._pending_target = value
+                    elif index == 0x60FF:
+                        self._set_target_velocity(value)
             self._event_tpdos()
 
     # ------------------------------------------------------------------ the cycle

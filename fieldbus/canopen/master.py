@@ -31,6 +31,8 @@ Design choices:
 * Limit switches (0x60FD bits 0/1, in TPDO4 on change): a switch that becomes active while the drive
   is streamed to, or a target that moves toward an active one, stops the machine (quick stop, as any
   fault), naming axis, node and switch. After a reset the axis may move off the switch, not onto it.
+* The spindle drive (``[canopen.spindle]``, :mod:`~fieldbus.canopen.master_spindle`), in a velocity
+  mode, is booted, enabled, stopped and parked with the axes; its RPDO goes out before each SYNC too.
 * Faults are reported once (the first, which caused the stop) in :attr:`fault`; later ones go to
   :attr:`fault_log`.
 
@@ -67,17 +69,18 @@ from fieldbus.canopen.master_records import (
     Fault,
     input_names,
 )
+from fieldbus.canopen.master_spindle import SpindleBook, SpindleFeedback, SpindleMixin
 from fieldbus.canopen.master_states import StateMachineMixin
 from fieldbus.canopen.master_supervision import ErrorFrameListener, SupervisionMixin
 from fieldbus.canopen.sync import SYNC_COB_ID, KernelSync, SyncError
 
 __all__ = ["INPUT_BITS", "NEGATIVE_LIMIT", "POSITIVE_LIMIT", "BusBudgetError", "CanopenError",
-           "CanopenMaster", "DriveFeedback", "DriveState", "Fault", "input_names"]
+           "CanopenMaster", "DriveFeedback", "DriveState", "Fault", "SpindleFeedback", "input_names"]
 
 log = logging.getLogger(__name__)
 
 
-class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin):
+class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin):
     """Master of the configured drives on one bus. ``bus``: an open python-can bus to use (else one is
     made from ``config.bus``). ``check_budget=False`` only reports the bus load (benchmarks on the
     virtual bus, which has no bitrate)."""
@@ -87,7 +90,9 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin):
         self.config = config
         self.layout = config.layout
         hb = (config.heartbeat_producer_ms, config.heartbeat_producer_ms)
-        self.load: BusLoad = bus_load(len(config.drives), config.cycle_s, config.bus.bitrate, *hb,
+        # a spindle drive's frames (two cyclic TPDOs, one RPDO) count as one more drive's
+        n_drives = len(config.drives) + (config.spindle is not None)
+        self.load: BusLoad = bus_load(n_drives, config.cycle_s, config.bus.bitrate, *hb,
                                       self.layout)
         if check_budget and self.load.fraction > config.max_bus_load:
             fits = alternatives(len(config.drives), config.cycle_s, config.bus.bitrate, config.max_bus_load,
@@ -104,6 +109,7 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin):
         self._own_bus = bus is None
         self.network: canopen.Network | None = None
         self.drives: list[DriveBook] = []
+        self.spindle: SpindleBook | None = None
         self.fault: Fault | None = None
         self.fault_log: list[Fault] = []
         self.cycles = 0
@@ -153,6 +159,7 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin):
             node.emcy.add_callback(lambda entry, d=d: self._on_emcy(d, entry))
             for p in self.layout.tpdos:
                 net.subscribe(p.cob_id(cfg.node_id), self._tpdo_reader(d, p))
+        self._open_spindle(net)
         if self.config.heartbeat_producer_ms > 0:
             self._heartbeat_task = net.send_periodic(
                 0x700 + self.config.master_node_id, [0x05], self.config.heartbeat_producer_ms / 1000.0)
@@ -226,6 +233,7 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin):
                 for d in self.drives:
                     if d.active and not d.homing:
                         self._send(d.rpdo_id, d.cyclic_rpdo())
+                self._spindle_cycle(now)
                 if ks is None:
                     self.network.sync.transmit()  # type: ignore[union-attr]
                 if any(d.active for d in self.drives):

@@ -67,6 +67,7 @@ class BootMixin(MasterCore):
                 d.active = False
         for d in self.drives:
             self._boot_drive(d)
+        self._boot_spindle()
 
     def _boot_drive(self, d: DriveBook) -> None:
         cfg, conf = d.cfg, self.config

@@ -47,8 +47,11 @@ class StateMachineMixin(MasterCore):
             for d in self.drives:
                 self._enable_drive(d)
                 self._fault_during_enable()
+            self._enable_spindle()
+            self._fault_during_enable()
         except CanopenError:
             with self._lock:
+                self._spindle_quick_stop()
                 enabled = [d for d in self.drives if d.active]
                 for d in enabled:
                     d.active = False
@@ -164,7 +167,8 @@ class StateMachineMixin(MasterCore):
                     d.active = False
                     d.controlword = cia402.CW_QUICK_STOP
                     self._send(*d.controlword_rpdo(cia402.CW_QUICK_STOP))
-        for d in self.drives:
+            self._spindle_quick_stop()
+        for d in [*self.drives, *self._spindle_books()]:
             self._park(d, consumer_off=False)
 
     def not_operational(self) -> list[str]:
@@ -177,7 +181,7 @@ class StateMachineMixin(MasterCore):
         conf = self.config
         if conf.heartbeat_producer_ms > 0:
             now = time.monotonic()
-            for d in self.drives:
+            for d in [*self.drives, *self._spindle_books()]:
                 age = now - d.heartbeat_at
                 if age > conf.heartbeat_consumer_ms / 1000.0:
                     raise CanopenError(f"{d.describe()}: no heartbeat for {1000 * age:.0f} ms (consumer time "
@@ -185,7 +189,7 @@ class StateMachineMixin(MasterCore):
                                        "(drive off, cable, node id?)")
         with self._lock:
             self.streaming = False
-        for d in self.drives:
+        for d in [*self.drives, *self._spindle_books()]:
             state = cia402.decode(self._statusword(d))
             if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                 self._wait_state(d, State.FAULT, self.config.state_timeout_s, "the fault reaction")
@@ -302,9 +306,9 @@ class StateMachineMixin(MasterCore):
             return
         self._stop_kernel_sync()
         with self._lock:
-            if any(d.active for d in self.drives):
+            if any(d.active for d in [*self.drives, *self._spindle_books()]):
                 self._quick_stop_locked()
-        for d in self.drives:
+        for d in [*self.drives, *self._spindle_books()]:
             try:
                 self._park(d)
             except (CanopenError, can.CanError, OSError) as exc:
@@ -313,7 +317,7 @@ class StateMachineMixin(MasterCore):
             self._heartbeat_task.stop()
             self._heartbeat_task = None
         try:
-            for d in self.drives:
+            for d in [*self.drives, *self._spindle_books()]:
                 d.node.nmt.send_command(0x80)  # pre-operational: PDOs stop
         except (can.CanError, OSError):
             pass

@@ -37,6 +37,9 @@ class SupervisionMixin(MasterCore):
     def warn(self, node: int, text: str) -> None:
         """Log and publish a warning about ``node`` (0: the master)."""
         axis = next((d.cfg.axis for d in self.drives if d.cfg.node_id == node), "")
+        spindle = getattr(self, "spindle", None)
+        if not axis and spindle is not None and spindle.cfg.node_id == node:
+            axis = "spindle"
         w = Fault(node, axis, text)
         self.warnings.append(w)
         log.warning("CANopen: %s", w)
@@ -97,6 +100,9 @@ class SupervisionMixin(MasterCore):
         Callable from any thread: the reader thread (EMCY), the cycle, or the daemon (a late cycle).
         """
         axis = next((d.cfg.axis for d in self.drives if d.cfg.node_id == node), "")
+        spindle = getattr(self, "spindle", None)
+        if not axis and spindle is not None and spindle.cfg.node_id == node:
+            axis = "spindle"
         f = Fault(node, axis, reason)
         with self._lock:
             self.fault_log.append(f)
@@ -115,6 +121,7 @@ class SupervisionMixin(MasterCore):
 
     def _quick_stop_locked(self) -> None:
         self._streaming_off()
+        self._spindle_quick_stop()
         for d in self.drives:
             d.active = False
             d.controlword = cia402.CW_QUICK_STOP

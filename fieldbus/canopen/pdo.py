@@ -41,8 +41,10 @@ POSITION_ACTUAL = (0x6064, 0, 32)
 FOLLOWING_ERROR = (0x60F4, 0, 32)
 DIGITAL_INPUTS = (0x60FD, 0, 32)
 TOUCH_PROBE_STATUS = (0x60B9, 0, 16)
+TARGET_VELOCITY = (0x60FF, 0, 32)  # the spindle drive's (fieldbus.canopen.master_spindle)
+VELOCITY_ACTUAL = (0x606C, 0, 32)
 
-_SIGNED = {0x607A, 0x6064, 0x60F4}
+_SIGNED = {0x607A, 0x6064, 0x60F4, 0x60FF, 0x606C}
 #: transmission type 255: event-driven (device profile specific), acted on / sent on reception / change
 EVENT = 255
 LAYOUTS = ("standard", "compact")

@@ -45,12 +45,13 @@ END = object()
 """End of a job's commands in the queue."""
 
 
-def refuse_unfollowed_sync(cmd: C.SpindleSync, simulated: bool) -> None:
-    """Spindle-synchronized motion (G33, G33.1, G76) is planned at the commanded spindle speed: right
-    for the simulated spindle, which turns exactly as commanded. A real spindle lags, slips and speeds
-    up; following it needs its position in the cycle (a spindle drive or encoder), which canon does not
-    read yet. Rather than cut a thread whose pitch drifts, a real machine refuses the move."""
-    if not simulated:
+def refuse_unfollowed_sync(cmd: C.SpindleSync, followed: bool) -> None:
+    """Spindle-synchronized motion (G33, G33.1, G76) without the spindle's position is planned at the
+    commanded spindle speed: right for the simulated spindle, which turns exactly as commanded. A real
+    spindle lags, slips and speeds up; following it needs its position in the cycle: a spindle drive
+    (``[canopen.spindle]``, ``followed``). Rather than cut a thread whose pitch drifts, a real machine
+    without one refuses the move."""
+    if not followed:
         raise GCodeError("spindle-synchronized motion (G33, G33.1, G76) needs the spindle's position, and "
                          "this machine has no spindle feedback configured: canon would cut at the commanded "
                          "speed, not the spindle's", cmd.file, cmd.line)
@@ -73,6 +74,8 @@ class Cycle:
         """The IoExecutor (task side): setpoint events are handed to it, output commands checked."""
         self.master: Any = None
         self.planner: Any = None
+        self.spindle_drive: Any = None
+        """The spindle drive (:class:`~motiond.runtime.spindle_drive.SpindleDriveControl`), or None."""
         self.drive_probe: Any = None
         """G38.x by a drive's touch probe (:class:`~motiond.runtime.probing.DriveProbing`), or None."""
         self.runner: Any = None
@@ -160,7 +163,8 @@ class Cycle:
         if p is not None and master.streaming and not self.hold_stream:
             try:
                 self._feed(p)
-                sp = p.next_setpoint()
+                # with a spindle drive, synchronized motion follows its measured position
+                sp = p.next_setpoint() if self.spindle_drive is None else self.spindle_drive.next_setpoint(p)
             except GCodeError as exc:  # PlannerError
                 self.post_fault(str(exc), "planner")
                 sp = None
@@ -169,6 +173,8 @@ class Cycle:
         self.actual_t = time.monotonic()
         self.following_error = fb.following_errors
         self.drive_inputs = fb.digital_inputs
+        if self.spindle_drive is not None:
+            self.spindle_drive.on_cycle()  # its feedback; the at-speed and M19 waits
         if self.drive_probe is not None:
             self.drive_probe.on_cycle(self.planner)  # a touch probe trip stops the probing move
         stream = self.stream
@@ -219,7 +225,7 @@ class Cycle:
                 raise GCodeError(f"{item.NAME}: this machine has no Modbus I/O configured ([modbus])",
                                  item.file, item.line)
             elif isinstance(item, C.SpindleSync):
-                refuse_unfollowed_sync(item, self.simulated)
+                refuse_unfollowed_sync(item, self.simulated or self.spindle_drive is not None)
             p.feed(item)
 
     def _track(self, sp: Any, stream: Stream | None) -> None:
@@ -257,6 +263,8 @@ class Cycle:
     def _events(self, sp: Any, stream: Stream | None) -> None:
         for ev in sp.events:
             self.hooks.io_event(ev, stream)  # spindle, coolant: the I/O map's outputs
+            if self.spindle_drive is not None:
+                self.spindle_drive.on_event(ev)  # S, M3/M4/M5, M19 to the spindle drive
             if isinstance(ev, C.DigitalOutput | C.AnalogOutput):
                 if stream is not None:
                     digital = isinstance(ev, C.DigitalOutput)
@@ -291,6 +299,8 @@ class Cycle:
     def _on_wait(self, w: Any) -> None:
         """Cycle thread: the planner stands at a sync point that waits for the machine."""
         p = self.planner
+        if self.spindle_drive is not None and self.spindle_drive.on_wait(w):
+            return  # M3/M4 at speed, M19 oriented: the spindle drive completes it
         if self.hooks.io_wait(w):
             return  # spindle at speed, oriented, a user M code: the I/O map completes it
         if isinstance(w, C.ToolChange):

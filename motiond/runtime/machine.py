@@ -295,6 +295,10 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
                 self.sim_drives = [SimDrive(d.node_id, d.eds_path, lag_s=self.sim_lag_s,
                                             parameters=motor_for(d, d.eds_path), **sim_probe(d))
                                    for d in self.canopen.drives]
+                if self.canopen.spindle is not None:
+                    from fieldbus.canopen.drive_sim_velocity import sim_spindle
+
+                    self.sim_drives.append(sim_spindle(self.canopen.spindle))
                 self.sim_bus = SimBus(self.sim_drives, self.canopen.bus)
             try:
                 self.motion.open()

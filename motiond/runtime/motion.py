@@ -25,7 +25,8 @@ In (task -> motion)
   * urgent calls, explicit methods that act within a cycle and never queue behind the commands:
     :meth:`~MotionCore.quick_stop` (any thread, at once), :meth:`~MotionCore.estop`,
     :meth:`~MotionCore.abort`, :meth:`~MotionCore.pause`, :meth:`~MotionCore.resume`,
-    :meth:`~MotionCore.feed_override`; and the manual ones, :meth:`~MotionCore.jog`,
+    :meth:`~MotionCore.feed_override`, :meth:`~MotionCore.spindle_hold` (the door: the spindle drive
+    stopped and back), :meth:`~MotionCore.spindle_at_speed`; and the manual ones, :meth:`~MotionCore.jog`,
     :meth:`~MotionCore.jog_stop`.
   * control of the stream: ``hold_stream`` (the drives get no setpoint: a service operation talks to
     them), ``optional_stop``, :meth:`~MotionCore.new_planner`, :meth:`~MotionCore.drop_planner`,
@@ -167,6 +168,8 @@ class MotionSnapshot:
     tool_prepared: int
     jogging: bool
     drives: tuple[DriveView, ...]
+    #: the spindle drive's feedback (:class:`~fieldbus.canopen.master_spindle.SpindleFeedback`), or None
+    spindle_drive: Any = None
 
 
 class MotionCore(Cycle):
@@ -187,6 +190,10 @@ class MotionCore(Cycle):
 
         probe = TouchProbe.of(self.master)
         self.drive_probe = None if probe is None else DriveProbing(self, probe)
+        if self.canopen.spindle is not None:
+            from motiond.runtime.spindle_drive import SpindleDriveControl
+
+            self.spindle_drive = SpindleDriveControl(self, self.canopen.spindle)
 
     def start_cycle(self) -> None:
         from fieldbus.canopen.clock import PeriodicRunner
@@ -344,7 +351,11 @@ class MotionCore(Cycle):
         from planner.core import Planner
 
         start = self.master.positions()
-        p = Planner(self.limits, start=start, waits=self.hooks.planner_waits())
+        waits = self.hooks.planner_waits()
+        if self.spindle_drive is not None:
+            waits = (*waits, *self.spindle_drive.wait_types)
+        p = Planner(self.limits, start=start, waits=waits)
+        p.follow_taps = self.spindle_drive is not None  # G33.1 follows the spindle drive's position
         for cmd in self.hooks.planner_prime():
             p.feed(cmd)
         self.planner = p
@@ -383,6 +394,8 @@ class MotionCore(Cycle):
 
         def on_cycle() -> None:
             self.hooks.cancel_stream(reason, True)
+            if self.spindle_drive is not None:
+                self.spindle_drive.cancel()
             self.planner = None
             self.aborting = self.stop_then_disable = False
 
@@ -392,6 +405,8 @@ class MotionCore(Cycle):
         """The job cancelled and a jerk-limited stop on the path (``hooks.aborted`` once at rest)."""
         def on_cycle() -> None:
             self.hooks.cancel_stream("aborted by the operator", True)
+            if self.spindle_drive is not None:
+                self.spindle_drive.cancel()
             if self.planner is not None:
                 self.planner.abort()
                 self.aborting = True
@@ -415,6 +430,16 @@ class MotionCore(Cycle):
             p.resume()
 
         self.run_on_cycle(on_cycle)
+
+    def spindle_hold(self, on: bool) -> None:
+        """The door: the spindle drive stopped (``on``), or back at its speed (a machine without one:
+        nothing)."""
+        if self.spindle_drive is not None:
+            self.run_on_cycle(lambda: self.spindle_drive.hold(on), wait=False)
+
+    def spindle_at_speed(self) -> bool:
+        """The spindle drive turns at the speed it is to (True without one)."""
+        return self.spindle_drive is None or self.spindle_drive.at_speed()
 
     def feed_override(self, factor: float) -> None:
         self.run_on_cycle(lambda: self.planner.set_feed_override(factor) if self.planner is not None
@@ -495,7 +520,8 @@ class MotionCore(Cycle):
             following_error=tuple(self.following_error), line=line, file=file, modal=self.modal,
             feed_override=float(p.feed_override) if p is not None else 1.0, spindle=self.spindle,
             coolant=self.coolant, tool_prepared=int(self.tool_prepared), jogging=self.jogging,
-            drives=self._drives())
+            drives=self._drives(),
+            spindle_drive=self.spindle_drive.feedback if self.spindle_drive is not None else None)
 
     def _drives(self) -> tuple[DriveView, ...]:
         master = self.master

@@ -135,6 +135,10 @@ class StatusMixin(MachinePart):
         s.tool_prepared = mo.tool_prepared
         s.tool_length_offset = modal.tool_length_offset
         s.spindle_direction, s.spindle_speed = mo.spindle[0], float(mo.spindle[1])
+        sd = mo.spindle_drive
+        s.spindle_drive = sd is not None
+        s.spindle_actual_speed = float(sd.rpm) if sd is not None else 0.0
+        s.spindle_revolutions = float(sd.revolutions) if sd is not None else 0.0
         s.mist, s.flood = mo.coolant
         if self.io is not None:
             io = self.io.state()

@@ -190,6 +190,21 @@ public final class status implements lcm.lcm.LCMEncodable
     public double spindle_speed;
 
     /**
+     * the spindle as a CiA 402 drive ([canopen.spindle]); false: none, and the two values below are 0
+     */
+    public boolean spindle_drive;
+
+    /**
+     * its measured speed (rpm, velocity actual 0x606C; M3 positive)
+     */
+    public double spindle_actual_speed;
+
+    /**
+     * its revolutions since boot (position actual 0x6064 / counts per revolution; M3 counts up)
+     */
+    public double spindle_revolutions;
+
+    /**
      * M7
      */
     public boolean mist;
@@ -279,7 +294,7 @@ public final class status implements lcm.lcm.LCMEncodable
     }
  
     public static final long LCM_FINGERPRINT;
-    public static final long LCM_FINGERPRINT_BASE = 0x4d4a6bbd1ccc45c6L;
+    public static final long LCM_FINGERPRINT_BASE = 0xc6ccf8ba333de626L;
  
     static {
         LCM_FINGERPRINT = _hashRecursive(new ArrayList<Class<?>>());
@@ -396,6 +411,12 @@ public final class status implements lcm.lcm.LCMEncodable
         outs.writeByte(this.spindle_direction); 
  
         outs.writeDouble(this.spindle_speed); 
+ 
+        outs.writeByte( this.spindle_drive ? 1 : 0); 
+ 
+        outs.writeDouble(this.spindle_actual_speed); 
+ 
+        outs.writeDouble(this.spindle_revolutions); 
  
         outs.writeByte( this.mist ? 1 : 0); 
  
@@ -569,6 +590,12 @@ public final class status implements lcm.lcm.LCMEncodable
  
         this.spindle_speed = ins.readDouble();
  
+        this.spindle_drive = ins.readByte()!=0;
+ 
+        this.spindle_actual_speed = ins.readDouble();
+ 
+        this.spindle_revolutions = ins.readDouble();
+ 
         this.mist = ins.readByte()!=0;
  
         this.flood = ins.readByte()!=0;
@@ -710,6 +737,12 @@ public final class status implements lcm.lcm.LCMEncodable
         outobj.spindle_direction = this.spindle_direction;
  
         outobj.spindle_speed = this.spindle_speed;
+ 
+        outobj.spindle_drive = this.spindle_drive;
+ 
+        outobj.spindle_actual_speed = this.spindle_actual_speed;
+ 
+        outobj.spindle_revolutions = this.spindle_revolutions;
  
         outobj.mist = this.mist;
  

@@ -16,11 +16,11 @@ class status(object):
     (mm or inch; degrees for a, b, c), velocities in machine units per second.
     """
 
-    __slots__ = ["utime", "seq", "machine", "state", "mode", "estop", "enabled", "program", "line", "block", "single_block", "optional_stop", "block_delete", "num_axes", "axis_names", "homed", "commanded", "actual", "velocity", "following_error", "path_velocity", "feed_rate", "feed_override", "rapid_override", "spindle_override", "num_drives", "drives", "num_gcodes", "gcodes", "num_mcodes", "mcodes", "tool", "tool_prepared", "tool_length_offset", "spindle_direction", "spindle_speed", "mist", "flood", "io_ok", "num_digital_inputs", "digital_inputs", "num_digital_outputs", "digital_outputs", "num_analog_inputs", "analog_inputs", "num_analog_outputs", "analog_outputs", "num_io_functions", "io_function_names", "io_function_values", "io_waiting", "last_error", "last_error_utime", "events_dropped"]
+    __slots__ = ["utime", "seq", "machine", "state", "mode", "estop", "enabled", "program", "line", "block", "single_block", "optional_stop", "block_delete", "num_axes", "axis_names", "homed", "commanded", "actual", "velocity", "following_error", "path_velocity", "feed_rate", "feed_override", "rapid_override", "spindle_override", "num_drives", "drives", "num_gcodes", "gcodes", "num_mcodes", "mcodes", "tool", "tool_prepared", "tool_length_offset", "spindle_direction", "spindle_speed", "spindle_drive", "spindle_actual_speed", "spindle_revolutions", "mist", "flood", "io_ok", "num_digital_inputs", "digital_inputs", "num_digital_outputs", "digital_outputs", "num_analog_inputs", "analog_inputs", "num_analog_outputs", "analog_outputs", "num_io_functions", "io_function_names", "io_function_values", "io_waiting", "last_error", "last_error_utime", "events_dropped"]
 
-    __typenames__ = ["int64_t", "int64_t", "string", "string", "string", "boolean", "boolean", "string", "int32_t", "string", "boolean", "boolean", "boolean", "int16_t", "string", "boolean", "double", "double", "double", "double", "double", "double", "double", "double", "double", "int16_t", "telemetry.lcmtypes.canon.drive_status", "int16_t", "string", "int16_t", "string", "int32_t", "int32_t", "double", "int8_t", "double", "boolean", "boolean", "boolean", "int16_t", "boolean", "int16_t", "boolean", "int16_t", "double", "int16_t", "double", "int16_t", "string", "double", "string", "string", "int64_t", "int64_t"]
+    __typenames__ = ["int64_t", "int64_t", "string", "string", "string", "boolean", "boolean", "string", "int32_t", "string", "boolean", "boolean", "boolean", "int16_t", "string", "boolean", "double", "double", "double", "double", "double", "double", "double", "double", "double", "int16_t", "telemetry.lcmtypes.canon.drive_status", "int16_t", "string", "int16_t", "string", "int32_t", "int32_t", "double", "int8_t", "double", "boolean", "double", "double", "boolean", "boolean", "boolean", "int16_t", "boolean", "int16_t", "boolean", "int16_t", "double", "int16_t", "double", "int16_t", "string", "double", "string", "string", "int64_t", "int64_t"]
 
-    __dimensions__ = [None, None, None, None, None, None, None, None, None, None, None, None, None, None, ["num_axes"], ["num_axes"], ["num_axes"], ["num_axes"], ["num_axes"], ["num_axes"], None, None, None, None, None, None, ["num_drives"], None, ["num_gcodes"], None, ["num_mcodes"], None, None, None, None, None, None, None, None, None, ["num_digital_inputs"], None, ["num_digital_outputs"], None, ["num_analog_inputs"], None, ["num_analog_outputs"], None, ["num_io_functions"], ["num_io_functions"], None, None, None, None]
+    __dimensions__ = [None, None, None, None, None, None, None, None, None, None, None, None, None, None, ["num_axes"], ["num_axes"], ["num_axes"], ["num_axes"], ["num_axes"], ["num_axes"], None, None, None, None, None, None, ["num_drives"], None, ["num_gcodes"], None, ["num_mcodes"], None, None, None, None, None, None, None, None, None, None, None, None, ["num_digital_inputs"], None, ["num_digital_outputs"], None, ["num_analog_inputs"], None, ["num_analog_outputs"], None, ["num_io_functions"], ["num_io_functions"], None, None, None, None]
 
     def __init__(self):
         self.utime = 0
@@ -211,6 +211,24 @@ class status(object):
         LCM Type: double
         """
 
+        self.spindle_drive = False
+        """
+        the spindle as a CiA 402 drive ([canopen.spindle]); false: none, and the two values below are 0
+        LCM Type: boolean
+        """
+
+        self.spindle_actual_speed = 0.0
+        """
+        its measured speed (rpm, velocity actual 0x606C; M3 positive)
+        LCM Type: double
+        """
+
+        self.spindle_revolutions = 0.0
+        """
+        its revolutions since boot (position actual 0x6064 / counts per revolution; M3 counts up)
+        LCM Type: double
+        """
+
         self.mist = False
         """
         M7
@@ -355,7 +373,7 @@ class status(object):
             buf.write(struct.pack('>I', len(__mcodes_encoded)+1))
             buf.write(__mcodes_encoded)
             buf.write(b"\0")
-        buf.write(struct.pack(">iidbdbbbh", self.tool, self.tool_prepared, self.tool_length_offset, self.spindle_direction, self.spindle_speed, self.mist, self.flood, self.io_ok, self.num_digital_inputs))
+        buf.write(struct.pack(">iidbdbddbbbh", self.tool, self.tool_prepared, self.tool_length_offset, self.spindle_direction, self.spindle_speed, self.spindle_drive, self.spindle_actual_speed, self.spindle_revolutions, self.mist, self.flood, self.io_ok, self.num_digital_inputs))
         buf.write(struct.pack('>%db' % self.num_digital_inputs, *self.digital_inputs[:self.num_digital_inputs]))
         buf.write(struct.pack(">h", self.num_digital_outputs))
         buf.write(struct.pack('>%db' % self.num_digital_outputs, *self.digital_outputs[:self.num_digital_outputs]))
@@ -435,6 +453,8 @@ class status(object):
             __mcodes_len = struct.unpack('>I', buf.read(4))[0]
             self.mcodes.append(buf.read(__mcodes_len)[:-1].decode('utf-8', 'replace'))
         self.tool, self.tool_prepared, self.tool_length_offset, self.spindle_direction, self.spindle_speed = struct.unpack(">iidbd", buf.read(25))
+        self.spindle_drive = bool(struct.unpack('b', buf.read(1))[0])
+        self.spindle_actual_speed, self.spindle_revolutions = struct.unpack(">dd", buf.read(16))
         self.mist = bool(struct.unpack('b', buf.read(1))[0])
         self.flood = bool(struct.unpack('b', buf.read(1))[0])
         self.io_ok = bool(struct.unpack('b', buf.read(1))[0])
@@ -463,7 +483,7 @@ class status(object):
     def _get_hash_recursive(parents):
         if status in parents: return 0
         newparents = parents + [status]
-        tmphash = (0x4d4a6bbd1ccc45c6+ telemetry.lcmtypes.canon.drive_status._get_hash_recursive(newparents)) & 0xffffffffffffffff
+        tmphash = (0xc6ccf8ba333de626+ telemetry.lcmtypes.canon.drive_status._get_hash_recursive(newparents)) & 0xffffffffffffffff
         tmphash  = (((tmphash<<1)&0xffffffffffffffff) + (tmphash>>63)) & 0xffffffffffffffff
         return tmphash
     _packed_fingerprint = None
