@@ -39,6 +39,7 @@ from ruckig import InputParameter, Ruckig
 
 from gcode_canon import commands as C
 from planner.blending import BlendingMixin
+from planner.css import SurfaceSpeed
 from planner.geometry import (
     Arc,
     Line,
@@ -140,6 +141,8 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
         self._exact_next = False
         self._spindle_rpm = 0.0
         self._spindle_dir = C.SpindleDirection.CW
+        xs = [i for i, a in enumerate(machine.axes) if a.name == "x"]
+        self._css = SurfaceSpeed(xs[0] if xs else None)  # G96: rpm from the X radius (planner.css)
         self._sync_pitch: float | None = None  # spindle-synchronized feed (G33, G33.1, G76): per rev
         self._pending: list[C.Canon] = []  # ride on the start of the next motion
         # direction and length of the last line fed (a hint for where a smoothed chain may start)
@@ -226,6 +229,7 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
     def feed(self, cmd: C.Canon) -> None:
         """Queue one canonical command (raises :class:`PlannerError` naming its file and line)."""
         _finite(cmd)
+        self._css.intake(cmd)
         self._flushed = False
         if isinstance(cmd, C.StraightTraverse | C.StraightFeed | C.ArcFeed):
             self._motion(cmd)
@@ -357,6 +361,7 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
                 raise PlannerError("inverse-time feed (G93) needs F > 0 on this move", cmd.file, cmd.line)
             return length * rate / 60.0
         if mode is C.FeedMode.UNITS_PER_REV:
+            self._css.check_per_rev(cmd)
             if rate <= 0 or self._spindle_rpm <= 0:
                 raise PlannerError(f"feed per revolution (G95) needs F > 0 and a turning spindle (F{rate:g}, "
                                    f"S{self._spindle_rpm:g})", cmd.file, cmd.line)
@@ -753,6 +758,7 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
             raise PlannerError(f"planner loop passed {LOOP_CAP} items in one cycle at t={t:.6f} s")
         self._last_pos = pos
         self._rest_emitted = not moving
+        events = self._css.emit(t, tuple(pos), events)
         if src is None:
             return Setpoint(t, tuple(pos), events=tuple(events))
         return Setpoint(t, tuple(pos), src.file, src.line, tuple(events))

@@ -334,3 +334,21 @@ def test_canon_run_start_line(tmp_path: Path) -> None:
     assert "Traceback" not in refused.stderr
     bad = canon("run", "--no-telemetry", "--start-line", "0", str(prog))
     assert bad.returncode == 2 and "--start-line" in bad.stderr
+
+
+def test_run_from_line_under_g96_restores_the_surface_speed_as_rpm(rec: Recorder, tmp_path: Path) -> None:
+    """G96 before the start line: the restored S is a surface speed, so the mode goes first and the
+    spindle gets the rpm of the X it starts at (planner/css.py), never the S number as rpm."""
+    from planner.css import css_rpm
+
+    m = rec.machine
+    prog = program(tmp_path, "G21 G90 G17\nG0 X40 Y0 Z5\nG96 D1200 S100 M3\nG1 X30 F600\nG1 X20\nM5\nM2\n")
+    m.trace = []
+    res = rec.run(prog, 5)  # G1 X20: starts at X30
+    assert res.ok, res.error
+    speeds = [(t[2][0], ev.rpm) for t in m.trace for ev in t[3]
+              if isinstance(ev, C.SpindleOn | C.SetSpindleSpeed)]
+    assert speeds and all(rpm != 100.0 for _x, rpm in speeds), speeds
+    centre = 0.0  # no X offsets: the radius is machine X
+    for x, rpm in speeds:
+        assert rpm == pytest.approx(css_rpm(100_000.0, x - centre, 1200.0), rel=1e-9), (x, rpm)

@@ -11,6 +11,7 @@ machine's position, asked once for the approach).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -43,6 +44,7 @@ class StartState:
     control: tuple[Any, float, float]
     modal: ModalState
     key: object
+    css: C.SetSpindleMode | None = None  # G96 in force there: the mode, re-sent before the speed
 
 
 class RunFrom:
@@ -123,7 +125,8 @@ class RunFromLineMixin(MachinePart):
                        "adaptive_feed": bool(interp.parameter("_adaptive_feed")),
                        "feed_hold": bool(interp.parameter("_feed_hold"))},
             feed_mode=interp.feed_mode, feed=float(interp.feed), control=interp.control,
-            modal=self._modal_state(interp.file, n), key=interp.modal_key())
+            modal=self._modal_state(interp.file, n), key=interp.modal_key(),
+            css=interp._css_mode() if interp.css_max else None)
         run_from.reached = True
         interp.before_line = None
 
@@ -224,7 +227,9 @@ class RunFromLineMixin(MachinePart):
             k = self.limits.pose_index[zi]
             z_safe = max(current[k], target[k])
             moves = [current._replace(**{C.AXES[k]: z_safe}), target._replace(**{C.AXES[k]: z_safe}), target]
-        restore: list[C.Canon] = [C.SetSpindleSpeed(st.speed, file=f, line=n)]
+        # under G96 the speed is a surface speed: its mode first, so that the planner makes rpm of it
+        restore: list[C.Canon] = [] if st.css is None else [dataclasses.replace(st.css, file=f, line=n)]
+        restore.append(C.SetSpindleSpeed(st.speed, file=f, line=n))
         if st.spindle:
             restore.append(C.SpindleOn(C.SpindleDirection.CW if st.spindle > 0 else C.SpindleDirection.CCW,
                                        st.speed, file=f, line=n))
