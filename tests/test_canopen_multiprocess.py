@@ -51,6 +51,8 @@ class Bus:
     #: SYNCs a drive may count without a new target in a 1.5 s stream: frames lost when a reader falls
     #: behind (udp_multicast under load; in the emulated VM the drive process sees most SYNCs late)
     missed_setpoints: int
+    #: SYNCs the master may stream past a limit switch before the drive's TPDO4 shows it
+    switch_lag_syncs: int
 
     def channel(self) -> str:
         return f"239.74.164.{1 + os.getpid() % 250}" if self.interface == "udp_multicast" else "vcan0"
@@ -62,9 +64,12 @@ class Bus:
 # the master's limit for TPDOs as in canopen_helpers.make_config: a shared test machine stalls threads
 # for tens of ms (0.1 s, the default, faulted the odd run on a loaded machine)
 UDP = Bus("udp_multicast", 2.0, "heartbeat_producer_ms = 50\nheartbeat_consumer_ms = 200\n", 0.2, 0.5,
-          20.0, 2.0, 2)
-VCAN = Bus("socketcan", 10.0, "heartbeat_producer_ms = 200\nheartbeat_consumer_ms = 2000\n"
-           "boot_timeout_s = 20.0\nsdo_timeout_s = 2.0\nstate_timeout_s = 10.0\n", 2.0, 1.0, 180.0, 30.0, 8)
+          20.0, 2.0, 2, 25)
+# the emulated VM: two Python processes on an emulated CPU, on a host shared with other work; its
+# SDO answers, TPDOs and heartbeats took up to 2 s there (the limits of tests/vcan/test_vcan.py)
+VCAN = Bus("socketcan", 10.0, "heartbeat_producer_ms = 200\nheartbeat_consumer_ms = 5000\n"
+           "boot_timeout_s = 20.0\nsdo_timeout_s = 5.0\nstate_timeout_s = 10.0\n", 5.0, 3.0, 180.0, 30.0,
+           8, 50)
 
 
 @pytest.fixture(params=[
@@ -362,7 +367,7 @@ def test_a_warning_emcy_from_the_drive_process_is_logged_and_motion_goes_on(setu
     assert master.feedback().positions == want and master.fault is None
 
 
-def test_a_limit_switch_of_a_drive_in_the_drive_process_stops_the_machine(setup):
+def test_a_limit_switch_of_a_drive_in_the_drive_process_stops_the_machine(setup, bus):
     """y (direction -1) has a switch at machine position 1 mm: its drive's negative limit switch
     (0x60FD bit 0), reported by the other process in TPDO4. y moves onto it at 10 mm/s: the machine
     stops within a bounded number of SYNCs, y, node 2 and the switch named, and stays stopped."""
@@ -376,9 +381,9 @@ def test_a_limit_switch_of_a_drive_in_the_drive_process_stops_the_machine(setup)
     f = master.fault
     assert f is not None and (f.node, f.axis) == (2, "y"), f
     assert "negative limit switch" in f.reason and "not re-enabled" in f.reason
-    # the last target sent is at most 25 SYNCs (100 ms at 4 ms, the other process on a loaded machine)
-    # past the switch
-    assert 1.0 < master.positions()[1] <= 1.0 + 25 * 10.0 * master.config.cycle_s
+    # the last target sent is a bounded number of SYNCs past the switch (udp_multicast: 25, 100 ms at
+    # 4 ms, the other process on a loaded machine)
+    assert 1.0 < master.positions()[1] <= 1.0 + bus.switch_lag_syncs * 10.0 * master.config.cycle_s
     assert master.feedback().digital_inputs[1] & 0x1
     for _ in range(50):
         master.cycle(None)
