@@ -286,3 +286,130 @@ def test_killing_the_motion_process_mid_move_faults_the_drives_and_the_task(rig,
         # the drives miss the master's heartbeat (consumer 500 ms): Fault, EMCY 0x8130
         bench.wait_states(lambda s: s == [State.FAULT] * 3, 3.0, "heartbeat consumer fault")
         assert [node.sdo[0x603F].raw for node in bench.nodes] == [0x8130] * 3
+
+
+@pytest.mark.multicast
+@pytest.mark.timeout(180)
+def test_the_daemon_with_the_motion_process_answers_as_with_the_thread(tmp_path: Path) -> None:
+    """The daemon's verbs and status, unchanged from outside: service operations (enable, jog, home)
+    served in the motion process, a program, pause / resume, an E-stop and recovery; the simulated
+    drives in a third process."""
+    from test_daemon import Daemon
+
+    from motiond.config import load_machine
+
+    path = write(tmp_path, machine_text("udp_multicast", group(), simulate=True))
+    d = Daemon(tmp_path, config=load_machine(str(path)))
+    try:
+        assert d.machine.motion_mode == "own" and d.machine.motion.pid != os.getpid()
+        d.ready()
+        d.ok("jog", ["y"], (20.0, 5.0))
+        d.wait_status(lambda s: s.commanded[1] == 5.0 and s.state == "idle", what="jogged 5 mm")
+        d.ok("home", ["x"])
+        d.wait_status(lambda s: s.homed[0] and s.state == "idle", what="x homed")
+        d.ok("mdi", ["G0 X2 Y0"])
+        d.wait_status(lambda s: s.state == "idle" and tuple(s.commanded[:2]) == (2.0, 0.0), what="mdi")
+        d.ok("run", [d.program(LONG)])
+        d.wait_status(lambda s: s.state == "running" and s.commanded[0] > 10, what="running")
+        d.ok("pause")
+        d.wait_status(lambda s: s.state == "paused", what="paused")
+        x = d.wait_status(lambda s: s.state == "paused" and not any(s.velocity), 10.0,
+                          what="held").commanded[0]
+        time.sleep(0.2)
+        assert d.latest().commanded[0] == x
+        d.ok("resume")
+        d.wait_status(lambda s: s.state == "running" and s.commanded[0] > x + 1, what="resumed")
+        d.ok("estop")
+        s = d.wait_status(lambda s: s.state == "estop", what="estop")
+        assert not s.enabled and any(e.kind == "estop" for e in d.events)
+        d.ready()
+        d.ok("mdi", ["G0 X1"])
+        d.wait_status(lambda s: s.state == "idle" and s.commanded[0] == 1.0, what="moving after reset")
+    finally:
+        d.close()
+    assert d.machine.motion.proc.exitcode == 0, "the motion process closed cleanly"
+
+
+@pytest.mark.multicast
+@pytest.mark.timeout(180)
+def test_canon_run_with_the_motion_process(tmp_path: Path) -> None:
+    """``canon run`` on a machine file with ``process = "own"``: same CLI, same summary; the motion
+    in a child process, the simulated drives in another."""
+    import json
+
+    path = write(tmp_path, machine_text("udp_multicast", group(), simulate=True))
+    prog = tmp_path / "short.ngc"
+    prog.write_text(SHORT)
+    r = subprocess.run([sys.executable, "-m", "motiond.cli", "run", "--json", "--no-telemetry",
+                        "--config", str(path), str(prog)], capture_output=True, text=True, timeout=150,
+                       cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    d = json.loads(r.stdout)
+    assert d["ok"] and d["final_positions"] == {"x": 5.0, "y": 4.0, "z": 2.0}
+    for a, want in zip("xyz", (5.0, 4.0, 2.0), strict=True):
+        assert d["final_actual"][a] == pytest.approx(want, abs=1e-3)
+
+
+@pytest.mark.multicast
+@pytest.mark.timeout(180)
+def test_estop_during_a_flood_reaches_the_drives_within_a_cycle_of_its_arrival(tmp_path: Path) -> None:
+    """Another process floods the daemon's command server with 1,000 signed commands per second; an
+    E-stop published meanwhile puts the machine in ESTOP within 50 ms, and in the motion process its
+    quick stop goes to the drives within one cycle of the E-stop's arrival on the urgent pipe (the
+    motion process's own record of both times and of its cycle count then)."""
+    import random
+
+    import lcm
+    from keys import TEST_KEY
+    from test_estop_flood import FLOOD
+
+    from motiond.cmd_daemon import start
+    from motiond.config import load_machine
+    from telemetry.commands import make_command
+    from telemetry.config import TelemetryConfig
+    from telemetry.url import with_receive_buffer
+
+    path = write(tmp_path, machine_text("udp_multicast", group(), simulate=True))
+    url = with_receive_buffer(f"udpm://239.79.{random.randint(1, 250)}.{random.randint(1, 250)}:"
+                              f"{random.randint(20000, 60000)}?ttl=0")
+    lc = lcm.LCM(url)
+    machine, server = start(load_machine(str(path)), lc, TelemetryConfig(url=url), key=TEST_KEY,
+                            var_file=tmp_path / "p.var", late_fault_s=2.0)
+    flood = None
+    try:
+        machine.bring_up()
+        prog = tmp_path / "long.ngc"
+        prog.write_text(LONG)  # 25 mm/s: a few frames lost on udp_multicast under load stay within
+        # the simulated drives' setpoint-jump check (EMCY 0x8400 at 1.25 times max_velocity per period)
+        machine.run(prog)
+        flood = subprocess.Popen([sys.executable, "-c", FLOOD, url, TEST_KEY.hex(), "2.5"], cwd=ROOT,
+                                 text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        assert flood.stdout is not None and flood.stdout.readline().startswith("flooding")
+        time.sleep(1.0)
+        assert machine.states.state.value == "running", machine.last_error
+        assert machine.motion.commanded[0] > 1.0
+        t0 = time.monotonic()
+        lc.publish("CANON_COMMAND", make_command("estop", request_id=1, sender="operator",
+                                                 key=TEST_KEY).encode())
+        wait_for(lambda: machine.states.state.value == "estop", 2.0, "ESTOP")
+        state_at = time.monotonic() - t0
+        wait_for(lambda: machine.motion.last_estop is not None, 2.0, "the motion process's E-stop record")
+        arrived, sent, cycle_then, cycle_after = machine.motion.last_estop
+        still_flooding = flood.poll() is None
+        wait_for(lambda: all(d.cia402_state != "operation_enabled" for d in machine.motion.snapshot().drives),
+                 5.0, "the drives quick-stopped")
+    finally:
+        if flood is not None:
+            flood.kill()
+            flood.wait(5)
+        server.stop()
+        machine.shutdown()
+    assert still_flooding, "the E-stop came in the middle of the flood"
+    took = sent - t0
+    print(f"ESTOP after {state_at * 1e3:.1f} ms, quick stop sent {took * 1e3:.1f} ms after the publish, "
+          f"{(sent - arrived) * 1e3:.2f} ms after its arrival in the motion process")
+    assert t0 < arrived <= sent
+    assert took < 0.050 and state_at < 0.050
+    # "within one cycle": at most one cycle of the motion process ran between the E-stop's arrival and
+    # its quick stop (a wall-clock bound would count the whole process being descheduled on a loaded PC)
+    assert cycle_after - cycle_then <= 1, (cycle_then, cycle_after)

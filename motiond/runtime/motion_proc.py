@@ -159,6 +159,8 @@ class MotionServer:
         self.estops = 0  # E-stops (and quick stops) received: a new_planner asked before one is void
         self.late_sent = 0
         self.stream_id = 0
+        self.last_estop: tuple[float, float, int, int] | None = None
+        """The last E-stop: when it arrived, when its quick stop was sent (monotonic), the cycle then."""
         self.alive = True
         self.send_lock = threading.Lock()
         self.fence_lock = threading.Lock()
@@ -213,7 +215,9 @@ class MotionServer:
                 if name in ("estop", "quick_stop"):
                     self.estops += 1
                 if name == "estop":
+                    arrived, cycle = time.monotonic(), core.cycle
                     core.quick_stop(args[0])  # the drives now, from this thread
+                    self.last_estop = (arrived, time.monotonic(), cycle, core.cycle)
                     core.run_on_cycle(lambda r=args[0]: self._estop_on_cycle(r), wait=False)
                 elif name == "post_fault":
                     core.post_fault(*args)
@@ -316,6 +320,7 @@ class MotionServer:
             "stopping": core.stopping, "fault_stopping": core.fault_stopping, "jogging": core.jogging,
             "consumed": core._cmdq.taken + self.discarded, "sync_seq": core.sync_seq,
             "stream": None if st is None else vars(st).copy(), "stream_id": self.stream_id,
+            "last_estop": self.last_estop,
         }
 
     def _out(self) -> None:

@@ -196,10 +196,10 @@ class MotionProxy:
                 dead: Callable[[], Any] | None = None, **kw: Any) -> Any:
         """Ask the motion process and wait for its answer; its exception is raised here. ``dead``:
         what to answer once the process is gone (default: MotionProcessGone)."""
-        if self.dead:
+        if self.dead or "req" not in self._conns:  # gone, or never started
             if dead is not None:
                 return dead()
-            raise MotionProcessGone(self.dead)
+            raise MotionProcessGone(self.dead or "the motion process is not running")
         rid = next(self._rid)
         fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
         self._pending[rid] = fut
@@ -215,7 +215,7 @@ class MotionProxy:
             self._pending.pop(rid, None)
 
     def _urgent(self, name: str, *args: Any) -> None:
-        if self.dead:
+        if self.dead or "urgent" not in self._conns:
             return
         with self._urgent_lock, contextlib.suppress(OSError, ValueError):
             self._conns["urgent"].send((name, args))
@@ -463,6 +463,8 @@ class MotionProxy:
     stopping = _value("stopping", False)
     fault_stopping = _value("fault_stopping", False)
     jogging = _value("jogging", False)
+    last_estop = _value("last_estop")
+    """(arrived, quick stop sent, cycle then, cycle after): monotonic times, this host's clock."""
 
     @property
     def commanded(self) -> tuple[float, ...]:

@@ -10,6 +10,7 @@ when it shuts down; they end too when the task process dies (their pipe closes).
 from __future__ import annotations
 
 import contextlib
+import logging
 import multiprocessing
 import signal
 from typing import Any
@@ -17,8 +18,9 @@ from typing import Any
 READY_TIMEOUT_S = 60.0
 
 
-def _main(conn: Any, canopen: Any, lag_s: float) -> None:
+def _main(conn: Any, canopen: Any, lag_s: float, log_level: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the task's
+    logging.basicConfig(level=log_level, format="sim-drives[%(process)d] %(levelname)s %(name)s: %(message)s")
     from fieldbus.canopen.drive_sim import SimDrive, motor_for
     from fieldbus.canopen.drive_sim_probe import sim_probe
     from fieldbus.canopen.sim_process import SimBus
@@ -38,7 +40,8 @@ class SimDrivesProcess:
     def __init__(self, canopen: Any, lag_s: float) -> None:
         ctx = multiprocessing.get_context("spawn")
         self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_main, args=(child, canopen, lag_s), name="canon-sim-drives",
+        level = logging.getLogger().getEffectiveLevel()
+        self.proc = ctx.Process(target=_main, args=(child, canopen, lag_s, level), name="canon-sim-drives",
                                 daemon=True)
         self.proc.start()
         child.close()
