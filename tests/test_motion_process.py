@@ -254,11 +254,13 @@ def test_killing_the_task_process_mid_move_quick_stops_the_drives(rig, tmp_path:
         states = bench.wait_states(lambda s: all(x in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)
                                                  for x in s), 2.0, "quick stop after the task died")
         assert State.FAULT not in states
-        os.kill(motion_pid, 0)  # alive, holding
+        # the quick stop's ramp ends in Switch on disabled (the standard layout's option code 2)
+        states = bench.wait_states(lambda s: s == [State.SWITCH_ON_DISABLED] * 3, 3.0, "the ramp's end")
+        os.kill(motion_pid, 0)  # alive, its heartbeat going
         before = [node.sdo[0x6064].raw for node in bench.nodes]
         time.sleep(0.3)
         assert [node.sdo[0x6064].raw for node in bench.nodes] == before, "the axes stand still"
-        assert bench.states() == states
+        assert bench.states() == states, "no heartbeat fault later: the master is still there"
     finally:
         if task.poll() is None:
             task.kill()

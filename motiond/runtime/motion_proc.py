@@ -78,7 +78,9 @@ class ChildHooks:
         self.waits: tuple[type[C.Canon], ...] = ()
 
     def _post(self, name: str, *args: Any, **kw: Any) -> None:
-        self.s.hook_q.put((name, args, kw))
+        core = self.s.core
+        on_cycle = threading.get_ident() == core._cycle_ident
+        self.s.hook_q.put((core.cycle if on_cycle else -1, (name, args, kw)))
         self.s.wake.set()
 
     def event(self, severity: str, text: str, **kw: Any) -> None:
@@ -145,7 +147,9 @@ class MotionServer:
     def __init__(self, conns: dict[str, Any], limits: Any, canopen: Any, late_fault_s: float,
                  simulated: bool) -> None:
         self.conns = conns
-        self.hook_q: queue.SimpleQueue[tuple[str, tuple[Any, ...], dict[str, Any]]] = queue.SimpleQueue()
+        self.hook_q: queue.SimpleQueue[tuple[int, tuple[str, tuple[Any, ...], dict[str, Any]]]] = \
+            queue.SimpleQueue()
+        """(the cycle that posted it, -1 another thread; the hook): see :meth:`_out`."""
         self.wake = threading.Event()
         self.hooks = ChildHooks(self)
         core = ChildCore(limits, canopen, late_fault_s=late_fault_s, simulated=simulated, hooks=self.hooks)
@@ -324,16 +328,26 @@ class MotionServer:
         }
 
     def _out(self) -> None:
+        """The state, then the hooks. A hook posted by the cycle thread goes once that cycle's step has
+        ended (the next one began), so that the state sent with it shows all that step did: the abort's
+        ``aborting`` with its ``cancel_stream``, the planner gone with the E-stop's."""
         conn = self.conns["out"]
+        held: list[tuple[int, Any]] = []
         while not self.done.is_set():
             self.wake.wait(STATE_PERIOD_S)
             self.wake.clear()
-            hooks = []
             while True:
                 try:
-                    hooks.append(self.hook_q.get_nowait())
+                    held.append(self.hook_q.get_nowait())
                 except queue.Empty:
                     break
+            now = self.core.cycle
+            running = self.core.runner is not None
+            n = 0
+            while n < len(held) and (held[n][0] < now or not running):  # in order: stop at the first held
+                n += 1
+            hooks = [h for _, h in held[:n]]
+            del held[:n]
             try:
                 state = self.state()
                 conn.send([("state", state), *(("hook", h) for h in hooks)])
