@@ -180,8 +180,8 @@ class MotionProxy:
             except Exception:
                 log.exception("closing the motion process")
         self.proc.join(5.0)
-        if self.proc.is_alive():
-            self.proc.terminate()
+        if self.proc.is_alive():  # it ignores SIGTERM while this process lives (motion_proc)
+            self.proc.kill()
             self.proc.join(2.0)
         for c in self._conns.values():
             c.close()
