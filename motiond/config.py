@@ -21,7 +21,7 @@ from gcode_canon.commands import AXES
 from motiond.configkit import ConfigError, Table, in_range, load_toml, positive
 from planner.machine import DEMO_MACHINE, AxisLimits, MachineError, MachineLimits
 
-TOP_LEVEL = ("machine", "axes", "interpreter", "canopen", "modbus", "io", "telemetry")
+TOP_LEVEL = ("machine", "axes", "interpreter", "canopen", "modbus", "io", "telemetry", "motion")
 DIALECTS = ("linuxcnc", "gcode-canon", "grbl")
 
 

@@ -100,6 +100,10 @@ def validate_machine(path: str | None) -> CheckedMachine:
     tele = read(lambda: TelemetryConfig.from_table(Table(root.data, file).table("telemetry")))
     if config is not None:
         read(lambda: _tool_table(config))
+        if canopen is not None:
+            from motiond.config_motion import motion_process
+
+            read(lambda: motion_process(config, canopen))
     if errors:
         raise ConfigErrors(errors)
     assert config is not None

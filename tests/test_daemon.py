@@ -52,7 +52,8 @@ M2
 class Daemon:
     """A machine with its command server on the process's shared memq, and what it publishes."""
 
-    def __init__(self, tmp: Path, tele: TelemetryConfig | None = None, late_fault_s: float = 2.0) -> None:
+    def __init__(self, tmp: Path, tele: TelemetryConfig | None = None, late_fault_s: float = 2.0,
+                 config: Any = None) -> None:
         self.lc = shared_memq()
         self.tele = tele or TelemetryConfig(url="memq://")
         self.statuses: list[Any] = []
@@ -62,9 +63,9 @@ class Daemon:
         self.tmp = tmp
         self.subs = [self.lc.subscribe("CANON_STATUS", self._on_status),
                      self.lc.subscribe("CANON_EVENT", self._on_event)]
-        self.machine, self.server = start(load_machine(None), self.lc, self.tele, key=TEST_KEY,
-                                          var_file=self.var, programs=[tmp],
-                                          late_fault_s=late_fault_s)
+        config = load_machine(None) if config is None else config
+        self.machine, self.server = start(config, self.lc, self.tele, key=TEST_KEY, var_file=self.var,
+                                          programs=[tmp], late_fault_s=late_fault_s)
 
     def _on_status(self, _ch: str, data: bytes) -> None:
         s = status.decode(data)

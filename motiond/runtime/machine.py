@@ -241,8 +241,17 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
 
         from gcode_canon.interpreter import Interpreter
         self.interp = Interpreter(interp_settings, Callbacks(self))
-        self.motion = MotionCore(self.limits, canopen, late_fault_s=late_fault_s, simulated=self.simulated,
-                                 hooks=_TaskHooks(self))
+        from motiond.config_motion import motion_process
+
+        self.motion_mode = motion_process(config, canopen)  # [motion] process: "thread" or "own"
+        if self.motion_mode == "own":
+            from motiond.runtime.motion_proxy import MotionProxy
+
+            self.motion: Any = MotionProxy(self.limits, canopen, late_fault_s=late_fault_s,
+                                           simulated=self.simulated, hooks=_TaskHooks(self))
+        else:
+            self.motion = MotionCore(self.limits, canopen, late_fault_s=late_fault_s,
+                                     simulated=self.simulated, hooks=_TaskHooks(self))
         self.sim_bus: Any = None
         self.sim_drives: list[Any] = []
         self.io = None
@@ -287,7 +296,11 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
         import telemetry.lcmtypes.canon.status  # noqa: F401
         self.events.start()
         try:
-            if self.simulated:
+            if self.simulated and self.motion_mode == "own":  # out of both processes
+                from motiond.runtime.sim_drives_proc import SimDrivesProcess
+
+                self.sim_bus = SimDrivesProcess(self.canopen, self.sim_lag_s)
+            elif self.simulated:
                 from fieldbus.canopen.drive_sim import SimDrive, motor_for
                 from fieldbus.canopen.drive_sim_probe import sim_probe
                 from fieldbus.canopen.sim_process import SimBus

@@ -53,11 +53,12 @@ Out (motion -> task)
     a probe; with a drive's touch probe (``has_touch_probe``) :meth:`~MotionCore.probe` instead: the
     probing move's end or its trip, and the probed point (:class:`~motiond.runtime.probing.Probed`).
 
-Two things still cross in-process only: :meth:`~MotionCore.run_on_cycle` (the task's job bookkeeping
-ordered with the hooks; in the process split the task side gets its own thread for hook messages),
-and the service operations' SDO calls on ``master`` (enable, disable, home, boot, reset_faults: off
-the cycle thread already; across processes, requests the motion process serves on a thread of its
-own).
+Two more things cross: :meth:`~MotionCore.run_on_cycle` (the task's job bookkeeping ordered with the
+hooks) and the service operations' SDO calls on ``master`` (enable, disable, home, boot,
+reset_faults, off the cycle thread). With ``[motion] process = "own"`` MotionCore runs in a process of
+its own (:mod:`motiond.runtime.motion_proc`) and the task side holds a
+:class:`~motiond.runtime.motion_proxy.MotionProxy` with this interface: ``run_on_cycle`` then runs on
+the task's hook thread, the SDO calls are requests the motion process serves on a thread of its own.
 """
 
 from __future__ import annotations

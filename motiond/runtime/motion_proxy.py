@@ -1,0 +1,475 @@
+"""The task side's stand-in for a :class:`MotionCore` in its own process (``[motion] process = "own"``).
+
+:class:`MotionProxy` offers the interface :mod:`motiond.runtime.motion`'s docstring lists, so that
+:class:`~motiond.runtime.machine.Machine` is the same in both modes; behind it the calls cross to the
+motion process (:mod:`motiond.runtime.motion_proc`, which describes the pipes):
+
+* ``put`` sends each command with the job's generation and a sequence number, never more than
+  :data:`QUEUE_MAX` ahead of what the motion process reports consumed (the bounded queue, end to end);
+  ``drop_commands`` starts a new generation, so that nothing of the cancelled job still on the pipe runs.
+* the urgent calls go down their own pipe without waiting for an answer (they act within a cycle of
+  arriving); the rest are requests answered by the motion process (an exception there is raised here).
+* the values (``cycle``, ``actual``, ``aborting`` ...) and :meth:`snapshot` come from the newest state
+  the motion process sent; the hooks arrive after the state they followed and run in order on the
+  ``canon-hooks`` thread, which also runs :meth:`run_on_cycle` (so the task's job bookkeeping stays
+  ordered with them, as on the cycle thread in one process).
+* the hooks that answer with a value are pushed ahead: the planner's priming commands and wait types
+  go with each ``new_planner``; the I/O hooks are not needed (no I/O map in this mode).
+
+When the motion process dies (its sentinel fires without :meth:`close`), the task gets one fault naming
+it and how it ended (exit code or signal): the job is cancelled, FAULTED. The drives, without the
+master's heartbeat, disable themselves by their heartbeat consumer.
+"""
+
+from __future__ import annotations
+
+import collections
+import concurrent.futures
+import contextlib
+import itertools
+import logging
+import multiprocessing
+import multiprocessing.connection
+import queue
+import signal
+import threading
+from collections.abc import Callable
+from typing import Any
+
+from motiond.runtime.cycle import END, LATE_LOG, QUEUE_MAX
+from motiond.runtime.motion import MotionHooks, MotionSnapshot
+from motiond.runtime.motion_proc import END_MARK, SYNC_TYPES
+from motiond.runtime.records import Stream
+from motiond.states import CommandRefused
+
+log = logging.getLogger(__name__)
+
+OPEN_TIMEOUT_S = 60.0
+"""The motion process's start: spawn, imports, the drives booted."""
+REQUEST_TIMEOUT_S = 30.0
+"""A request the motion process does not answer by then (a homing's SDO calls answer sooner)."""
+
+
+class MotionProcessGone(CommandRefused):
+    """The motion process has ended: nothing can be asked of it."""
+
+
+def death_text(pid: int | None, code: int | None) -> str:
+    if code is None:
+        return f"the motion process (pid {pid}) is gone"
+    if code < 0:
+        try:
+            name = signal.Signals(-code).name
+        except ValueError:
+            name = f"signal {-code}"
+        return f"the motion process (pid {pid}) died: killed by {name}"
+    return f"the motion process (pid {pid}) exited with code {code}"
+
+
+def _value(key: str, default: Any = None) -> Any:
+    """A MotionProxy property: ``key`` of the newest state the motion process sent."""
+    return property(lambda self: self._get(key, default), doc=f"``{key}`` of the newest state")
+
+
+class MasterProxy:
+    """``machine.master`` in "own" mode: the service operations' SDO calls, served in the motion
+    process; a few attributes read there."""
+
+    _methods = ("enable", "disable", "home", "boot", "reset_faults", "not_operational", "positions")
+
+    def __init__(self, proxy: MotionProxy) -> None:
+        self._p = proxy
+
+    def __getattr__(self, name: str) -> Any:
+        if name in self._methods:
+            return lambda *a, **kw: self._p.request(f"master.{name}", *a, dead=_raise_canopen, **kw)
+        if name in ("streaming", "fault", "sync_mode"):
+            return self._p.request(f"master.{name}", dead=lambda: None)
+        raise AttributeError(f"master.{name} is not served across the process boundary")
+
+
+def _raise_canopen() -> Any:
+    from fieldbus.canopen.master import CanopenError
+
+    raise CanopenError("the motion process is gone")
+
+
+class MotionProxy:
+    """The motion side's interface over the process boundary (module docstring)."""
+
+    def __init__(self, limits: Any, canopen: Any, *, late_fault_s: float, simulated: bool,
+                 hooks: MotionHooks) -> None:
+        self.limits = limits
+        self.canopen = canopen
+        self.late_fault_s = late_fault_s
+        self.simulated = simulated
+        self.hooks = hooks
+        self.n = len(limits.names)
+        self.master: Any = None
+        self.io: Any = None  # no Modbus I/O in this mode (motiond.config_motion)
+        self.trace: Any = None  # not recorded across the boundary
+        self.planner = None  # the motion process's own
+        self.runner = None
+        self.stream: Stream | None = None
+        self.proc: Any = None
+        self._conns: dict[str, Any] = {}
+        self._state: dict[str, Any] = {}
+        self.late_log: collections.deque[tuple[int, float]] = collections.deque(maxlen=LATE_LOG)
+        self._gen = 1
+        self._seq = 0
+        self._sent = 0
+        self._seq_of: dict[int, tuple[Any, int]] = {}
+        self._estops = 0
+        self._cond = threading.Condition()
+        self._rid = itertools.count(1)
+        self._pending: dict[int, concurrent.futures.Future[Any]] = {}
+        self._req_lock = threading.Lock()
+        self._urgent_lock = threading.Lock()
+        self._cmd_lock = threading.Lock()
+        self._dispatch: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
+        self._dispatch_ident = 0
+        self._closing = False
+        self.dead = ""  # why the motion process is gone ("" alive)
+        self._stream_id = 0
+        self._hold_stream = False
+        self._optional_stop = False
+
+    # ------------------------------------------------------------------ life cycle
+    def open(self) -> None:
+        from motiond.runtime import motion_proc
+
+        ctx = multiprocessing.get_context("spawn")
+        pipes = {"cmd": ctx.Pipe(duplex=False), "urgent": ctx.Pipe(duplex=False), "req": ctx.Pipe(),
+                 "out": ctx.Pipe(duplex=False)}
+        child = {"cmd": pipes["cmd"][0], "urgent": pipes["urgent"][0], "req": pipes["req"][1],
+                 "out": pipes["out"][1]}
+        self._conns = {"cmd": pipes["cmd"][1], "urgent": pipes["urgent"][1], "req": pipes["req"][0],
+                       "out": pipes["out"][0]}
+        self.proc = ctx.Process(target=motion_proc.main, name="canon-motion", daemon=True, args=(
+            child, self.limits, self.canopen, self.late_fault_s, self.simulated,
+            logging.getLogger().getEffectiveLevel()))
+        self.proc.start()
+        for c in child.values():
+            c.close()
+        for name, target in (("canon-hooks", self._dispatcher), ("canon-motion-out", self._receive_out),
+                             ("canon-motion-req", self._receive_replies),
+                             ("canon-motion-watch", self._watch)):
+            threading.Thread(target=target, name=name, daemon=True).start()
+        self.master = MasterProxy(self)
+        try:
+            self.request("open", timeout=OPEN_TIMEOUT_S)
+        except BaseException:
+            self.close()
+            raise
+
+    def start_cycle(self) -> None:
+        self.request("start_cycle")
+
+    def stop_cycle(self) -> None:
+        if not self.dead:
+            self.request("stop_cycle", dead=lambda: None)
+
+    def close(self) -> None:
+        """The motion process stops its cycle, shuts the master down and exits."""
+        if self.proc is None:
+            return
+        self._closing = True
+        if not self.dead:
+            try:
+                self.request("close", timeout=10.0, dead=lambda: None)
+            except Exception:
+                log.exception("closing the motion process")
+        self.proc.join(5.0)
+        if self.proc.is_alive():  # it ignores SIGTERM while this process lives (motion_proc)
+            self.proc.kill()
+            self.proc.join(2.0)
+        for c in self._conns.values():
+            c.close()
+        self._dispatch.put(None)
+
+    @property
+    def pid(self) -> int | None:
+        return None if self.proc is None else self.proc.pid
+
+    # ------------------------------------------------------------------ the pipes
+    def request(self, name: str, *args: Any, timeout: float = REQUEST_TIMEOUT_S,
+                dead: Callable[[], Any] | None = None, **kw: Any) -> Any:
+        """Ask the motion process and wait for its answer; its exception is raised here. ``dead``:
+        what to answer once the process is gone (default: MotionProcessGone)."""
+        if self.dead or "req" not in self._conns:  # gone, or never started
+            if dead is not None:
+                return dead()
+            raise MotionProcessGone(self.dead or "the motion process is not running")
+        rid = next(self._rid)
+        fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
+        self._pending[rid] = fut
+        try:
+            with self._req_lock:
+                self._conns["req"].send((rid, name, args, kw))
+            return fut.result(timeout)
+        except (OSError, ValueError, MotionProcessGone):
+            if dead is not None:
+                return dead()
+            raise MotionProcessGone(self.dead or "the motion process is gone") from None
+        finally:
+            self._pending.pop(rid, None)
+
+    def _urgent(self, name: str, *args: Any) -> None:
+        if self.dead or "urgent" not in self._conns:
+            return
+        with self._urgent_lock, contextlib.suppress(OSError, ValueError):
+            self._conns["urgent"].send((name, args))
+
+    def _receive_replies(self) -> None:
+        conn = self._conns["req"]
+        while True:
+            try:
+                rid, ok, value = conn.recv()
+            except (EOFError, OSError):
+                return
+            fut = self._pending.get(rid)
+            if fut is None:
+                continue
+            if ok:
+                fut.set_result(value)
+            else:
+                fut.set_exception(value)
+
+    def _receive_out(self) -> None:
+        conn = self._conns["out"]
+        while True:
+            try:
+                batch = conn.recv()
+            except (EOFError, OSError):
+                return
+            for kind, body in batch:
+                if kind == "state":
+                    self._take_state(body)
+                else:
+                    name, args, kw = body
+                    self._dispatch.put(lambda n=name, a=args, k=kw: getattr(self.hooks, n)(*a, **k))
+
+    def _take_state(self, st: dict[str, Any]) -> None:
+        self.late_log.extend(st.pop("late_new"))
+        stream = st.pop("stream")
+        if stream is not None and self.stream is not None and st.get("stream_id") == self._stream_id:
+            for k, v in stream.items():
+                if k != "answered_ahead":
+                    setattr(self.stream, k, v)
+        with self._cond:
+            self._state = st
+            self._cond.notify_all()
+
+    def _dispatcher(self) -> None:
+        """``canon-hooks``: the hooks and run_on_cycle calls, in order."""
+        self._dispatch_ident = threading.get_ident()
+        while True:
+            fn = self._dispatch.get()
+            if fn is None:
+                return
+            try:
+                fn()
+            except Exception:
+                log.exception("motion hook")
+
+    def _watch(self) -> None:
+        """The motion process's end: a fault unless the task closed it."""
+        proc = self.proc
+        multiprocessing.connection.wait([proc.sentinel])
+        proc.join(1.0)
+        if self._closing:
+            self.dead = "the motion process was closed"
+            return
+        self.dead = death_text(proc.pid, proc.exitcode)
+        log.error("%s", self.dead)
+        for fut in list(self._pending.values()):
+            if not fut.done():
+                fut.set_exception(MotionProcessGone(self.dead))
+        with self._cond:
+            self._cond.notify_all()
+        self._dispatch.put(lambda: self.hooks.fault(self.dead + "; the drives disable themselves by their "
+                                                    "heartbeat consumer", "motiond"))
+
+    def _get(self, key: str, default: Any) -> Any:
+        return self._state.get(key, default)
+
+    # ------------------------------------------------------------------ commands in
+    def put(self, item: Any, cancel: threading.Event) -> bool:
+        """Job thread: send a canonical command (or END), waiting while QUEUE_MAX are not consumed yet;
+        False when ``cancel`` is set first (or the motion process is gone)."""
+        with self._cond:
+            while self._sent - self._get("consumed", 0) >= QUEUE_MAX:
+                if cancel.is_set() or self.dead:
+                    return False
+                self._cond.wait(0.05)
+        with self._cmd_lock:
+            if cancel.is_set() or self.dead:
+                return False
+            self._seq += 1
+            self._sent += 1
+            if isinstance(item, SYNC_TYPES):
+                self._seq_of[id(item)] = (item, self._seq)
+            try:
+                self._conns["cmd"].send([(self._gen, self._seq, END_MARK if item is END else item)])
+            except (OSError, ValueError):
+                return False
+        return True
+
+    def begin_stream(self, stream: Stream, modal: Any) -> None:
+        self.stream = stream
+        self._stream_id += 1
+        self.request("begin_stream", stream, modal, self._stream_id)
+
+    def end_stream(self) -> None:
+        self.stream = None
+        self.request("end_stream", dead=lambda: None)
+
+    def drop_commands(self) -> None:
+        """A new generation: what is still on the pipe is discarded over there."""
+        with self._cmd_lock:
+            self._gen += 1
+            self._seq_of.clear()
+            gen = self._gen
+        self.request("fence", gen, dead=lambda: None)
+        self.wake_waiters()
+
+    def wake_waiters(self) -> None:
+        with self._cond:
+            self._cond.notify_all()
+
+    def drained(self) -> bool:
+        consumed, idle = self.request("drained")
+        return idle and consumed >= self._sent
+
+    def wait_sync_point(self, cmd: Any, cancel: threading.Event) -> bool:
+        entry = self._seq_of.get(id(cmd))
+        if entry is None or entry[0] is not cmd:
+            return False
+        seq = entry[1]
+        with self._cond:
+            while self._get("sync_seq", 0) < seq:
+                if cancel.is_set() or self.dead:
+                    return False
+                self._cond.wait(0.05)
+        self._seq_of.pop(id(cmd), None)
+        return True
+
+    has_touch_probe = False  # refused in this mode (motiond.config_motion)
+
+    def probe(self, cmd: Any, cancel: threading.Event) -> Any:
+        raise AssertionError("no touch probe in the own-process mode")
+
+    def release_wait(self) -> None:
+        self.request("release_wait", dead=lambda: None)
+
+    # ------------------------------------------------------------------ the planner
+    def new_planner(self, unless: Callable[[], bool] | None = None) -> None:
+        if unless is not None and unless():
+            return
+        self.request("new_planner", self.hooks.planner_prime(), self.hooks.planner_waits(), self._estops)
+
+    def drop_planner(self, *, wait: bool = True) -> None:
+        self.request("drop_planner", wait=wait, dead=lambda: None)
+
+    def position(self) -> tuple[float, ...]:
+        return self.request("position")
+
+    @property
+    def hold_stream(self) -> bool:
+        return self._hold_stream
+
+    @hold_stream.setter
+    def hold_stream(self, on: bool) -> None:
+        self._hold_stream = on
+        self.request("set", "hold_stream", on, dead=lambda: None)
+
+    @property
+    def optional_stop(self) -> bool:
+        return self._optional_stop
+
+    @optional_stop.setter
+    def optional_stop(self, on: bool) -> None:
+        self._optional_stop = on
+        self.request("set", "optional_stop", on, dead=lambda: None)
+
+    # ------------------------------------------------------------------ urgent calls
+    def quick_stop(self, reason: str) -> None:
+        self._estops += 1
+        self._urgent("quick_stop", reason)
+
+    def estop(self, reason: str) -> None:
+        self._estops += 1
+        self._urgent("estop", reason)
+
+    def abort(self) -> None:
+        self._urgent("abort")
+
+    def pause(self) -> None:
+        self._urgent("pause")
+
+    def resume(self) -> None:
+        self._urgent("resume")
+
+    def feed_override(self, factor: float) -> None:
+        self._urgent("feed_override", factor)
+
+    def jog(self, i: int, velocity: float, distance: float, base: Any, feed: float) -> None:
+        self.request("jog", i, velocity, distance, base, feed)
+
+    def jog_stop(self) -> None:
+        self._urgent("jog_stop")
+
+    def post_fault(self, reason: str, source: str) -> None:
+        self._urgent("post_fault", reason, source)
+
+    def clear_fault(self) -> None:
+        self.request("clear_fault", dead=lambda: None)
+
+    def fault_stop(self) -> None:
+        """Done in the motion process as its fault hook fires (nothing to do here)."""
+
+    def run_on_cycle(self, fn: Callable[[], Any], *, wait: bool = True, timeout: float = 2.0) -> Any:
+        """Run ``fn`` on the ``canon-hooks`` thread, ordered with the hooks (inline there)."""
+        if threading.get_ident() == self._dispatch_ident:
+            return fn()
+        fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
+
+        def call() -> None:
+            try:
+                fut.set_result(fn())
+            except BaseException as exc:
+                fut.set_exception(exc)
+
+        self._dispatch.put(call)
+        return fut.result(timeout) if wait else None
+
+    # ------------------------------------------------------------------ state out
+    def snapshot(self) -> MotionSnapshot:
+        snap = self._get("snapshot", None)
+        if snap is None:
+            zero = tuple(0.0 for _ in range(self.n))
+            return MotionSnapshot(0, zero, zero, 0.0, zero, zero, 0, "", None, 1.0, (0, 0.0), (False, False),
+                                  0, False, ())
+        return snap
+
+    cycle = _value("cycle", 0)
+    late_cycles = _value("late_cycles", 0)
+    worst_late_s = _value("worst_late_s", 0.0)
+    first_setpoint_t = _value("first_setpoint_t")
+    place = _value("place", (0, ""))
+    has_planner = _value("has_planner", False)
+    is_moving = _value("is_moving", False)
+    aborting = _value("aborting", False)
+    stopping = _value("stopping", False)
+    fault_stopping = _value("fault_stopping", False)
+    jogging = _value("jogging", False)
+    last_estop = _value("last_estop")
+    """(arrived, quick stop sent, cycle then, cycle after): monotonic times, this host's clock."""
+
+    @property
+    def commanded(self) -> tuple[float, ...]:
+        return self._get("commanded", tuple(0.0 for _ in range(self.n)))
+
+    @property
+    def actual(self) -> tuple[float, ...]:
+        return self._get("actual", tuple(0.0 for _ in range(self.n)))

@@ -1,0 +1,60 @@
+"""Simulated drives in a process of their own, for ``[motion] process = "own"`` with ``simulate = true``.
+
+With the motion side in its own process the drives it streams to must be reachable from there and must
+not share an interpreter lock with it; nor with the task side, whose interpreter would stall their
+answers (a drive that misses a SYNC sees a setpoint jump: EMCY 0x8400). So the task process starts
+them here, as ``canon sim drives`` would, on the same bus (udp_multicast or socketcan), and stops them
+when it shuts down; they end too when the task process dies (their pipe closes).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing
+import signal
+from typing import Any
+
+READY_TIMEOUT_S = 60.0
+
+
+def _main(conn: Any, canopen: Any, lag_s: float, log_level: int) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the task's
+    logging.basicConfig(level=log_level, format="sim-drives[%(process)d] %(levelname)s %(name)s: %(message)s")
+    from fieldbus.canopen.drive_sim import SimDrive, motor_for
+    from fieldbus.canopen.drive_sim_probe import sim_probe
+    from fieldbus.canopen.sim_process import SimBus
+
+    drives = [SimDrive(d.node_id, d.eds_path, lag_s=lag_s, parameters=motor_for(d, d.eds_path),
+                       **sim_probe(d)) for d in canopen.drives]
+    bus = SimBus(drives, canopen.bus)
+    conn.send("ready")
+    with contextlib.suppress(EOFError, OSError):
+        conn.recv()  # "stop", or EOF when the task process is gone
+    bus.close()
+
+
+class SimDrivesProcess:
+    """The simulated drives of ``canopen`` in a child process, up when the constructor returns."""
+
+    def __init__(self, canopen: Any, lag_s: float) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        self.conn, child = ctx.Pipe()
+        level = logging.getLogger().getEffectiveLevel()
+        self.proc = ctx.Process(target=_main, args=(child, canopen, lag_s, level), name="canon-sim-drives",
+                                daemon=True)
+        self.proc.start()
+        child.close()
+        if not self.conn.poll(READY_TIMEOUT_S):
+            self.close()
+            raise RuntimeError("the simulated drives' process did not start")
+        self.conn.recv()
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError, ValueError):
+            self.conn.send("stop")
+        self.proc.join(5.0)
+        if self.proc.is_alive():
+            self.proc.terminate()
+            self.proc.join(2.0)
+        self.conn.close()

@@ -1,0 +1,419 @@
+"""``[motion] process = "own"``: the motion side in a process of its own (issue 14, docs/daemon.md).
+
+The configuration tests run anywhere. The others put the drives on udp_multicast, simulated in a
+third process (``canon sim drives``), so they run only inside the private network namespace
+(``tests/run``, ``tests/netns-run``): a program runs through the motion process; an E-stop reaches
+the drives; killing the task process mid-move quick-stops the drives (the motion process sees its pipes
+close); killing the motion process mid-move makes the drives fault by their heartbeat consumer and the
+task side reports which process died and how.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from test_canopen_multiprocess import DriveProcess
+
+from fieldbus.canopen.cia402 import State, decode
+from motiond.configkit import ConfigError
+
+ROOT = Path(__file__).resolve().parent.parent
+
+LONG = "%\nG21 G90 G94\nG1 X100 F1500\nG1 X0\nM2\n%\n"
+SHORT = "%\nG21 G90 G94\nG1 X5 Y4 Z2 F1500\nM2\n%\n"
+
+
+def machine_text(interface: str, channel: str, *, simulate: bool, process: str = "own",
+                 extra: str = "") -> str:
+    axes = "".join(f"""
+[axes.{a}]
+max_velocity = {v}
+max_acceleration = 2000.0
+max_jerk = 50000.0
+quick_stop_deceleration = 5000.0
+""" for a, v in (("x", 200.0), ("y", 200.0), ("z", 100.0)))
+    drives = "".join(f"\n[canopen.axes.{a}]\nnode_id = {i + 1}\n" for i, a in enumerate("xyz"))
+    return f"""[machine]
+name = "two processes"
+cycle_ms = 2.0
+{axes}
+[canopen]
+interface = "{interface}"
+channel = "{channel}"
+heartbeat_producer_ms = 100
+heartbeat_consumer_ms = 1000
+sdo_timeout_s = 1.0
+simulate = {str(simulate).lower()}
+{drives}
+[motion]
+process = "{process}"
+{extra}"""
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "machine.toml"
+    p.write_text(text)
+    return p
+
+
+# ---------------------------------------------------------------------- configuration (anywhere)
+
+def check(path: Path) -> str:
+    from motiond.config_check import validate_machine
+
+    with pytest.raises(ConfigError) as info:
+        validate_machine(str(path))
+    return str(info.value)
+
+
+def test_own_process_on_the_virtual_bus_is_refused_with_the_key(tmp_path: Path) -> None:
+    text = check(write(tmp_path, machine_text("virtual", "canon", simulate=True)))
+    assert "motion.process" in text and "virtual" in text and "udp_multicast" in text, text
+
+
+def test_own_process_with_modbus_io_is_refused(tmp_path: Path) -> None:
+    extra = '\n[[modbus.devices]]\nname = "io"\nhost = "127.0.0.1"\nport = 1502\n'
+    text = check(write(tmp_path, machine_text("udp_multicast", "239.74.165.1", simulate=True, extra=extra)))
+    assert "motion.process" in text and "Modbus" in text, text
+
+
+def test_an_unknown_process_mode_is_refused(tmp_path: Path) -> None:
+    text = check(write(tmp_path, machine_text("udp_multicast", "239.74.165.1", simulate=True,
+                                              process="fork")))
+    assert "motion.process" in text and "thread, own" in text, text
+
+
+def test_thread_mode_is_the_default_and_accepted_on_virtual(tmp_path: Path) -> None:
+    from motiond.config import load_machine
+    from motiond.config_motion import motion_process
+
+    assert motion_process(load_machine(None)) == "thread"
+    path = write(tmp_path, machine_text("virtual", "canon", simulate=True, process="thread"))
+    assert motion_process(load_machine(str(path))) == "thread"
+
+
+# ---------------------------------------------------------------------- in the namespace
+
+multicast = [pytest.mark.multicast, pytest.mark.timeout(120)]
+
+
+def group() -> str:
+    return f"239.74.166.{1 + os.getpid() % 250}"
+
+
+class Bench:
+    """The test's own CANopen client on the drives' bus (SDO reads only, as a bench on a real bus)."""
+
+    def __init__(self, channel: str) -> None:
+        import canopen
+
+        from fieldbus.canopen import SHIPPED_EDS
+        from fieldbus.canopen.config import CanBusConfig
+
+        self.network = canopen.Network()
+        self.network.connect(**CanBusConfig("udp_multicast", channel).bus_kwargs())  # hop_limit 0
+        self.nodes = []
+        for node_id in (1, 2, 3):
+            node = self.network.add_node(node_id, str(SHIPPED_EDS))
+            node.sdo.RESPONSE_TIMEOUT = 1.0  # a loaded PC; udp_multicast may lose a frame: retry
+            node.sdo.MAX_RETRIES = 3
+            self.nodes.append(node)
+
+    def states(self) -> list[State]:
+        return [decode(node.sdo[0x6041].raw) for node in self.nodes]
+
+    def wait_states(self, ok: object, timeout: float, what: str) -> list[State]:
+        deadline = time.monotonic() + timeout
+        seen: list[State] = []
+        while time.monotonic() < deadline:
+            seen = self.states()
+            if ok(seen):  # type: ignore[operator]
+                return seen
+            time.sleep(0.02)
+        raise AssertionError(f"{what}: drives in {seen}")
+
+    def close(self) -> None:
+        self.network.disconnect()
+
+
+@pytest.fixture
+def rig(tmp_path: Path):
+    channel = group()
+    path = write(tmp_path, machine_text("udp_multicast", channel, simulate=False))
+    drives = DriveProcess(path)
+    bench = Bench(channel)
+    yield path, channel, bench
+    bench.close()
+    drives.stop()
+
+
+def own_machine(path: Path):
+    from motiond.config import load_machine
+    from motiond.runtime import Machine
+
+    # as tests/test_end_to_end.py's daemon: generous, the test PC is shared and loaded
+    return Machine(load_machine(str(path)), late_fault_s=1.0, feedback_timeout_s=0.4)
+
+
+def wait_for(cond: object, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():  # type: ignore[operator]
+        if time.monotonic() > deadline:
+            raise AssertionError(what)
+        time.sleep(0.01)
+
+
+@pytest.mark.multicast
+@pytest.mark.timeout(120)
+def test_a_program_runs_through_the_motion_process(rig, tmp_path: Path) -> None:
+    path, _channel, bench = rig
+    prog = tmp_path / "short.ngc"
+    prog.write_text(SHORT)
+    with own_machine(path) as m:
+        assert m.motion_mode == "own"
+        assert m.motion.pid not in (None, os.getpid())
+        assert not any(t.name == "canon-cycle" for t in threading.enumerate()), "the cycle runs here"
+        m.bring_up()
+        result = m.wait_job(m.run(str(prog)), 60.0)
+        assert result is not None and result.ok, result.error if result is not None else "no result"
+        assert result.final_commanded == pytest.approx((5.0, 4.0, 2.0), abs=1e-6)
+        assert m.motion.snapshot().cycle > 0 and m.cycle > 0
+        wait_for(lambda: all(abs(a - c) < 0.01 for a, c in zip(m.motion.actual, (5.0, 4.0, 2.0),
+                                                                  strict=True)), 5.0, "drives at the end")
+        assert bench.states() == [State.OPERATION_ENABLED] * 3
+
+
+@pytest.mark.multicast
+@pytest.mark.timeout(120)
+def test_estop_on_the_urgent_pipe_stops_the_drives_mid_move(rig, tmp_path: Path) -> None:
+    path, _channel, bench = rig
+    prog = tmp_path / "long.ngc"
+    prog.write_text(LONG)
+    with own_machine(path) as m:
+        m.bring_up()
+        m.run(str(prog))
+        wait_for(lambda: m.motion.commanded[0] > 5.0, 30.0, "moving")
+        t0 = time.monotonic()
+        m.estop()
+        # the drives leave Operation enabled (quick stop; option 2 ends in Switch on disabled)
+        wait_for(lambda: all(d.cia402_state != "operation_enabled" for d in m.motion.snapshot().drives),
+                 2.0, "drives quick-stopped after the E-stop")
+        took = time.monotonic() - t0
+        assert m.states.state.value == "estop"
+        x = m.motion.commanded[0]
+        time.sleep(0.2)
+        assert m.motion.commanded[0] == x, "the setpoints stopped"
+        assert took < 2.0
+        assert all(s is not State.OPERATION_ENABLED for s in bench.states())
+
+
+TASK = """
+import sys, time
+from motiond.config import load_machine
+from motiond.runtime import Machine
+m = Machine(load_machine(sys.argv[1]), late_fault_s=1.0, feedback_timeout_s=0.4).start()
+m.bring_up()
+m.run(sys.argv[2])
+while m.motion.commanded[0] < 5.0:
+    time.sleep(0.01)
+print("moving", m.motion.pid, flush=True)
+time.sleep(60)
+"""
+
+
+@pytest.mark.multicast
+@pytest.mark.timeout(120)
+def test_killing_the_task_process_mid_move_quick_stops_the_drives(rig, tmp_path: Path) -> None:
+    path, _channel, bench = rig
+    prog = tmp_path / "long.ngc"
+    prog.write_text(LONG)
+    task = subprocess.Popen([sys.executable, "-c", TASK, str(path), str(prog)], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    motion_pid = 0
+    try:
+        assert task.stdout is not None
+        deadline = time.monotonic() + 60.0
+        for line in task.stdout:
+            if line.startswith("moving"):
+                motion_pid = int(line.split()[1])
+                break
+            assert time.monotonic() < deadline, "the task never started moving"
+        assert motion_pid, "the task process ended before moving"
+        assert bench.states() == [State.OPERATION_ENABLED] * 3
+        task.send_signal(signal.SIGKILL)
+        task.wait(5.0)
+        # the motion process quick-stops them (the program's 100 mm move was queued whole: without the
+        # watch the drives would run it to its end, enabled); it still lives, its heartbeat with it, so
+        # the drives are stopped by the master, not faulted by their heartbeat consumer
+        states = bench.wait_states(lambda s: all(x in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)
+                                                 for x in s), 2.0, "quick stop after the task died")
+        assert State.FAULT not in states
+        # the quick stop's ramp ends in Switch on disabled (the standard layout's option code 2)
+        states = bench.wait_states(lambda s: s == [State.SWITCH_ON_DISABLED] * 3, 3.0, "the ramp's end")
+        os.kill(motion_pid, 0)  # alive, its heartbeat going
+        before = [node.sdo[0x6064].raw for node in bench.nodes]
+        time.sleep(0.3)
+        assert [node.sdo[0x6064].raw for node in bench.nodes] == before, "the axes stand still"
+        assert bench.states() == states, "no heartbeat fault later: the master is still there"
+    finally:
+        if task.poll() is None:
+            task.kill()
+            task.wait(5.0)
+        if motion_pid:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(motion_pid, signal.SIGKILL)
+
+
+@pytest.mark.multicast
+@pytest.mark.timeout(120)
+def test_killing_the_motion_process_mid_move_faults_the_drives_and_the_task(rig, tmp_path: Path) -> None:
+    path, _channel, bench = rig
+    prog = tmp_path / "long.ngc"
+    prog.write_text(LONG)
+    with own_machine(path) as m:
+        m.bring_up()
+        job = m.run(str(prog))
+        wait_for(lambda: m.motion.commanded[0] > 5.0, 30.0, "moving")
+        os.kill(m.motion.pid, signal.SIGKILL)
+        wait_for(lambda: m.states.state.value == "faulted", 5.0, "the task side reports the fault")
+        assert "motion process" in m.last_error and "SIGKILL" in m.last_error, m.last_error
+        result = m.wait_job(job, 5.0)
+        assert result is not None and not result.ok and "SIGKILL" in result.error
+        # the drives miss the master's heartbeat (consumer 1000 ms): Fault, EMCY 0x8130
+        bench.wait_states(lambda s: s == [State.FAULT] * 3, 5.0, "heartbeat consumer fault")
+        assert [node.sdo[0x603F].raw for node in bench.nodes] == [0x8130] * 3
+
+
+@pytest.mark.multicast
+@pytest.mark.timeout(180)
+def test_the_daemon_with_the_motion_process_answers_as_with_the_thread(tmp_path: Path) -> None:
+    """The daemon's verbs and status, unchanged from outside: service operations (enable, jog, home)
+    served in the motion process, a program, pause / resume, an E-stop and recovery; the simulated
+    drives in a third process."""
+    from test_daemon import Daemon
+
+    from motiond.config import load_machine
+
+    path = write(tmp_path, machine_text("udp_multicast", group(), simulate=True))
+    d = Daemon(tmp_path, config=load_machine(str(path)))
+    try:
+        assert d.machine.motion_mode == "own" and d.machine.motion.pid != os.getpid()
+        d.ready()
+        d.ok("jog", ["y"], (20.0, 5.0))
+        d.wait_status(lambda s: s.commanded[1] == 5.0 and s.state == "idle", what="jogged 5 mm")
+        d.ok("home", ["x"])
+        d.wait_status(lambda s: s.homed[0] and s.state == "idle", what="x homed")
+        d.ok("mdi", ["G0 X2 Y0"])
+        d.wait_status(lambda s: s.state == "idle" and tuple(s.commanded[:2]) == (2.0, 0.0), what="mdi")
+        d.ok("run", [d.program(LONG)])
+        d.wait_status(lambda s: s.state == "running" and s.commanded[0] > 10, what="running")
+        d.ok("pause")
+        d.wait_status(lambda s: s.state == "paused", what="paused")
+        x = d.wait_status(lambda s: s.state == "paused" and not any(s.velocity), 10.0,
+                          what="held").commanded[0]
+        time.sleep(0.2)
+        assert d.latest().commanded[0] == x
+        d.ok("resume")
+        d.wait_status(lambda s: s.state == "running" and s.commanded[0] > x + 1, what="resumed")
+        d.ok("estop")
+        s = d.wait_status(lambda s: s.state == "estop", what="estop")
+        assert not s.enabled and any(e.kind == "estop" for e in d.events)
+        d.ready()
+        d.ok("mdi", ["G0 X1"])
+        d.wait_status(lambda s: s.state == "idle" and s.commanded[0] == 1.0, what="moving after reset")
+    finally:
+        d.close()
+    assert d.machine.motion.proc.exitcode == 0, "the motion process closed cleanly"
+
+
+@pytest.mark.multicast
+@pytest.mark.timeout(180)
+def test_canon_run_with_the_motion_process(tmp_path: Path) -> None:
+    """``canon run`` on a machine file with ``process = "own"``: same CLI, same summary; the motion
+    in a child process, the simulated drives in another."""
+    import json
+
+    path = write(tmp_path, machine_text("udp_multicast", group(), simulate=True))
+    prog = tmp_path / "short.ngc"
+    prog.write_text(SHORT)
+    r = subprocess.run([sys.executable, "-m", "motiond.cli", "run", "--json", "--no-telemetry",
+                        "--config", str(path), str(prog)], capture_output=True, text=True, timeout=150,
+                       cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    d = json.loads(r.stdout)
+    assert d["ok"] and d["final_positions"] == {"x": 5.0, "y": 4.0, "z": 2.0}
+    for a, want in zip("xyz", (5.0, 4.0, 2.0), strict=True):
+        assert d["final_actual"][a] == pytest.approx(want, abs=1e-3)
+
+
+@pytest.mark.multicast
+@pytest.mark.timeout(180)
+def test_estop_during_a_flood_reaches_the_drives_within_a_cycle_of_its_arrival(tmp_path: Path) -> None:
+    """Another process floods the daemon's command server with 1,000 signed commands per second; an
+    E-stop published meanwhile puts the machine in ESTOP within 50 ms, and in the motion process its
+    quick stop goes to the drives within one cycle of the E-stop's arrival on the urgent pipe (the
+    motion process's own record of both times and of its cycle count then)."""
+    import random
+
+    import lcm
+    from keys import TEST_KEY
+    from test_estop_flood import FLOOD
+
+    from motiond.cmd_daemon import start
+    from motiond.config import load_machine
+    from telemetry.commands import make_command
+    from telemetry.config import TelemetryConfig
+    from telemetry.url import with_receive_buffer
+
+    path = write(tmp_path, machine_text("udp_multicast", group(), simulate=True))
+    url = with_receive_buffer(f"udpm://239.79.{random.randint(1, 250)}.{random.randint(1, 250)}:"
+                              f"{random.randint(20000, 60000)}?ttl=0")
+    lc = lcm.LCM(url)
+    machine, server = start(load_machine(str(path)), lc, TelemetryConfig(url=url), key=TEST_KEY,
+                            var_file=tmp_path / "p.var", late_fault_s=2.0)
+    flood = None
+    try:
+        machine.bring_up()
+        prog = tmp_path / "long.ngc"
+        prog.write_text(LONG)  # 25 mm/s: a few frames lost on udp_multicast under load stay within
+        # the simulated drives' setpoint-jump check (EMCY 0x8400 at 1.25 times max_velocity per period)
+        machine.run(prog)
+        flood = subprocess.Popen([sys.executable, "-c", FLOOD, url, TEST_KEY.hex(), "2.5"], cwd=ROOT,
+                                 text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        assert flood.stdout is not None and flood.stdout.readline().startswith("flooding")
+        time.sleep(1.0)
+        assert machine.states.state.value == "running", machine.last_error
+        assert machine.motion.commanded[0] > 1.0
+        t0 = time.monotonic()
+        lc.publish("CANON_COMMAND", make_command("estop", request_id=1, sender="operator",
+                                                 key=TEST_KEY).encode())
+        wait_for(lambda: machine.states.state.value == "estop", 2.0, "ESTOP")
+        state_at = time.monotonic() - t0
+        wait_for(lambda: machine.motion.last_estop is not None, 2.0, "the motion process's E-stop record")
+        arrived, sent, cycle_then, cycle_after = machine.motion.last_estop
+        still_flooding = flood.poll() is None
+        wait_for(lambda: all(d.cia402_state != "operation_enabled" for d in machine.motion.snapshot().drives),
+                 5.0, "the drives quick-stopped")
+    finally:
+        if flood is not None:
+            flood.kill()
+            flood.wait(5)
+        server.stop()
+        machine.shutdown()
+    assert still_flooding, "the E-stop came in the middle of the flood"
+    took = sent - t0
+    print(f"ESTOP after {state_at * 1e3:.1f} ms, quick stop sent {took * 1e3:.1f} ms after the publish, "
+          f"{(sent - arrived) * 1e3:.2f} ms after its arrival in the motion process")
+    assert t0 < arrived <= sent
+    assert took < 0.050 and state_at < 0.050
+    # "within one cycle": at most one cycle of the motion process ran between the E-stop's arrival and
+    # its quick stop (a wall-clock bound would count the whole process being descheduled on a loaded PC)
+    assert cycle_after - cycle_then <= 1, (cycle_then, cycle_after)
