@@ -23,8 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import time
 
-    import can
-
+    from fieldbus.canopen.busopen import open_bus
     from fieldbus.canopen.dump import describe
     from motiond.cli import UserError
     from motiond.config_canopen import canopen_for_tool
@@ -32,7 +31,7 @@ def run(args: argparse.Namespace) -> int:
     config, bus_cfg = canopen_for_tool(args.config, args.interface, args.channel)
     layout = config.layout
     try:
-        bus = can.Bus(**bus_cfg.bus_kwargs())
+        bus = open_bus(bus_cfg)
     except Exception as exc:  # python-can: unknown interface, no such device, no permission
         raise UserError(f"cannot open {bus_cfg.interface} bus {bus_cfg.channel!r}: {exc}") from None
     end = time.monotonic() + args.seconds if args.seconds else None

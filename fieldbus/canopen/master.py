@@ -55,6 +55,7 @@ import canopen
 
 from fieldbus.canopen import cia402
 from fieldbus.canopen.busload import BusLoad, alternatives, bus_load
+from fieldbus.canopen.busopen import open_bus
 from fieldbus.canopen.config import CanopenConfig
 from fieldbus.canopen.master_boot import BootMixin
 from fieldbus.canopen.master_records import (
@@ -135,7 +136,7 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin
         """Connect to the bus, add the drives' nodes, start the master's heartbeat."""
         if self.network is not None:
             return
-        bus = self._bus or can.Bus(**self.config.bus.bus_kwargs())
+        bus = self._bus or open_bus(self.config.bus)
         self._bus = bus
         net = canopen.Network(bus)
         net.listeners.append(ErrorFrameListener(self))

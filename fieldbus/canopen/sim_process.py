@@ -15,6 +15,7 @@ from collections.abc import Iterable
 import can
 import canopen
 
+from fieldbus.canopen.busopen import open_bus
 from fieldbus.canopen.config import CanBusConfig
 from fieldbus.canopen.drive_sim import SimDrive
 
@@ -28,7 +29,7 @@ class SimBus:
                  bus: can.BusABC | None = None, tick_s: float = 0.002) -> None:
         self.drives = {d.id: d for d in drives}
         if bus is None:
-            bus = can.Bus(**(bus_config or CanBusConfig()).bus_kwargs())
+            bus = open_bus(bus_config or CanBusConfig())
         self.bus = bus
         self.network = canopen.Network(bus)
         self.network.NOTIFIER_SHUTDOWN_TIMEOUT = 2.0
