@@ -148,9 +148,12 @@ class Callbacks:
             pose[k] = probed.positions[i]
         if probed.tripped:
             self._probed = True  # the machine stopped past the point: the next move starts there
-            self.m.event("INFO", f"probe: the touch probe of axis {probed.axis} latched at "
-                                 f"{probed.latched:.6g} ({probed.counts} counts)", kind="probe",
-                         source="motiond", file=cmd.file, line=cmd.line)
+            what = (f"the probe input tripped at {', '.join(f'{v:.6g}' for v in probed.positions)}"
+                    if probed.axis == "probe input" else  # motiond.runtime.probing_io
+                    f"the touch probe of axis {probed.axis} latched at {probed.latched:.6g} "
+                    f"({probed.counts} counts)")
+            self.m.event("INFO", f"probe: {what}", kind="probe", source="motiond", file=cmd.file,
+                         line=cmd.line)
         return C.Pose(*pose), probed.tripped
 
     def current_position(self) -> C.Pose | None:

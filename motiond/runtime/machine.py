@@ -350,7 +350,7 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
             if dev.simulate:
                 mod = SimIoModule(host="127.0.0.1", port=dev.port, unit=dev.unit,
                                   size=size_for(self.modbus, dev.name))
-                apply(mod, wiring.get(dev.name))
+                apply(mod, wiring.get(dev.name), self._sim_z)
                 try:
                     mod.start()
                 except OSError as exc:
@@ -368,6 +368,14 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
             self.io = None
             raise MachineError(f"Modbus: {exc}") from None
         self.io_hooks.start(self.io)
+        if "probe" in self.io_hooks.map.functions and getattr(self.motion, "drive_probe", 0) is None:
+            from motiond.runtime.probing_io import InputProbing  # G38.x on the I/O map's probe input
+
+            self.motion.drive_probe = InputProbing(self.motion, self.io_hooks.mio)
+
+    def _sim_z(self) -> float:
+        """The commanded machine Z (the simulated I/O module's probe, ``[io.sim] probe_z``)."""
+        return self.motion.commanded[self.names.index("z")] if "z" in self.names else 0.0
 
     def shutdown(self) -> None:
         """Stop everything safely: the job cancelled, drives quick-stopped then disabled, outputs to
