@@ -368,10 +368,8 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
             self.io = None
             raise MachineError(f"Modbus: {exc}") from None
         self.io_hooks.start(self.io)
-        if "probe" in self.io_hooks.map.functions and getattr(self.motion, "drive_probe", 0) is None:
-            from motiond.runtime.probing_io import InputProbing  # G38.x on the I/O map's probe input
-
-            self.motion.drive_probe = InputProbing(self.motion, self.io_hooks.mio)
+        if "probe" in self.io_hooks.map.functions and self.motion_mode != "own":
+            self.motion.use_probe_input(self.io_hooks.mio)  # G38.x on the I/O map's probe input
 
     def _sim_z(self) -> float:
         """The commanded machine Z (the simulated I/O module's probe, ``[io.sim] probe_z``)."""
