@@ -91,6 +91,16 @@ def test_g38_2_stops_at_the_modbus_probe_and_stores_the_commanded_point(machine:
     assert machine.motion.commanded[1] > -1.5, machine.motion.commanded
 
 
+def test_g38_4_stops_where_the_contact_is_lost(machine: Machine, tmp_path: Path) -> None:
+    feed = 60.0
+    result = run(machine, tmp_path, f"G21 G90 G94\nG0 Z-1.5\nG38.4 Z0 F{feed:g}\n#1 = #5063\nM2\n")
+    assert result.ok, result.error
+    bound = feed / 60.0 * (machine.modbus.devices[0].poll_ms / 1000.0 + 2 * machine.T + REQUEST_S)
+    z = machine.interp.parameter(1)
+    assert TRIP_Z - 1e-9 <= z <= TRIP_Z + bound, (z, bound)
+    assert machine.motion.commanded[1] < -0.5, machine.motion.commanded
+
+
 def test_g38_2_with_the_probe_already_tripped_is_an_error_naming_the_line(machine: Machine,
                                                                           tmp_path: Path) -> None:
     result = run(machine, tmp_path, "G21 G90 G94\nG0 Z-2\nG38.2 Z-3 F300\nM2\n")
