@@ -322,6 +322,8 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
                                    f"{self.canopen.bus.channel!r}: {exc}") from None
             if self.modbus is not None:
                 self._start_io()
+            if "probe" in self.io_hooks.map.functions and self.motion_mode != "own":
+                self.motion.use_probe_input(self.io_hooks.mio)  # G38.x on the I/O map's probe input
             self.motion.start_cycle()
             self._service_closed = False
             self._service_thread = threading.Thread(target=self._service_main, name="canon-service",
@@ -368,8 +370,6 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
             self.io = None
             raise MachineError(f"Modbus: {exc}") from None
         self.io_hooks.start(self.io)
-        if "probe" in self.io_hooks.map.functions and self.motion_mode != "own":
-            self.motion.use_probe_input(self.io_hooks.mio)  # G38.x on the I/O map's probe input
 
     def _sim_z(self) -> float:
         """The commanded machine Z (the simulated I/O module's probe, ``[io.sim] probe_z``)."""
