@@ -49,6 +49,8 @@ FUNCTIONS: dict[str, tuple[str, str, str]] = {
     "feed_hold": (IN, DIGITAL, "operator button: pause the program on its path (rising edge)"),
     "abort": (IN, DIGITAL, "operator button: abort the program (rising edge)"),
     "door_open": (IN, DIGITAL, "door interlock: motion holds while active; cycle start resumes once closed"),
+    "probe": (IN, DIGITAL, "probe input for G38.2-G38.5 when no drive has a touch probe: checked every cycle "
+                           "of a probing move (latency: one poll plus one cycle)"),
 }
 AXIS_FUNCTIONS = {
     "limit_{}_min": "limit switch at the axis's negative end: stops the machine while moving",
@@ -117,6 +119,7 @@ class IoMap:
     functions: dict[str, Binding] = field(default_factory=dict)
     spindle: SpindleParams = field(default_factory=SpindleParams)
     mcodes: dict[int, UserMCode] = field(default_factory=dict)
+    sim_probe_z: float | None = None  # [io.sim] probe_z: the simulated module's probe trips at or below
 
     @property
     def points(self) -> tuple[NamedPoint, ...]:
@@ -219,9 +222,10 @@ def read_io(root: Table, modbus: ModbusConfig | None, axes: tuple[str, ...],
         raise funcs.error("spindle_oriented", "needs spindle_orient (the output that asks for it) too")
     spindle = _spindle(io.table("spindle"), bindings)
     mcodes = _mcodes(io.table("mcodes"), modbus, drive_axes)
+    sim_probe_z = _sim_probe(io.table("sim"), bindings, axes)
     funcs.check_unknown()
     io.check_unknown()
-    result = IoMap(bindings, spindle, mcodes)
+    result = IoMap(bindings, spindle, mcodes, sim_probe_z)
     _check_outputs(result, modbus, io)
     return shared_points(result)
 
@@ -318,6 +322,22 @@ def _spindle(t: Table, bindings: dict[str, Binding]) -> SpindleParams:
         sim_delay_s=t.get("sim_delay_s", float, 0.5, check=non_negative))
     t.check_unknown()
     return p
+
+
+def _sim_probe(t: Table, bindings: dict[str, Binding], axes: tuple[str, ...]) -> float | None:
+    """``[io.sim] probe_z``: the simulated I/O module's probe input trips while the commanded machine Z
+    is at or below this height (docs/wiring.md)."""
+    z = t.get("probe_z", float, None)
+    t.check_unknown()
+    if z is None:
+        return None
+    b = bindings.get("probe")
+    if b is None or b.point is None:
+        raise t.error("probe_z", "needs io.functions.probe bound to a Modbus point (the simulated module "
+                                 "drives it)")
+    if "z" not in axes:
+        raise t.error("probe_z", "the machine has no z axis")
+    return z
 
 
 def _mcodes(t: Table, modbus: ModbusConfig | None, drive_axes: tuple[str, ...]) -> dict[int, UserMCode]:

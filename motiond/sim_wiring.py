@@ -12,11 +12,14 @@ From the map (:class:`motiond.config_io.IoMap`) each simulated device gets
   code's wait input follows its first output.
 
 Limit and home switches are not driven by the module (it does not know where the axes are): a test or
-an operator sets them.
+an operator sets them. The one exception is the probe (``[io.sim] probe_z``): where the module runs
+in the daemon's process, :func:`apply` is given the commanded machine position and the probe input
+is computed at each read: active while Z is at or below ``probe_z``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -30,6 +33,7 @@ class SimWiring:
 
     levels: list[tuple[str, int, int]] = field(default_factory=list)  # (table, address, value)
     rules: list[Rule] = field(default_factory=list)
+    probe: tuple[Binding, float] | None = None  # the probe input and the Z it trips at (or below)
 
 
 def wiring_for(io: IoMap) -> dict[str, SimWiring]:
@@ -71,13 +75,22 @@ def wiring_for(io: IoMap) -> dict[str, SimWiring]:
         if mc.wait is not None and mc.sets:
             b, value = mc.sets[0]
             follow(b, mc.wait, delay, value)
+    probe = f.get("probe")
+    if probe is not None and probe.point is not None and io.sim_probe_z is not None:
+        of(probe).probe = (probe, io.sim_probe_z)
     return out
 
 
-def apply(module: Any, wiring: SimWiring | None) -> None:
-    """Give a started or not yet started ``SimIoModule`` its rules and resting levels."""
+def apply(module: Any, wiring: SimWiring | None, z: Callable[[], float] | None = None) -> None:
+    """Give a started or not yet started ``SimIoModule`` its rules and resting levels; ``z``: the
+    commanded machine Z, for the probe (none: the probe input is left to the operator)."""
     if wiring is None:
         return
     module.rules.extend(wiring.rules)
     for table, address, value in wiring.levels:
         module.set(table, address, value)
+    if wiring.probe is not None and z is not None:
+        b, height = wiring.probe
+        assert b.point is not None
+        module.computed.append((b.point.table, b.point.address,
+                                lambda: int((z() <= height) != b.active_low)))

@@ -114,6 +114,9 @@ class SimIoModule:
         self.unit = unit
         self.size = size
         self.rules: list[Rule] = list(rules)
+        #: inputs computed when a request reads them: (table, address, fn() -> 0/1 or register value);
+        #: e.g. a probe that trips at a height (motiond.sim_wiring)
+        self.computed: list[tuple[str, int, Callable[[], int]]] = []
         self.delay_s = 0.0
         """Every answer is held back this long (to provoke client timeouts)."""
         self.writes: list[WriteRecord] = []
@@ -270,6 +273,9 @@ class SimIoModule:
                             and values[rule.when_address - address] == rule.equals:
                         fired.append(rule)
                 self._changed.notify_all()
+            for c_table, c_address, fn in self.computed:
+                if c_table == table and 0 <= c_address < self.size:
+                    self._data[table][c_address] = int(fn())
             self._fill(table, start_address, registers, address, end)
         for rule in fired:
             asyncio.get_running_loop().call_later(rule.after_s, self.set, rule.set_table, rule.set_address,

@@ -134,11 +134,12 @@ class Callbacks:
         return cmd.end, True
 
     def _touch_probe(self, cmd: C.Probe, job: Job) -> tuple[C.Pose, bool]:
-        """The probe is a drive's touch probe (docs/canopen.md): the probed point is its latch."""
+        """The probe is a drive's touch probe (docs/canopen.md; the probed point is its latch) or the I/O
+        map's probe input (docs/wiring.md; the commanded position of the cycle that saw it)."""
         if job.mode is not Mode.AUTO:
             # an MDI line's probe callback runs before the line's commands are queued: the move
             # could not have run yet
-            raise GCodeError(f"G{cmd.mode.value} in MDI: probing with the drive's touch probe needs the "
+            raise GCodeError(f"G{cmd.mode.value} in MDI: probing with the probe input needs the "
                              "move to run first; put the probing move in a program", cmd.file, cmd.line)
         probed = self.m.motion.probe(cmd, job.cancel)
         if probed is None:
@@ -148,9 +149,12 @@ class Callbacks:
             pose[k] = probed.positions[i]
         if probed.tripped:
             self._probed = True  # the machine stopped past the point: the next move starts there
-            self.m.event("INFO", f"probe: the touch probe of axis {probed.axis} latched at "
-                                 f"{probed.latched:.6g} ({probed.counts} counts)", kind="probe",
-                         source="motiond", file=cmd.file, line=cmd.line)
+            what = (f"the probe input tripped at {', '.join(f'{v:.6g}' for v in probed.positions)}"
+                    if probed.axis == "probe input" else  # motiond.runtime.probing_io
+                    f"the touch probe of axis {probed.axis} latched at {probed.latched:.6g} "
+                    f"({probed.counts} counts)")
+            self.m.event("INFO", f"probe: {what}", kind="probe", source="motiond", file=cmd.file,
+                         line=cmd.line)
         return C.Pose(*pose), probed.tripped
 
     def current_position(self) -> C.Pose | None:

@@ -322,6 +322,8 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
                                    f"{self.canopen.bus.channel!r}: {exc}") from None
             if self.modbus is not None:
                 self._start_io()
+            if "probe" in self.io_hooks.map.functions and self.motion_mode != "own":
+                self.motion.use_probe_input(self.io_hooks.mio)  # G38.x on the I/O map's probe input
             self.motion.start_cycle()
             self._service_closed = False
             self._service_thread = threading.Thread(target=self._service_main, name="canon-service",
@@ -350,7 +352,7 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
             if dev.simulate:
                 mod = SimIoModule(host="127.0.0.1", port=dev.port, unit=dev.unit,
                                   size=size_for(self.modbus, dev.name))
-                apply(mod, wiring.get(dev.name))
+                apply(mod, wiring.get(dev.name), self._sim_z)
                 try:
                     mod.start()
                 except OSError as exc:
@@ -368,6 +370,10 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
             self.io = None
             raise MachineError(f"Modbus: {exc}") from None
         self.io_hooks.start(self.io)
+
+    def _sim_z(self) -> float:
+        """The commanded machine Z (the simulated I/O module's probe, ``[io.sim] probe_z``)."""
+        return self.motion.commanded[self.names.index("z")] if "z" in self.names else 0.0
 
     def shutdown(self) -> None:
         """Stop everything safely: the job cancelled, drives quick-stopped then disabled, outputs to

@@ -28,6 +28,9 @@ In (task -> motion)
     :meth:`~MotionCore.feed_override`, :meth:`~MotionCore.spindle_hold` (the door: the spindle drive
     stopped and back), :meth:`~MotionCore.spindle_at_speed`; and the manual ones, :meth:`~MotionCore.jog`,
     :meth:`~MotionCore.jog_stop`.
+  * :meth:`~MotionCore.use_probe_input`: G38.x on the I/O map's probe input where no drive has a
+    touch probe (:mod:`motiond.runtime.probing_io`; not with ``[motion] process = "own"``, which has no
+    Modbus I/O).
   * control of the stream: ``hold_stream`` (the drives get no setpoint: a service operation talks to
     them), ``optional_stop``, :meth:`~MotionCore.new_planner`, :meth:`~MotionCore.drop_planner`,
     :meth:`~MotionCore.release_wait`, :meth:`~MotionCore.post_fault`, :meth:`~MotionCore.clear_fault`,
@@ -298,6 +301,14 @@ class MotionCore(Cycle):
                     return False
                 self._sync_cond.wait(0.05)
         return True
+
+    def use_probe_input(self, mio: Any) -> None:
+        """G38.x on the I/O map's ``probe`` input (read by ``mio``, the task's
+        :class:`~motiond.machine_io.MachineIO`) unless a drive's touch probe is the probe."""
+        if self.drive_probe is None:
+            from motiond.runtime.probing_io import InputProbing
+
+            self.drive_probe = InputProbing(self, mio)
 
     @property
     def has_touch_probe(self) -> bool:

@@ -60,6 +60,23 @@ class Probed:
     counts: int = 0
 
 
+def stopped_at_rest(core: Any, planner: Any, cmd: C.Probe, held: bool) -> None:
+    """Cycle thread: a probing move stopped by its trip is at rest: the job thread waiting for its
+    sync point wakes (as at the move's end). ``held``: a feed hold during the move outlives the
+    planner's stop (which clears it)."""
+    if held:
+        planner.hold()
+    with core._sync_cond:
+        core._sync_reached = cmd
+        core._sync_cond.notify_all()
+
+
+def release(core: Any) -> None:
+    """Cycle thread: the probe answered: the planner waiting at its sync point goes on."""
+    if core.planner is not None and core.planner.waiting_for is not None:
+        core.planner.release()
+
+
 class DriveProbing:
     """The probing moves of one machine with a drive touch probe (see the module's text). ``core``:
     the :class:`~motiond.runtime.motion.MotionCore`."""
@@ -126,12 +143,7 @@ class DriveProbing:
                 planner.abort()  # the rest of the move (and its sync point) is dropped at rest
         elif planner.is_idle:
             self._armed = None
-            if self._held:
-                planner.hold()  # a feed hold during the move outlives the planner's stop (it clears it)
-            core = self.core
-            with core._sync_cond:
-                core._sync_reached = cmd
-                core._sync_cond.notify_all()
+            stopped_at_rest(self.core, planner, cmd, self._held)
 
     def answer(self, cmd: C.Probe, cancel: threading.Event) -> Probed | None:
         """Job thread, the interpreter's probe callback: wait for the move's end, read the latch. None
@@ -152,8 +164,7 @@ class DriveProbing:
 
         def unwatch() -> None:
             self._armed = None
-            if core.planner is not None and core.planner.waiting_for is not None:
-                core.planner.release()
+            release(core)
 
         try:
             if not core.wait_sync_point(cmd, cancel):

@@ -1,0 +1,125 @@
+"""Motion side: G38.x with the I/O map's ``probe`` input (a Modbus discrete input or coil, or a drive's
+0x60FD bit) when no drive has a touch probe. docs/wiring.md.
+
+It stands in for :class:`~motiond.runtime.probing.DriveProbing` (``MotionCore.drive_probe``) with the
+same three parts:
+
+* job thread, when the ``Probe`` command is put (:meth:`InputProbing.before_move`): the motion before
+  it comes to rest, then the input is read; already in the state the move seeks (in contact for
+  G38.2/G38.3, clear for G38.4/G38.5): G38.2/G38.4 are an error naming the file and line, G38.3/G38.5
+  trip at once where the machine stands (the move is not queued). An input that cannot be read is an
+  error too.
+* cycle thread (:meth:`InputProbing.on_cycle`, every cycle, after this cycle's setpoint is computed):
+  the input as of the Modbus executor's latest poll; the first cycle that sees it in the sought state
+  keeps this cycle's commanded position as the probed point and stops the move (the planner's
+  jerk-limited stop on the path); at rest the job thread is woken as at the move's end.
+* job thread (:meth:`InputProbing.answer`): the probed point (:class:`~motiond.runtime.probing.Probed`).
+
+Latency: the input is seen by the first poll after it changes (the device's ``poll_ms`` plus the
+request) and acted on in the next cycle: the probed point lies up to (``poll_ms`` + one cycle) x the
+probing feed past the true contact (the drive touch probe, latched by the drive, has none).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING, Any
+
+from gcode_canon import commands as C
+from gcode_canon.errors import GCodeError
+from motiond.runtime.probing import IDLE_POLL_S, Probed, release, stopped_at_rest
+
+if TYPE_CHECKING:
+    import threading
+
+
+class InputProbing:
+    """Probing moves on the I/O map's probe input (module docstring). ``core``: the MotionCore;
+    ``mio``: the :class:`~motiond.machine_io.MachineIO` that reads the input."""
+
+    def __init__(self, core: Any, mio: Any) -> None:
+        self.core = core
+        self.mio = mio
+        self.binding = mio.f["probe"]
+        self._armed: C.Probe | None = None  # the probing move being watched (cycle thread reads)
+        self._stopping = False
+        self._held = False
+        self._hit: tuple[float, ...] | None = None  # the commanded position of the cycle that saw it
+        self._unreadable = False
+        self._start: tuple[float, ...] | None = None
+        self.tripped_at_start = False
+
+    def _where(self) -> str:
+        b = self.binding
+        return f"{b.key}, {b.where}"
+
+    def before_move(self, cmd: C.Probe, cancel: threading.Event) -> bool:
+        """Job thread: wait for rest, read the input. False when ``cancel`` is set meanwhile."""
+        core = self.core
+        while not core.drained():
+            if cancel.is_set():
+                return False
+            time.sleep(IDLE_POLL_S)
+        level = self.mio._read(self.binding)
+        if level is None:
+            raise GCodeError(f"G{cmd.mode.value}: the probe input cannot be read ({self._where()}: link "
+                             "down or not polled yet); nothing moved", cmd.file, cmd.line)
+        self._start = core.position()
+        self.tripped_at_start = level == cmd.mode.toward
+        if self.tripped_at_start:
+            if cmd.mode.error_on_miss:
+                self.tripped_at_start = False
+                state = "tripped (in contact)" if cmd.mode.toward else "clear (out of contact)"
+                raise GCodeError(f"G{cmd.mode.value}: the probe ({self._where()}) is already {state} at "
+                                 "the start of the move; nothing moved", cmd.file, cmd.line)
+            return True
+
+        def watch() -> None:
+            self._armed, self._stopping, self._hit, self._unreadable = cmd, False, None, False
+
+        core.run_on_cycle(watch)
+        return True
+
+    def on_cycle(self, planner: Any) -> None:
+        """Cycle thread, every cycle: stop the probing move on the trip; at rest, wake the job thread."""
+        cmd = self._armed
+        if cmd is None or planner is None:
+            return
+        if not self._stopping:
+            if planner.waiting_for is cmd:
+                return  # the move ended untripped: the sync point answers it
+            level = self.mio._read(self.binding)
+            if level is None or level == cmd.mode.toward:
+                self._stopping = True
+                self._unreadable = level is None
+                self._hit = tuple(planner.position)  # this cycle's setpoint
+                self._held = planner.holding
+                planner.abort()  # the rest of the move (and its sync point) is dropped at rest
+        elif planner.is_idle:
+            self._armed = None
+            stopped_at_rest(self.core, planner, cmd, self._held)
+
+    def answer(self, cmd: C.Probe, cancel: threading.Event) -> Probed | None:
+        """Job thread, the interpreter's probe callback: wait for the move's end; None when ``cancel``
+        is set meanwhile."""
+        core = self.core
+        if self.tripped_at_start:
+            self.tripped_at_start = False
+            assert self._start is not None
+            return Probed(True, self._start, "probe input")
+
+        def unwatch() -> None:
+            self._armed = None
+            release(core)
+
+        try:
+            if not core.wait_sync_point(cmd, cancel):
+                return None
+        finally:
+            core.run_on_cycle(unwatch)
+        if self._unreadable:
+            raise GCodeError(f"G{cmd.mode.value}: the probe input could not be read during the move "
+                             f"({self._where()}): the move was stopped", cmd.file, cmd.line)
+        if self._hit is None:
+            return Probed(False, tuple(cmd.end[k] for k in core.limits.pose_index))
+        return Probed(True, self._hit, "probe input")
