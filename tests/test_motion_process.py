@@ -548,3 +548,117 @@ def test_a_stopped_motion_process_faults_the_task_naming_it(rig, tmp_path: Path)
             bench.wait_states(lambda s: s == [State.FAULT] * 3, 5.0, "heartbeat consumer fault")
         finally:
             os.kill(pid, signal.SIGCONT)
+
+
+# ---------------------------------------------------------------------- the watch's own stalls (anywhere)
+
+class Clock:
+    """``time`` for a watch under test: monotonic with jumps (the watcher's process stalled)."""
+
+    def __init__(self) -> None:
+        self.offset = 0.0
+        self.sleep = time.sleep
+
+    def monotonic(self) -> float:
+        return time.monotonic() + self.offset
+
+
+class Recorder:
+    """Stands in for the motion core or the task hooks: records the calls."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, tuple[object, ...]]] = []
+
+    def __getattr__(self, name: str):
+        return lambda *args, **kw: self.calls.append((name, args))
+
+    def names(self) -> list[str]:
+        return [c[0] for c in self.calls]
+
+
+def test_the_motion_process_watch_trips_on_silence_not_on_its_own_stall(monkeypatch) -> None:
+    """The motion process's watch: not before the first ping; not when it was itself away (a jump
+    of its clock past the timeout, the pings then on time); on silence, the quick stop and a fault."""
+    from motiond.runtime import motion_proc
+
+    clock = Clock()
+    monkeypatch.setattr(motion_proc, "time", clock)
+    server = object.__new__(motion_proc.MotionServer)
+    server.done, server.orphaned = threading.Event(), threading.Event()
+    server.task_timeout_s, server.last_ping, server.task_silent = 1.0, 0.0, False
+    server.core = core = Recorder()
+    threading.Thread(target=server._watch, daemon=True).start()
+    try:
+        time.sleep(1.3)
+        assert core.calls == [], "tripped before the first ping"
+
+        def ping_for(seconds: float) -> None:
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                server.last_ping = clock.monotonic()
+                time.sleep(0.05)
+
+        ping_for(0.3)
+        clock.offset += 2.0  # the whole process away 2 s: the pings waited in the pipe
+        time.sleep(0.1)
+        ping_for(0.3)
+        assert core.calls == [], "its own stall counted as the task's silence"
+        t0 = time.monotonic()
+        wait_for(lambda: "post_fault" in core.names(), 1.0 + 2.0, "the watch trips on silence")
+        assert time.monotonic() - t0 >= 1.0 - 0.05
+        assert core.names()[0] == "quick_stop"
+        reason = dict(core.calls)["post_fault"][0]
+        assert "task process" in reason and "no ping for" in reason and "task_timeout_ms 1000" in reason
+    finally:
+        server.done.set()
+
+
+def test_the_task_watch_faults_on_silence_not_on_its_own_stall(monkeypatch) -> None:
+    """The task's watch of the motion process's states: not when the task itself was away (a clock
+    jump past the timeout); on silence of a live process, a quick stop sent and the fault naming it;
+    requests fail at once meanwhile; states again: re-armed."""
+    from types import SimpleNamespace
+
+    from motiond.config_motion import Watch
+    from motiond.runtime import motion_proxy
+
+    clock = Clock()
+    monkeypatch.setattr(motion_proxy, "time", clock)
+    hooks = Recorder()
+    p = motion_proxy.MotionProxy(SimpleNamespace(names=("x",)), None, late_fault_s=1.0, simulated=True,
+                                 hooks=hooks, watch=Watch(1000.0, 1000.0))  # type: ignore[arg-type]
+    p.proc = SimpleNamespace(pid=4242)
+    p._conns = {"req": None}  # no pipes: the urgent calls go nowhere, requests as if open
+    sent: list[str] = []
+    p._urgent = lambda name, *args: sent.append(name)  # type: ignore[method-assign]
+    threading.Thread(target=p._ping, daemon=True).start()
+
+    def states_for(seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            p._take_state({"late_new": [], "stream": None})
+            time.sleep(0.02)
+
+    try:
+        states_for(0.3)
+        clock.offset += 2.0  # the task process away 2 s: the states waited in the pipe
+        time.sleep(0.2)
+        states_for(0.3)
+        assert not p.silent and "quick_stop" not in sent, p.silent
+        assert "ping" in sent
+        t0 = time.monotonic()
+        wait_for(lambda: p.silent, 1.0 + 2.0, "the task's watch trips")
+        assert time.monotonic() - t0 >= 1.0 - 0.05
+        assert "quick_stop" in sent
+        assert "motion process (pid 4242)" in p.silent and "no state for" in p.silent, p.silent
+        with pytest.raises(motion_proxy.MotionProcessGone, match="no state for"):
+            p.request("position", timeout=0.1)
+        p._dispatch.get(timeout=1.0)()  # the fault hook, as the canon-hooks thread runs it
+        assert hooks.calls == [("fault", (p.silent, "motiond"))]
+        n = sent.count("ping")
+        time.sleep(0.3)
+        assert sent.count("ping") == n, "no pings into the pipe of a hung process"
+        states_for(0.3)
+        assert not p.silent and sent.count("ping") > n, "re-armed when the states run again"
+    finally:
+        p._closing = True
