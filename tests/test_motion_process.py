@@ -385,6 +385,7 @@ def test_canon_run_with_the_motion_process(tmp_path: Path) -> None:
                         "--config", str(path), str(prog)], capture_output=True, text=True, timeout=150,
                        cwd=ROOT)
     assert r.returncode == 0, r.stderr
+    assert "no ping" not in r.stderr, r.stderr  # the close is not a silence of the task
     d = json.loads(r.stdout)
     assert d["ok"] and d["final_positions"] == {"x": 5.0, "y": 4.0, "z": 2.0}
     for a, want in zip("xyz", (5.0, 4.0, 2.0), strict=True):
@@ -585,7 +586,7 @@ def test_the_motion_process_watch_trips_on_silence_not_on_its_own_stall(monkeypa
     monkeypatch.setattr(motion_proc, "time", clock)
     server = object.__new__(motion_proc.MotionServer)
     server.done, server.orphaned = threading.Event(), threading.Event()
-    server.task_timeout_s, server.last_ping, server.task_silent = 1.0, 0.0, False
+    server.task_timeout_s, server.last_ping, server.task_silent, server.closing = 1.0, 0.0, False, False
     server.core = core = Recorder()
     threading.Thread(target=server._watch, daemon=True).start()
     try:

@@ -163,6 +163,7 @@ class MotionServer:
         self.task_timeout_s = task_timeout_s
         self.last_ping = 0.0  # monotonic; 0: no ping yet (the watch not started)
         self.task_silent = False  # the watch tripped: the drives quick-stopped, a fault posted
+        self.closing = False  # the task asked this process to close: the watch ends
         self.hook_q: queue.SimpleQueue[tuple[int, tuple[str, tuple[Any, ...], dict[str, Any]]]] = \
             queue.SimpleQueue()
         """(the cycle that posted it, -1 another thread; the hook): see :meth:`_out`."""
@@ -318,6 +319,7 @@ class MotionServer:
             core.open()
             return core.drive_probe is not None
         if name == "close":
+            self.closing = True  # the task stops pinging now: not a silence to act on
             core.stop_cycle()
             core.close()
             self.done.set()
@@ -395,6 +397,8 @@ class MotionServer:
             last_look = now
             if self.last_ping == 0.0 or self.orphaned.is_set():
                 continue
+            if self.closing:
+                return
             if late > self.task_timeout_s / 4:  # this process stalled: the pings may wait in the pipe
                 self.last_ping = max(self.last_ping, now - self.task_timeout_s / 2)
                 continue
