@@ -25,8 +25,10 @@ through proves that path is served. The ``motion-watch`` thread here (:meth:`Mot
 quick-stops the drives as on the task's death when no ping came for ``task_timeout_ms`` (a task
 stopped by SIGSTOP or deadlocked: alive, its pipes open, nobody to press its E-stop), and posts a fault
 naming the silence, which the task receives when it runs again. The watch starts at the first ping
-(the task's start-up is not counted) and allows for its own lateness (a stall of this whole process is
-not the task's silence).
+(the task's start-up is not counted), ends at the task's ``close`` request, and allows for its own
+lateness (a stall of this whole process is not the task's silence). A task that never runs again
+leaves the drives held in quick stop by the live master (no :data:`ORPHAN_HOLD_S` disable: its pipes
+are still open).
 
 When the task process dies (its pipes reach end of file) the drives are quick-stopped at once and held
 (the master keeps the cycle and its heartbeat running) for :data:`ORPHAN_HOLD_S`; then they are
@@ -404,7 +406,10 @@ class MotionServer:
                 continue
             silent = now - self.last_ping
             if silent >= self.task_timeout_s and not self.task_silent:
-                self._task_hung(silent)
+                try:
+                    self._task_hung(silent)
+                except Exception:  # the watch must outlive a failing quick stop
+                    log.exception("stopping the drives for the task's silence")
             elif silent < self.task_timeout_s and self.task_silent:
                 self.task_silent = False  # it runs again (the fault posted is its to clear)
 
