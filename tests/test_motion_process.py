@@ -5,13 +5,15 @@ third process (``canon sim drives``), so they run only inside the private networ
 (``tests/run``, ``tests/netns-run``): a program runs through the motion process; an E-stop reaches
 the drives; killing the task process mid-move quick-stops the drives (the motion process sees its pipes
 close); killing the motion process mid-move makes the drives fault by their heartbeat consumer and the
-task side reports which process died and how.
+task side reports which process died and how; stopping either process (SIGSTOP: alive but hung)
+trips the liveness watch of the other (``[motion] task_timeout_ms``, ``motion_timeout_ms``).
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import queue
 import signal
 import subprocess
 import sys
@@ -98,6 +100,22 @@ def test_thread_mode_is_the_default_and_accepted_on_virtual(tmp_path: Path) -> N
     assert motion_process(load_machine(None)) == "thread"
     path = write(tmp_path, machine_text("virtual", "canon", simulate=True, process="thread"))
     assert motion_process(load_machine(str(path))) == "thread"
+
+
+def test_the_liveness_timeouts_default_and_are_checked_with_their_key(tmp_path: Path) -> None:
+    from motiond.config import load_machine
+    from motiond.config_motion import Watch, motion_settings
+
+    path = write(tmp_path, machine_text("udp_multicast", "239.74.165.1", simulate=True))
+    assert motion_settings(load_machine(str(path))) == ("own", Watch(500.0, 500.0))
+    path = write(tmp_path, machine_text("udp_multicast", "239.74.165.1", simulate=True,
+                                        extra="task_timeout_ms = 800\nmotion_timeout_ms = 300\n"))
+    assert motion_settings(load_machine(str(path)))[1] == Watch(800.0, 300.0)
+    bad = (("task_timeout_ms", "20"), ("motion_timeout_ms", "60000"), ("task_timeout_ms", '"1s"'))
+    for key, value in bad:
+        text = check(write(tmp_path, machine_text("udp_multicast", "239.74.165.1", simulate=True,
+                                                  extra=f"{key} = {value}\n")))
+        assert f"motion.{key}" in text, text
 
 
 # ---------------------------------------------------------------------- in the namespace
@@ -229,14 +247,19 @@ time.sleep(60)
 """
 
 
+def start_task(script: str, path: Path, tmp_path: Path) -> subprocess.Popen[str]:
+    """A task process running ``script`` (TASK ...) on the machine file, the long program."""
+    prog = tmp_path / "long.ngc"
+    prog.write_text(LONG)
+    return subprocess.Popen([sys.executable, "-c", script, str(path), str(prog)], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
 @pytest.mark.multicast
 @pytest.mark.timeout(120)
 def test_killing_the_task_process_mid_move_quick_stops_the_drives(rig, tmp_path: Path) -> None:
     path, _channel, bench = rig
-    prog = tmp_path / "long.ngc"
-    prog.write_text(LONG)
-    task = subprocess.Popen([sys.executable, "-c", TASK, str(path), str(prog)], cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    task = start_task(TASK, path, tmp_path)
     motion_pid = 0
     try:
         assert task.stdout is not None
@@ -264,24 +287,38 @@ def test_killing_the_task_process_mid_move_quick_stops_the_drives(rig, tmp_path:
         assert [node.sdo[0x6064].raw for node in bench.nodes] == before, "the axes stand still"
         assert bench.states() == states, "no heartbeat fault later: the master is still there"
     finally:
-        if task.poll() is None:
-            task.kill()
-            task.wait(5.0)
-        if motion_pid:
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(motion_pid, signal.SIGKILL)
+        end_task(task, motion_pid)
 
 
-@pytest.mark.multicast
-@pytest.mark.timeout(120)
-def test_killing_the_motion_process_mid_move_faults_the_drives_and_the_task(rig, tmp_path: Path) -> None:
-    path, _channel, bench = rig
+def end_task(task: subprocess.Popen[str], motion_pid: int) -> None:
+    """The task process (continued, if stopped) and its motion process: killed if still there."""
+    with contextlib.suppress(ProcessLookupError):
+        task.send_signal(signal.SIGCONT)
+    if task.poll() is None:
+        task.kill()
+        task.wait(5.0)
+    if motion_pid:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(motion_pid, signal.SIGKILL)
+
+
+@contextlib.contextmanager
+def moving_machine(path: Path, tmp_path: Path):
+    """A machine in this process running the long program, past X 5 (its job with it)."""
     prog = tmp_path / "long.ngc"
     prog.write_text(LONG)
     with own_machine(path) as m:
         m.bring_up()
         job = m.run(str(prog))
         wait_for(lambda: m.motion.commanded[0] > 5.0, 30.0, "moving")
+        yield m, job
+
+
+@pytest.mark.multicast
+@pytest.mark.timeout(120)
+def test_killing_the_motion_process_mid_move_faults_the_drives_and_the_task(rig, tmp_path: Path) -> None:
+    path, _channel, bench = rig
+    with moving_machine(path, tmp_path) as (m, job):
         os.kill(m.motion.pid, signal.SIGKILL)
         wait_for(lambda: m.states.state.value == "faulted", 5.0, "the task side reports the fault")
         assert "motion process" in m.last_error and "SIGKILL" in m.last_error, m.last_error
@@ -348,6 +385,7 @@ def test_canon_run_with_the_motion_process(tmp_path: Path) -> None:
                         "--config", str(path), str(prog)], capture_output=True, text=True, timeout=150,
                        cwd=ROOT)
     assert r.returncode == 0, r.stderr
+    assert "no ping" not in r.stderr, r.stderr  # the close is not a silence of the task
     d = json.loads(r.stdout)
     assert d["ok"] and d["final_positions"] == {"x": 5.0, "y": 4.0, "z": 2.0}
     for a, want in zip("xyz", (5.0, 4.0, 2.0), strict=True):
@@ -417,3 +455,211 @@ def test_estop_during_a_flood_reaches_the_drives_within_a_cycle_of_its_arrival(t
     # "within one cycle": at most one cycle of the motion process ran between the E-stop's arrival and
     # its quick stop (a wall-clock bound would count the whole process being descheduled on a loaded PC)
     assert cycle_after - cycle_then <= 1, (cycle_then, cycle_after)
+
+
+WATCHED_TASK = TASK.replace("time.sleep(60)", """
+deadline = time.monotonic() + 60
+while m.states.state.value != "faulted" and time.monotonic() < deadline:
+    time.sleep(0.01)
+print("state", m.states.state.value, m.last_error, flush=True)
+m.shutdown()
+""")
+
+
+def lines_of(proc: subprocess.Popen[str]) -> queue.Queue[str]:
+    """The process's output lines, read by a thread (so that each wait for one is bounded)."""
+    q: queue.Queue[str] = queue.Queue()
+
+    def read() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            q.put(line)
+
+    threading.Thread(target=read, daemon=True).start()
+    return q
+
+
+def next_line(q: queue.Queue[str], prefix: str, timeout: float) -> str:
+    deadline = time.monotonic() + timeout
+    seen = []
+    while True:
+        try:
+            line = q.get(timeout=max(0.01, deadline - time.monotonic()))
+        except queue.Empty:
+            raise AssertionError(f"no line {prefix!r} in {timeout:g} s; saw {seen[-20:]}") from None
+        if line.startswith(prefix):
+            return line
+        seen.append(line)
+
+
+@pytest.mark.multicast
+@pytest.mark.timeout(120)
+def test_a_stopped_task_process_quick_stops_the_drives_and_is_told_when_it_runs_again(
+        rig, tmp_path: Path) -> None:
+    """SIGSTOP the task mid-move: alive, its pipes open, but no ping. The motion process quick-stops
+    the drives within task_timeout_ms (500 ms by default) and a bound; SIGCONT: the task faults with
+    the motion process's reason."""
+    path, _channel, bench = rig
+    task = start_task(WATCHED_TASK, path, tmp_path)
+    motion_pid = 0
+    try:
+        out = lines_of(task)
+        motion_pid = int(next_line(out, "moving", 60.0).split()[1])
+        assert bench.states() == [State.OPERATION_ENABLED] * 3
+        t0 = time.monotonic()
+        task.send_signal(signal.SIGSTOP)
+        # the 100 mm move takes 4 s: without the watch the drives would run on, enabled
+        states = bench.wait_states(lambda s: all(x in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)
+                                                 for x in s), 3.0, "quick stop after the task stopped")
+        took = time.monotonic() - t0
+        assert State.FAULT not in states
+        assert took < 0.5 + 2.0, took  # the timeout, plus the SDO reads of a loaded PC
+        bench.wait_states(lambda s: s == [State.SWITCH_ON_DISABLED] * 3, 3.0, "the ramp's end")
+        os.kill(motion_pid, 0)  # alive, its heartbeat going: stopped by the master, not by a fault
+        task.send_signal(signal.SIGCONT)
+        line = next_line(out, "state", 30.0)
+        assert line.startswith("state faulted"), line
+        assert "task process" in line and "no ping" in line and "quick-stopped" in line, line
+        assert task.wait(30.0) == 0
+    finally:
+        end_task(task, motion_pid)
+
+
+@pytest.mark.multicast
+@pytest.mark.timeout(120)
+def test_a_stopped_motion_process_faults_the_task_naming_it(rig, tmp_path: Path) -> None:
+    """SIGSTOP the motion process mid-move: its states stop while it lives. The task faults within
+    motion_timeout_ms and a bound, naming the motion process and how long it was silent; the drives
+    fault by their heartbeat consumer (the master is stopped too)."""
+    path, _channel, bench = rig
+    with moving_machine(path, tmp_path) as (m, job):
+        pid = m.motion.pid
+        t0 = time.monotonic()
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            wait_for(lambda: m.states.state.value == "faulted", 0.5 + 2.0, "the task side faults")
+            assert time.monotonic() - t0 >= 0.5, "not before motion_timeout_ms"
+            err = m.last_error
+            assert f"motion process (pid {pid})" in err and "no state for" in err, err
+            silent_ms = float(err.split("no state for ")[1].split(" ms")[0])
+            assert 500 <= silent_ms < 2500, err
+            result = m.wait_job(job, 5.0)
+            assert result is not None and not result.ok
+            assert m.motion.proc.is_alive()
+            bench.wait_states(lambda s: s == [State.FAULT] * 3, 5.0, "heartbeat consumer fault")
+        finally:
+            os.kill(pid, signal.SIGCONT)
+
+
+# ---------------------------------------------------------------------- the watch's own stalls (anywhere)
+
+class Clock:
+    """``time`` for a watch under test: monotonic with jumps (the watcher's process stalled)."""
+
+    def __init__(self) -> None:
+        self.offset = 0.0
+        self.sleep = time.sleep
+
+    def monotonic(self) -> float:
+        return time.monotonic() + self.offset
+
+
+class Recorder:
+    """Stands in for the motion core or the task hooks: records the calls."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, tuple[object, ...]]] = []
+
+    def __getattr__(self, name: str):
+        return lambda *args, **kw: self.calls.append((name, args))
+
+    def names(self) -> list[str]:
+        return [c[0] for c in self.calls]
+
+
+def test_the_motion_process_watch_trips_on_silence_not_on_its_own_stall(monkeypatch) -> None:
+    """The motion process's watch: not before the first ping; not when it was itself away (a jump
+    of its clock past the timeout, the pings then on time); on silence, the quick stop and a fault."""
+    from motiond.runtime import motion_proc
+
+    clock = Clock()
+    monkeypatch.setattr(motion_proc, "time", clock)
+    server = object.__new__(motion_proc.MotionServer)
+    server.done, server.orphaned = threading.Event(), threading.Event()
+    server.task_timeout_s, server.last_ping, server.task_silent, server.closing = 1.0, 0.0, False, False
+    server.core = core = Recorder()
+    threading.Thread(target=server._watch, daemon=True).start()
+    try:
+        time.sleep(1.3)
+        assert core.calls == [], "tripped before the first ping"
+
+        def ping_for(seconds: float) -> None:
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                server.last_ping = clock.monotonic()
+                time.sleep(0.05)
+
+        ping_for(0.3)
+        clock.offset += 2.0  # the whole process away 2 s: the pings waited in the pipe
+        time.sleep(0.1)
+        ping_for(0.3)
+        assert core.calls == [], "its own stall counted as the task's silence"
+        t0 = time.monotonic()
+        wait_for(lambda: "post_fault" in core.names(), 1.0 + 2.0, "the watch trips on silence")
+        assert time.monotonic() - t0 >= 1.0 - 0.05
+        assert core.names()[0] == "quick_stop"
+        reason = dict(core.calls)["post_fault"][0]
+        assert "task process" in reason and "no ping for" in reason and "task_timeout_ms 1000" in reason
+    finally:
+        server.done.set()
+
+
+def test_the_task_watch_faults_on_silence_not_on_its_own_stall(monkeypatch) -> None:
+    """The task's watch of the motion process's states: not when the task itself was away (a clock
+    jump past the timeout); on silence of a live process, a quick stop sent and the fault naming it;
+    requests fail at once meanwhile; states again: re-armed."""
+    from types import SimpleNamespace
+
+    from motiond.config_motion import Watch
+    from motiond.runtime import motion_proxy
+
+    clock = Clock()
+    monkeypatch.setattr(motion_proxy, "time", clock)
+    hooks = Recorder()
+    p = motion_proxy.MotionProxy(SimpleNamespace(names=("x",)), None, late_fault_s=1.0, simulated=True,
+                                 hooks=hooks, watch=Watch(1000.0, 1000.0))  # type: ignore[arg-type]
+    p.proc = SimpleNamespace(pid=4242)
+    p._conns = {"req": None}  # no pipes: the urgent calls go nowhere, requests as if open
+    sent: list[str] = []
+    p._urgent = lambda name, *args: sent.append(name)  # type: ignore[method-assign]
+    threading.Thread(target=p._ping, daemon=True).start()
+
+    def states_for(seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            p._take_state({"late_new": [], "stream": None})
+            time.sleep(0.02)
+
+    try:
+        states_for(0.3)
+        clock.offset += 2.0  # the task process away 2 s: the states waited in the pipe
+        time.sleep(0.2)
+        states_for(0.3)
+        assert not p.silent and "quick_stop" not in sent, p.silent
+        assert "ping" in sent
+        t0 = time.monotonic()
+        wait_for(lambda: p.silent, 1.0 + 2.0, "the task's watch trips")
+        assert time.monotonic() - t0 >= 1.0 - 0.05
+        assert "quick_stop" in sent
+        assert "motion process (pid 4242)" in p.silent and "no state for" in p.silent, p.silent
+        with pytest.raises(motion_proxy.MotionProcessGone, match="no state for"):
+            p.request("position", timeout=0.1)
+        p._dispatch.get(timeout=1.0)()  # the fault hook, as the canon-hooks thread runs it
+        assert hooks.calls == [("fault", (p.silent, "motiond"))]
+        n = sent.count("ping")
+        time.sleep(0.3)
+        assert sent.count("ping") == n, "no pings into the pipe of a hung process"
+        states_for(0.3)
+        assert not p.silent and sent.count("ping") > n, "re-armed when the states run again"
+    finally:
+        p._closing = True

@@ -241,14 +241,14 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
 
         from gcode_canon.interpreter import Interpreter
         self.interp = Interpreter(interp_settings, Callbacks(self))
-        from motiond.config_motion import motion_process
+        from motiond.config_motion import motion_settings
 
-        self.motion_mode = motion_process(config, canopen)  # [motion] process: "thread" or "own"
+        self.motion_mode, watch = motion_settings(config, canopen)  # [motion] process: "thread" or "own"
         if self.motion_mode == "own":
             from motiond.runtime.motion_proxy import MotionProxy
 
             self.motion: Any = MotionProxy(self.limits, canopen, late_fault_s=late_fault_s,
-                                           simulated=self.simulated, hooks=_TaskHooks(self))
+                                           simulated=self.simulated, hooks=_TaskHooks(self), watch=watch)
         else:
             self.motion = MotionCore(self.limits, canopen, late_fault_s=late_fault_s,
                                      simulated=self.simulated, hooks=_TaskHooks(self))

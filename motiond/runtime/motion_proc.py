@@ -18,6 +18,18 @@ thread of its own here so that none waits behind another:
   :class:`MotionSnapshot`, counters, flags, the stream's accounting) and then the hooks since the last
   one, in order. The cycle thread only appends to a queue and sets an event: it never waits on a pipe.
 
+The task process pings on the urgent pipe (``("ping", ())``, every tenth of ``[motion]
+task_timeout_ms``, from a thread of its own: see :class:`~motiond.runtime.motion_proxy.MotionProxy`).
+The urgent pipe carries it because its reader is the thread that acts on an E-stop: a ping that gets
+through proves that path is served. The ``motion-watch`` thread here (:meth:`MotionServer._watch`)
+quick-stops the drives as on the task's death when no ping came for ``task_timeout_ms`` (a task
+stopped by SIGSTOP or deadlocked: alive, its pipes open, nobody to press its E-stop), and posts a fault
+naming the silence, which the task receives when it runs again. The watch starts at the first ping
+(the task's start-up is not counted), ends at the task's ``close`` request, and allows for its own
+lateness (a stall of this whole process is not the task's silence). A task that never runs again
+leaves the drives held in quick stop by the live master (no :data:`ORPHAN_HOLD_S` disable: its pipes
+are still open).
+
 When the task process dies (its pipes reach end of file) the drives are quick-stopped at once and held
 (the master keeps the cycle and its heartbeat running) for :data:`ORPHAN_HOLD_S`; then they are
 disabled and the process exits. SIGINT and SIGTERM are ignored while the task lives: the task process
@@ -29,6 +41,7 @@ from __future__ import annotations
 import concurrent.futures
 import contextlib
 import logging
+import os
 import queue
 import signal
 import sys
@@ -45,6 +58,8 @@ log = logging.getLogger(__name__)
 
 ORPHAN_HOLD_S = 30.0
 """After the task process died: the drives held in quick stop this long, then disabled."""
+WATCH_PERIOD_S = 0.01
+"""How often the motion process looks at the time since the task's last ping."""
 STATE_PERIOD_S = 0.005
 """The state goes to the task at least this often."""
 END_MARK = "__canon_end__"
@@ -145,8 +160,12 @@ class MotionServer:
     """The threads of the motion process around one :class:`ChildCore` (module docstring)."""
 
     def __init__(self, conns: dict[str, Any], limits: Any, canopen: Any, late_fault_s: float,
-                 simulated: bool) -> None:
+                 simulated: bool, task_timeout_s: float = 0.5) -> None:
         self.conns = conns
+        self.task_timeout_s = task_timeout_s
+        self.last_ping = 0.0  # monotonic; 0: no ping yet (the watch not started)
+        self.task_silent = False  # the watch tripped: the drives quick-stopped, a fault posted
+        self.closing = False  # the task asked this process to close: the watch ends
         self.hook_q: queue.SimpleQueue[tuple[int, tuple[str, tuple[Any, ...], dict[str, Any]]]] = \
             queue.SimpleQueue()
         """(the cycle that posted it, -1 another thread; the hook): see :meth:`_out`."""
@@ -215,6 +234,9 @@ class MotionServer:
                 name, args = conn.recv()
             except (EOFError, OSError):
                 return self._task_gone("its urgent pipe closed")
+            if name == "ping":
+                self.last_ping = time.monotonic()
+                continue
             try:
                 if name in ("estop", "quick_stop"):
                     self.estops += 1
@@ -299,6 +321,7 @@ class MotionServer:
             core.open()
             return core.drive_probe is not None
         if name == "close":
+            self.closing = True  # the task stops pinging now: not a silence to act on
             core.stop_cycle()
             core.close()
             self.done.set()
@@ -366,9 +389,45 @@ class MotionServer:
         core.quick_stop("task process gone")
         core.run_on_cycle(lambda: self._estop_on_cycle("task process gone"), wait=False)
 
+    # ------------------------------------------------------------------ the task's silence
+    def _watch(self) -> None:
+        """``motion-watch``: the task's pings (module docstring)."""
+        last_look = time.monotonic()
+        while not self.done.wait(WATCH_PERIOD_S):
+            now = time.monotonic()
+            late = now - last_look - WATCH_PERIOD_S
+            last_look = now
+            if self.last_ping == 0.0 or self.orphaned.is_set():
+                continue
+            if self.closing:
+                return
+            if late > self.task_timeout_s / 4:  # this process stalled: the pings may wait in the pipe
+                self.last_ping = max(self.last_ping, now - self.task_timeout_s / 2)
+                continue
+            silent = now - self.last_ping
+            if silent >= self.task_timeout_s and not self.task_silent:
+                try:
+                    self._task_hung(silent)
+                except Exception:  # the watch must outlive a failing quick stop
+                    log.exception("stopping the drives for the task's silence")
+            elif silent < self.task_timeout_s and self.task_silent:
+                self.task_silent = False  # it runs again (the fault posted is its to clear)
+
+    def _task_hung(self, silent: float) -> None:
+        self.task_silent = True
+        reason = (f"the task process (pid {os.getppid()}) sent no ping for {silent * 1e3:.0f} ms "
+                  f"(task_timeout_ms {self.task_timeout_s * 1e3:g}): the motion process quick-stopped "
+                  "the drives")
+        log.error("%s", reason)
+        core = self.core
+        core.quick_stop("task process silent")
+        core.run_on_cycle(lambda: self._estop_on_cycle(reason), wait=False)
+        core.post_fault(reason, "motiond")
+
     def run(self) -> None:
         for name, target in (("motion-cmd", self._commands), ("motion-urgent", self._urgent),
-                             ("motion-req", self._requests), ("motion-out", self._out)):
+                             ("motion-req", self._requests), ("motion-out", self._out),
+                             ("motion-watch", self._watch)):
             threading.Thread(target=target, name=name, daemon=True).start()
         while not self.done.wait(0.1):
             if self.orphaned.is_set():
@@ -406,7 +465,7 @@ def _picklable(exc: BaseException) -> BaseException:
 
 
 def main(conns: dict[str, Any], limits: Any, canopen: Any, late_fault_s: float, simulated: bool,
-         log_level: int) -> None:
+         log_level: int, task_timeout_s: float = 0.5) -> None:
     """The motion process's entry point (spawned by MotionProxy.open)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the task's: it stops on the path
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
@@ -414,7 +473,7 @@ def main(conns: dict[str, Any], limits: Any, canopen: Any, late_fault_s: float, 
     sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
     import planner.core  # noqa: F401  (ruckig, numpy: not on the cycle thread)
 
-    server = MotionServer(conns, limits, canopen, late_fault_s, simulated)
+    server = MotionServer(conns, limits, canopen, late_fault_s, simulated, task_timeout_s)
     server.run()
     time.sleep(0.05)
 

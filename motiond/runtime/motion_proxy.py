@@ -16,6 +16,16 @@ motion process (:mod:`motiond.runtime.motion_proc`, which describes the pipes):
 * the hooks that answer with a value are pushed ahead: the planner's priming commands and wait types
   go with each ``new_planner``; the I/O hooks are not needed (no I/O map in this mode).
 
+The liveness watch, both ways (``[motion] task_timeout_ms``, ``motion_timeout_ms``:
+:class:`~motiond.config_motion.Watch`): the ``canon-motion-ping`` thread sends a ping down the urgent
+pipe every tenth of ``task_timeout_ms`` (the motion process quick-stops the drives when they stop:
+:mod:`~motiond.runtime.motion_proc`), and looks at the time since the last state arrived: when the
+motion process, still alive, sent none for ``motion_timeout_ms`` (stopped by SIGSTOP, deadlocked), the
+task faults naming it and how long it was silent, and sends a quick stop down the urgent pipe (acted on
+if the motion process runs again). A ping thread that was itself late (this process stalled) does not
+count the time it was away. The states run again: the watch re-arms (the fault stays, for the
+operator to reset).
+
 When the motion process dies (its sentinel fires without :meth:`close`), the task gets one fault naming
 it and how it ended (exit code or signal): the job is cancelled, FAULTED. The drives, without the
 master's heartbeat, disable themselves by their heartbeat consumer.
@@ -33,9 +43,11 @@ import multiprocessing.connection
 import queue
 import signal
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
+from motiond.config_motion import Watch
 from motiond.runtime.cycle import END, LATE_LOG, QUEUE_MAX
 from motiond.runtime.motion import MotionHooks, MotionSnapshot
 from motiond.runtime.motion_proc import END_MARK, SYNC_TYPES
@@ -98,7 +110,10 @@ class MotionProxy:
     """The motion side's interface over the process boundary (module docstring)."""
 
     def __init__(self, limits: Any, canopen: Any, *, late_fault_s: float, simulated: bool,
-                 hooks: MotionHooks) -> None:
+                 hooks: MotionHooks, watch: Watch | None = None) -> None:
+        self.watch = watch or Watch()
+        self._last_state = 0.0  # monotonic: when the newest state arrived (0: none yet)
+        self.silent = ""  # why the watch tripped ("" it did not, or the states run again)
         self.limits = limits
         self.canopen = canopen
         self.late_fault_s = late_fault_s
@@ -147,7 +162,7 @@ class MotionProxy:
                        "out": pipes["out"][0]}
         self.proc = ctx.Process(target=motion_proc.main, name="canon-motion", daemon=True, args=(
             child, self.limits, self.canopen, self.late_fault_s, self.simulated,
-            logging.getLogger().getEffectiveLevel()))
+            logging.getLogger().getEffectiveLevel(), self.watch.task_timeout_ms / 1e3))
         self.proc.start()
         for c in child.values():
             c.close()
@@ -161,6 +176,7 @@ class MotionProxy:
         except BaseException:
             self.close()
             raise
+        threading.Thread(target=self._ping, name="canon-motion-ping", daemon=True).start()
 
     def start_cycle(self) -> None:
         self.request("start_cycle")
@@ -196,10 +212,10 @@ class MotionProxy:
                 dead: Callable[[], Any] | None = None, **kw: Any) -> Any:
         """Ask the motion process and wait for its answer; its exception is raised here. ``dead``:
         what to answer once the process is gone (default: MotionProcessGone)."""
-        if self.dead or "req" not in self._conns:  # gone, or never started
+        if self.dead or self.silent or "req" not in self._conns:  # gone, hung, or never started
             if dead is not None:
                 return dead()
-            raise MotionProcessGone(self.dead or "the motion process is not running")
+            raise MotionProcessGone(self.dead or self.silent or "the motion process is not running")
         rid = next(self._rid)
         fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
         self._pending[rid] = fut
@@ -210,7 +226,7 @@ class MotionProxy:
         except (OSError, ValueError, MotionProcessGone):
             if dead is not None:
                 return dead()
-            raise MotionProcessGone(self.dead or "the motion process is gone") from None
+            raise MotionProcessGone(self.dead or self.silent or "the motion process is gone") from None
         finally:
             self._pending.pop(rid, None)
 
@@ -230,10 +246,11 @@ class MotionProxy:
             fut = self._pending.get(rid)
             if fut is None:
                 continue
-            if ok:
-                fut.set_result(value)
-            else:
-                fut.set_exception(value)
+            with contextlib.suppress(concurrent.futures.InvalidStateError):  # failed meanwhile (hung)
+                if ok:
+                    fut.set_result(value)
+                else:
+                    fut.set_exception(value)
 
     def _receive_out(self) -> None:
         conn = self._conns["out"]
@@ -256,6 +273,7 @@ class MotionProxy:
             for k, v in stream.items():
                 if k != "answered_ahead":
                     setattr(self.stream, k, v)
+        self._last_state = time.monotonic()
         with self._cond:
             self._state = st
             self._cond.notify_all()
@@ -289,6 +307,43 @@ class MotionProxy:
             self._cond.notify_all()
         self._dispatch.put(lambda: self.hooks.fault(self.dead + "; the drives disable themselves by their "
                                                     "heartbeat consumer", "motiond"))
+
+    def _ping(self) -> None:
+        """``canon-motion-ping``: the liveness watch both ways (module docstring)."""
+        period = self.watch.task_timeout_ms / 1e3 / 10
+        limit = self.watch.motion_timeout_ms / 1e3
+        self._last_state = last_look = time.monotonic()
+        while not (self._closing or self.dead):
+            if not self.silent:  # a hung motion process does not read: the pipe would fill
+                self._urgent("ping")
+            time.sleep(period)
+            now = time.monotonic()
+            late = now - last_look - period
+            last_look = now
+            if late > limit / 4:  # this process stalled: the states may wait in the pipe
+                self._last_state = max(self._last_state, now - limit / 2)
+                continue
+            silent = now - self._last_state
+            if silent >= limit and not self.silent and not (self._closing or self.dead):
+                self._motion_hung(silent)
+            elif silent < limit:
+                self.silent = ""
+
+    def _motion_hung(self, silent: float) -> None:
+        """The requests waiting for an answer fail now, and the new ones at once, until the states
+        run again (the job's cancellation must not wait REQUEST_TIMEOUT_S on each)."""
+        reason = (f"the motion process (pid {self.pid}) sent no state for {silent * 1e3:.0f} ms "
+                  f"(motion_timeout_ms {self.watch.motion_timeout_ms:g}) though alive: hung? The drives "
+                  "are quick-stopped if it runs again, else fault by their heartbeat consumer")
+        log.error("%s", reason)
+        self.quick_stop(reason)
+        self.silent = reason
+        for fut in list(self._pending.values()):
+            if not fut.done():
+                fut.set_exception(MotionProcessGone(reason))
+        with self._cond:
+            self._cond.notify_all()
+        self._dispatch.put(lambda: self.hooks.fault(reason, "motiond"))
 
     def _get(self, key: str, default: Any) -> Any:
         return self._state.get(key, default)
