@@ -215,8 +215,10 @@ def test_runner_holds_the_cpu_latency_request_while_it_runs(tmp_path, monkeypatc
     qos.write_bytes(b"")
     monkeypatch.setattr(CpuLatencyRequest, "PATH", str(qos))
     seen: list[bool] = []
+    # assigned before start: the first step can run before start() returns (a race seen once in CI)
     runner = PeriodicRunner(0.002, lambda k, t: seen.append(runner.cpu_latency.held), cycles=5,
-                            cpu_latency_us=0).start()
+                            cpu_latency_us=0)
+    runner.start()
     assert runner.join(5.0)
     assert runner.cpu_latency_held and seen == [True] * 5
     assert qos.read_bytes() == (0).to_bytes(4, "little", signed=True)
