@@ -145,7 +145,8 @@ def test_cpu_affinity_pins_the_cycle_thread_only():
     cpu = max(os.sched_getaffinity(0))
     seen: list[set[int]] = []
     runner = PeriodicRunner(0.002, lambda k, t: seen.append(os.sched_getaffinity(runner.native_id)),
-                            cycles=5, cpu_affinity=[cpu]).start()
+                            cycles=5, cpu_affinity=[cpu])
+    runner.start()  # assigned first: the first step reads it and may run before start() returns
     assert runner.join(5)
     assert runner.affinity_applied
     assert seen and all(s == {cpu} for s in seen)
