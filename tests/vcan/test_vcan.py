@@ -218,8 +218,10 @@ def test_kernel_sync_comes_at_the_period_and_the_rpdos_right_after_it(rig, liste
     # how many SYNC periods got one RPDO is the emulated guest's speed, not canon's: on a loaded host
     # the guest ran 100 cycles in 203 periods (81 with one RPDO). Reported, not judged; what is judged
     # is that periods without one are counted
+    # the first period and the last are the window's edges, not the master's: its first RPDO goes out
+    # after the first SYNC it waits for, and its last before the run ends (CI saw [0, 1, 1, ...] once)
     per_period = [sum(1 for t, cob in listener.frames if cob == RPDO1 + 1 and a < t < b)
-                  for a, b in itertools.pairwise(syncs)]
+                  for a, b in itertools.pairwise(syncs)][1:-1]
     print(f"kernel SYNC in the VM: {len(per_period)} periods, {per_period.count(1)} with one RPDO of node 1, "
           f"{per_period.count(0)} with none; master counted {r.master.missed_setpoints} missed")
     # the master sees them by its own socket's SYNC times, the listener by its: in the emulated guest
