@@ -42,3 +42,24 @@ def test_a_gcode_error_in_mdi_is_refused_not_a_fault(machine: Machine) -> None:
     assert machine.states.state is State.IDLE and machine.last_error.endswith("zero feed rate")
     job = machine.mdi("G0 X1")
     assert machine.wait_job(job, timeout=30).ok
+
+
+def test_a_finished_job_finds_the_machine_idle(machine: Machine, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``wait_job`` returns once the machine is in the state the job's end brings: a client sending the
+    next MDI line right after it was refused "while running" (the job was marked done before the state
+    went back to IDLE; a slow state change here widens that window to make it certain)."""
+    import time
+
+    from motiond.states import State
+
+    finished = machine.states.finished
+
+    def slow_finished() -> None:
+        time.sleep(0.3)
+        finished()
+
+    monkeypatch.setattr(machine.states, "finished", slow_finished)
+    result = machine.wait_job(machine.mdi("G0 X2"), timeout=30)
+    assert result is not None and result.ok, result
+    assert machine.states.state is State.IDLE
+    assert machine.wait_job(machine.mdi("G0 X0"), timeout=30).ok

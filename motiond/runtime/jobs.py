@@ -382,10 +382,14 @@ class JobsMixin(MachinePart):
             time.sleep(0.01)
         return not job.cancel.is_set() and self.states.state is State.RUNNING
 
-    def _cancel_job(self, error: str = "", aborted: bool = False) -> None:
-        """Cycle thread (or inline): the job ends now, its queued commands dropped."""
+    def _cancel_job(self, error: str = "", aborted: bool = False,
+                    then: Callable[[], None] | None = None) -> None:
+        """Cycle thread (or inline): the job ends now, its queued commands dropped. ``then``: as for
+        :meth:`_finish_job` (called also when there is no job)."""
         job = self._job
         if job is None:
+            if then is not None:
+                then()
             return
         job.cancel.set()
         if error and not job.error:
@@ -393,11 +397,16 @@ class JobsMixin(MachinePart):
         job.aborted = job.aborted or aborted
         self.motion.drop_commands()
         self.io_hooks.stopped(outputs_off=False)
-        self._finish_job()
+        self._finish_job(then)
 
-    def _finish_job(self) -> None:
+    def _finish_job(self, then: Callable[[], None] | None = None) -> None:
+        """The job's result. ``then`` (the machine's state change that the job's end brings: IDLE,
+        FAULTED) runs before the job is marked done, so that whoever waited for the job (``wait_job``,
+        a client sending the next MDI line) finds the machine in its new state, not still RUNNING."""
         job = self._job
         if job is None:
+            if then is not None:
+                then()
             return
         motion = self.motion
         self._job = None
@@ -417,6 +426,8 @@ class JobsMixin(MachinePart):
             last_setpoint_s=st.t_last - job.t0 if st.t_last else 0.0,
             late_s=[by for c, by in motion.late_log if c >= job.cycle0])
         job.result = res
+        if then is not None:
+            then()
         job.done.set()
         if ok:
             self.event("INFO", f"{job.mode.value} {job.program} done in {res.duration_s:.2f} s",

@@ -110,10 +110,13 @@ class _TaskHooks:
             return
         m.last_error = reason
         m.last_error_utime = time.time_ns() // 1000
-        m._cancel_job(reason)
-        m.io_hooks.stopped(outputs_off=True)
-        m.motion.fault_stop()
-        m.states.fault(reason)
+
+        def stop() -> None:
+            m.io_hooks.stopped(outputs_off=True)
+            m.motion.fault_stop()
+            m.states.fault(reason)
+
+        m._cancel_job(reason, then=stop)
         kind = {"canopen": "drive_fault", "modbus": "io_fault"}.get(source, "fault")
         m.event("ERROR", reason, kind=kind, source=source)
 
@@ -122,9 +125,12 @@ class _TaskHooks:
 
     def stream_done(self) -> None:
         m = self.m
-        m._finish_job()
-        if m.states.state in (State.RUNNING, State.PAUSED):
-            m.states.finished()
+
+        def finished() -> None:
+            if m.states.state in (State.RUNNING, State.PAUSED):
+                m.states.finished()
+
+        m._finish_job(finished)
 
     def aborted(self) -> None:
         if self.m.states.state in (State.RUNNING, State.PAUSED):

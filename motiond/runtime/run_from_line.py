@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -80,7 +81,7 @@ class RunFromLineMixin(MachinePart):
     if TYPE_CHECKING:  # provided by Machine and JobsMixin
         def _modal_state(self, file: str, line: int) -> ModalState: ...
         def _machine_pose(self, base: C.Pose | None = None) -> C.Pose: ...
-        def _finish_job(self) -> None: ...
+        def _finish_job(self, then: Callable[[], None] | None = None) -> None: ...
         def _put(self, item: Any, job: Job) -> bool: ...
 
     def _before_line(self, job: Job, run_from: RunFrom) -> None:
@@ -169,9 +170,12 @@ class RunFromLineMixin(MachinePart):
             job.error = job.error or reason
             self.last_error = reason
             self.last_error_utime = time.time_ns() // 1000
-            self._finish_job()
-            if self.states.state in (State.RUNNING, State.PAUSED):
-                self.states.finished()
+
+            def finished() -> None:
+                if self.states.state in (State.RUNNING, State.PAUSED):
+                    self.states.finished()
+
+            self._finish_job(finished)
             self.event("ERROR", reason, kind=kind, source="gcode", file=exc.file, line=exc.line)
 
         self.motion.run_on_cycle(on_cycle, wait=False)
