@@ -52,7 +52,9 @@ def replay(sim: SimProcess, stream: list[Setpoint], period: float, io_cycles: li
     the ones that missed their cycle (empty: all in time)."""
     assert sim.port is not None
     with IoExecutor(make_config(sim.port, poll_ms=20.0)) as ex:
-        n = len(sim.wait_writes(5))  # the safe state written at start (5 requests)
+        # the safe state written at start (5 requests), awaited whole: under load it took over 5 s
+        n = len(sim.wait_writes(5, timeout=30.0))
+        assert n >= 5, f"the safe state was not written at start: {n} of 5 requests"
         loop = CycleLoop(ex, stream, period)
         loop.run()
         writes = sim.wait_writes(n + len(expect))[n:n + len(expect)]
