@@ -311,6 +311,24 @@ def run(args: argparse.Namespace) -> int:
         lock.release()
 
 
+WAIT_TICK_S = 0.1
+
+
+def wait_for_job(machine: Any, job: Any, tick: Any = None) -> Any:
+    """The job's result, waited for in ticks of :data:`WAIT_TICK_S` (``tick()`` after each).
+
+    Never one unbounded wait: a SIGINT or SIGTERM that the kernel hands to another of the process's
+    threads (any thread may take a process-directed signal) does not wake a main thread blocked on a
+    lock, and Python runs the handler only when the main thread runs again; an unbounded wait let a
+    Ctrl-C go unheeded until the program ended (seen under load). A tick bounds that delay to 0.1 s."""
+    while True:
+        result = machine.wait_job(job, WAIT_TICK_S)
+        if result is not None:
+            return result
+        if tick is not None:
+            tick()
+
+
 def _run_locked(args: argparse.Namespace, path: Any, config: Any, settings: Any) -> int:
     import signal
 
@@ -362,11 +380,10 @@ def _run_locked(args: argparse.Namespace, path: Any, config: Any, settings: Any)
                               TimeElapsedColumn(), TimeRemainingColumn(), console=err,
                               transient=True) as progress:
                     task = progress.add_task(path.name, total=max(job.lines_total, 1))
-                    while result is None:
-                        result = machine.wait_job(job, 0.1)
-                        progress.update(task, completed=min(job.line, job.lines_total))
+                    result = wait_for_job(machine, job, lambda: progress.update(
+                        task, completed=min(job.line, job.lines_total)))
             else:
-                result = machine.wait_job(job)
+                result = wait_for_job(machine, job)
         except KeyboardInterrupt:
             return _interrupted(machine, str(path))
         assert result is not None

@@ -139,3 +139,43 @@ def test_daemon_sigterm_stops_on_the_path_before_shutting_down(tmp_path: Path) -
     finally:
         m.shutdown()
     _assert_stopped_within_limits(m)
+
+
+def test_a_signal_taken_by_another_thread_still_interrupts_the_wait() -> None:
+    """The kernel may hand a process-directed SIGINT to any thread; the main thread, waiting for the
+    job, must still see it at once (it waited on one unbounded lock and saw it only when the job ended:
+    a Ctrl-C under load was ignored for the rest of the program)."""
+    from motiond.cmd_run import wait_for_job
+
+    class Job:
+        done = threading.Event()
+        result = "finished"
+
+    class Machine:
+        def wait_job(self, job: Job, timeout: float | None = None) -> object:
+            return job.result if job.done.wait(timeout) else None
+
+    job = Job()
+    ends = threading.Timer(10.0, job.done.set)  # the job would end by itself after 10 s
+    ends.start()
+    other_ready = threading.Event()
+    leave = threading.Event()
+
+    def other() -> None:  # a thread of the process that takes the signal
+        other_ready.set()
+        leave.wait(20.0)
+
+    t = threading.Thread(target=other, daemon=True)
+    t.start()
+    other_ready.wait(5.0)
+    sender = threading.Timer(0.3, lambda: signal.pthread_kill(t.ident, signal.SIGINT))
+    sender.start()
+    t0 = time.monotonic()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            wait_for_job(Machine(), job)
+        assert time.monotonic() - t0 < 5.0  # long before the job's end
+    finally:
+        ends.cancel()
+        sender.cancel()
+        leave.set()
