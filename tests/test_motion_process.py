@@ -587,7 +587,9 @@ def test_the_motion_process_watch_trips_on_silence_not_on_its_own_stall(monkeypa
     server = object.__new__(motion_proc.MotionServer)
     server.done, server.orphaned = threading.Event(), threading.Event()
     server.task_timeout_s, server.last_ping, server.task_silent, server.closing = 1.0, 0.0, False, False
+    server.silent_disabled = False
     server.core = core = Recorder()
+    core.master = master = Recorder()
     threading.Thread(target=server._watch, daemon=True).start()
     try:
         time.sleep(1.3)
@@ -614,6 +616,13 @@ def test_the_motion_process_watch_trips_on_silence_not_on_its_own_stall(monkeypa
         assert core.names()[0] == "quick_stop"
         reason = dict(core.calls)["post_fault"][0]
         assert "task process" in reason and "no ping for" in reason and "task_timeout_ms 1000" in reason
+        assert master.calls == [], "disabled at once: held first"
+        # still silent ORPHAN_HOLD_S later (1 s here, 30 s in service): the held drives are disabled,
+        # as for a dead task
+        monkeypatch.setattr(motion_proc, "ORPHAN_HOLD_S", 1.0)
+        wait_for(lambda: "disable" in master.names(), 5.0, "the drives disabled after the long silence")
+        assert time.monotonic() - pinged[0] >= 2.0
+        assert master.names() == ["disable"]
     finally:
         server.done.set()
 

@@ -26,9 +26,10 @@ quick-stops the drives as on the task's death when no ping came for ``task_timeo
 stopped by SIGSTOP or deadlocked: alive, its pipes open, nobody to press its E-stop), and posts a fault
 naming the silence, which the task receives when it runs again. The watch starts at the first ping
 (the task's start-up is not counted), ends at the task's ``close`` request, and allows for its own
-lateness (a stall of this whole process is not the task's silence). A task that never runs again
-leaves the drives held in quick stop by the live master (no :data:`ORPHAN_HOLD_S` disable: its pipes
-are still open).
+lateness (a stall of this whole process is not the task's silence). A task still silent
+:data:`ORPHAN_HOLD_S` after that gets the drives disabled, as a dead one does (the process stays, with
+its pipes open: a task that runs again finds its machine FAULTED with the drives off, and a reset
+and an enable bring it back).
 
 When the task process dies (its pipes reach end of file) the drives are quick-stopped at once and held
 (the master keeps the cycle and its heartbeat running) for :data:`ORPHAN_HOLD_S`; then they are
@@ -165,6 +166,7 @@ class MotionServer:
         self.task_timeout_s = task_timeout_s
         self.last_ping = 0.0  # monotonic; 0: no ping yet (the watch not started)
         self.task_silent = False  # the watch tripped: the drives quick-stopped, a fault posted
+        self.silent_disabled = False  # and the silence went on ORPHAN_HOLD_S more: the drives disabled
         self.closing = False  # the task asked this process to close: the watch ends
         self.hook_q: queue.SimpleQueue[tuple[int, tuple[str, tuple[Any, ...], dict[str, Any]]]] = \
             queue.SimpleQueue()
@@ -410,8 +412,12 @@ class MotionServer:
                     self._task_hung(silent)
                 except Exception:  # the watch must outlive a failing quick stop
                     log.exception("stopping the drives for the task's silence")
+            elif silent >= self.task_timeout_s + ORPHAN_HOLD_S and not self.silent_disabled:
+                self.silent_disabled = True
+                self._disable_held(silent)
             elif silent < self.task_timeout_s and self.task_silent:
                 self.task_silent = False  # it runs again (the fault posted is its to clear)
+                self.silent_disabled = False
 
     def _task_hung(self, silent: float) -> None:
         self.task_silent = True
@@ -423,6 +429,18 @@ class MotionServer:
         core.quick_stop("task process silent")
         core.run_on_cycle(lambda: self._estop_on_cycle(reason), wait=False)
         core.post_fault(reason, "motiond")
+
+    def _disable_held(self, silent: float) -> None:
+        """The task silent :data:`ORPHAN_HOLD_S` past its timeout: the held drives are disabled, as
+        for a dead task (the cycle and the heartbeat go on: the task may run again)."""
+        log.error("task process silent for %.0f s: drives disabled", silent)
+        core = self.core
+        core.hold_stream = True
+        try:
+            if core.master is not None:
+                core.master.disable()
+        except Exception:  # the watch must outlive a failing disable
+            log.exception("disabling the drives for the task's silence")
 
     def run(self) -> None:
         for name, target in (("motion-cmd", self._commands), ("motion-urgent", self._urgent),
