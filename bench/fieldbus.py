@@ -258,6 +258,10 @@ def main() -> int:
     ap.add_argument("--steer-gc", choices=("on", "off", "both"), default="both",
                     help="--stress: the cycle runner's garbage collection steering (default both: each case "
                          "twice)")
+    ap.add_argument("--arrangement", choices=("own", "in-process", "both"), default="both",
+                    help="--stress: own: the daemon's [motion] process = \"own\" (a Machine here, the "
+                         "master in its motion process); in-process: the master in the bench's process "
+                         "beside a status thread (the earlier measurement); default both")
     ap.add_argument("--stress-period-ms", type=float, default=2.0, help="--stress: cycle period (default 2)")
     args = ap.parse_args()
     if args.stress:
