@@ -262,6 +262,9 @@ def main() -> int:
                     help="--stress: own: the daemon's [motion] process = \"own\" (a Machine here, the "
                          "master in its motion process); in-process: the master in the bench's process "
                          "beside a status thread (the earlier measurement); default both")
+    ap.add_argument("--task-priority", type=int, default=-1,
+                    help="--stress, own: SCHED_FIFO priority of the task process (default: 50, as "
+                         "examples/canon.service runs the daemon, when --rt-priority is above it; 0: normal)")
     ap.add_argument("--stress-period-ms", type=float, default=2.0, help="--stress: cycle period (default 2)")
     args = ap.parse_args()
     if args.stress:

@@ -103,18 +103,23 @@ def drives_child(config_path: str, out_path: str, priority: int) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    arrivals: list[float] = []
+    arrivals: list[float] = []  # time.monotonic() when the drives' reader thread got it
+    stamps: list[float] = []  # the kernel's receive time stamp of its datagram (SO_TIMESTAMPNS)
     sims = SimBus(drives, bus)
+
+    def sync(can_id: int, data: bytes, ts: float) -> None:
+        arrivals.append(time.monotonic())
+        stamps.append(ts)
+
     # first among the SYNC's subscribers: the time it reached the drives, before they run their cycle
-    sims.network.subscribers.setdefault(0x80, []).insert(0, lambda can_id, data, ts: arrivals.append(
-        time.monotonic()))
+    sims.network.subscribers.setdefault(0x80, []).insert(0, sync)
     print("simulating", flush=True)
     try:
         stop.wait()
     finally:
         sims.close()
     # CLOCK_MONOTONIC is one clock for every process: the master picks its run's SYNCs by time
-    result = {"arrivals": arrivals,
+    result = {"arrivals": arrivals, "stamps": stamps,
               "missed_setpoints": {d.id: d.missed_setpoints for d in drives},
               "late_syncs": {d.id: d.late_syncs for d in drives},
               "emcy": {d.id: [hex(c) for c in d.emcys] for d in drives}}
@@ -249,7 +254,6 @@ class StatusLoad:
 # ---------------------------------------------------------------- one case
 def case(n: int, period: float, seconds: float, rt: int, latency: int | None, steer_gc: bool,
          layout_for) -> dict:
-    import numpy as np
 
     from fieldbus.canopen.clock import PeriodicRunner
     from fieldbus.canopen.config import CanBusConfig, CanopenConfig, DriveConfig
@@ -291,14 +295,12 @@ def case(n: int, period: float, seconds: float, rt: int, latency: int | None, st
     row = {"case": f"in-process: {n} drives, {1000 * period:g} ms, gc {gc_mode}",
            "status": f"{sent}/{received}"}
     st = runner.stats if runner is not None else None
-    arrivals = np.array(result.get("arrivals", []))
-    if st is not None and len(arrivals):
-        # the SYNCs of the streaming run, by the one system-wide monotonic clock (boot, enable and the
-        # shutdown's SYNCs left out)
-        arrivals = arrivals[(arrivals >= st.started) & (arrivals <= st.ended + period)]
+    # the SYNCs of the streaming run, by the one system-wide monotonic clock (boot, enable and the
+    # shutdown's SYNCs left out)
+    window = (st.started, st.ended + period) if st is not None else (0.0, 0.0)
     gc_text = "-" if st is None or not steer_gc else \
         f"{sum(st.gc_collections)} ({st.gc_forced} forced), max {1e6 * st.gc_max_s:.0f} us"
-    return finish_row(row, arrivals, period, result, fault, "-" if st is None else f"{st.late + st.skipped}",
+    return finish_row(row, window, period, result, fault, "-" if st is None else f"{st.late + st.skipped}",
                       gc_text)
 
 
@@ -329,13 +331,12 @@ def program(n: int, seconds: float) -> str:
 
 
 def case_own(n: int, period: float, seconds: float, rt: int, latency: int | None, steer_gc: bool,
-             layout_for) -> dict:
+             layout_for, task_priority: int = 0) -> dict:
     """The daemon's arrangement: a :class:`~motiond.runtime.Machine` with ``[motion] process = "own"``
     here (the task side: its ``canon-status`` thread publishes ``canon.status`` at 100 Hz on LCM, ttl=0,
     a client process counts it), the master's cycle in the motion process it starts, running a long
     program; the drives in the bench's drives' process."""
     import lcm
-    import numpy as np
 
     from motiond.config import load_machine
     from motiond.runtime import Machine
@@ -361,6 +362,9 @@ def case_own(n: int, period: float, seconds: float, rt: int, latency: int | None
     result: dict = {}
     try:
         # the master's timeouts as the old in-process case: what is measured is the SYNC, not a fault
+        if task_priority:  # as the shipped unit runs the daemon (CPUSchedulingPolicy=fifo): every thread
+            # the task side starts from here, and the motion process, inherit it
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(task_priority))
         with Machine(load_machine(str(where / "machine.toml")), lc=lcm.LCM(DEFAULT_URL), late_fault_s=1.0,
                      feedback_timeout_s=1.0) as m:
             m.bring_up()
@@ -384,6 +388,8 @@ def case_own(n: int, period: float, seconds: float, rt: int, latency: int | None
             fault = m.last_error
             m.stop_on_path(10.0)
     finally:
+        if task_priority:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         client.terminate()
         client.wait(10)
         result = sims.close()
@@ -391,12 +397,10 @@ def case_own(n: int, period: float, seconds: float, rt: int, latency: int | None
         tmp.cleanup()
     row = {"case": f"own: {n} drives, {1000 * period:g} ms, gc {'steered' if steer_gc else 'automatic'}",
            "status": f"{sent1 - sent0} in window/{received}"}
-    arrivals = np.array(result.get("arrivals", []))
-    arrivals = arrivals[(arrivals >= window[0]) & (arrivals <= window[1])] if len(arrivals) else arrivals
     print(f"  the motion process's threads during the window ({seconds:g} s): " + "; ".join(
         f"{r['tid']} {r['policy']} cpu {r['cpu_ms']:.0f} ms, waited {r['wait_ms']:.0f} ms, {r['invol']} "
         "preempted" for r in threads if r["cpu_ms"] > 0), flush=True)
-    return finish_row(row, arrivals, period, result, fault, f"{late[0]} (worst {1e3 * late[1]:.1f} ms)", "-")
+    return finish_row(row, window, period, result, fault, f"{late[0]} (worst {1e3 * late[1]:.1f} ms)", "-")
 
 
 POLICIES = {0: "OTHER", 1: "FIFO", 2: "RR", 3: "BATCH", 5: "IDLE"}
@@ -422,19 +426,29 @@ def thread_sched(pid: int) -> list[dict]:
     return rows
 
 
-def finish_row(row: dict, arrivals, period: float, result: dict, fault, cycles: str, gc_text: str) -> dict:
-    """The SYNC figures of ``arrivals`` (the drives' clock) and the drives' counts into ``row``."""
+def finish_row(row: dict, window: tuple[float, float], period: float, result: dict, fault, cycles: str,
+               gc_text: str) -> dict:
+    """The SYNC figures of the drives' records within ``window`` (time.monotonic) and their counts into
+    ``row``. The SYNC period is taken from the kernel's receive time stamps of the SYNC datagrams at the
+    drives' socket (what a drive's hardware would see); the same from the time the drives' Python reader
+    thread got them is the column "at the drives' reader" (that adds the simulator's own scheduling)."""
     import numpy as np
 
-    row["syncs"] = str(len(arrivals))
-    if len(arrivals) > 2:
-        intervals = np.diff(arrivals) * 1000  # ms
+    arrivals = np.array(result.get("arrivals", []))
+    stamps = np.array(result.get("stamps", []))
+    inside = (arrivals >= window[0]) & (arrivals <= window[1]) if len(arrivals) else np.zeros(0, bool)
+    arrivals, stamps = arrivals[inside], stamps[inside] if len(stamps) == len(inside) else stamps[:0]
+    row["syncs"] = str(len(stamps))
+    if len(stamps) > 2:
+        intervals = np.diff(stamps) * 1000  # ms
         dev = np.abs(intervals - 1000 * period) * 1000  # us
         row.update({"p50": f"{np.percentile(intervals, 50):.3f}",
                     "p99": f"{np.percentile(intervals, 99):.3f}",
                     "p999": f"{np.percentile(intervals, 99.9):.3f}", "max": f"{intervals.max():.3f}",
                     "dev50": float(np.percentile(dev, 50)), "dev99": float(np.percentile(dev, 99)),
                     "dev999": float(np.percentile(dev, 99.9)), "devmax": float(dev.max())})
+        reader = np.abs(np.diff(arrivals) * 1e6 - 1e6 * period)
+        row["reader"] = f"{np.percentile(reader, 99.9):.0f}"
     missed = sum(result.get("missed_setpoints", {}).values()) if result else -1
     row["setpoints"] = str(missed) + (" (fault)" if fault else "")
     row["missed_n"] = missed
@@ -466,6 +480,7 @@ def run(args, layout_for, build_rt_floor, c_reference) -> int:
     tmp = tempfile.TemporaryDirectory()
     exe = build_rt_floor(Path(tmp.name))
     hogs = Hogs()
+    task_priority = args.task_priority if args.task_priority >= 0 else (50 if rt > 50 else 0)
     arrangements = {"own": ["own"], "in-process": ["in-process"], "both": ["own", "in-process"]}[
         args.arrangement]
     print(f"hogs: {hogs.what}; status load: 100 Hz canon.status on LCM (ttl=0), a client process "
@@ -480,17 +495,22 @@ def run(args, layout_for, build_rt_floor, c_reference) -> int:
                 for steer in modes:
                     print(f"running {arrangement}: {n} drives, gc {'steered' if steer else 'automatic'} ...",
                           flush=True)
-                    one = case_own if arrangement == "own" else case
-                    rows.append(one(n, period, args.seconds, rt, latency, steer, layout_for))
+                    if arrangement == "own":
+                        rows.append(case_own(n, period, args.seconds, rt, latency, steer, layout_for,
+                                             task_priority))
+                    else:
+                        rows.append(case(n, period, args.seconds, rt, latency, steer, layout_for))
     finally:
         hogs.stop()
         tmp.cleanup()
     table = Table(title=f"CANopen master under stress ({hogs.what}), udp_multicast, drives in another "
                         f"process, {args.seconds:g} s per case, {os.cpu_count()} CPUs, SCHED_FIFO "
-                        f"{rt or 'off'}, CPU latency request {'off' if latency is None else f'{latency} us'}")
+                        f"{rt or 'off'}, CPU latency request {'off' if latency is None else f'{latency} us'}"
+                        f", own: task process {f'SCHED_FIFO {task_priority}' if task_priority else 'normal'}")
     cols = [("case", "case"), ("syncs", "SYNCs at drives"), ("p50", "SYNC period p50 ms"), ("p99", "p99 ms"),
             ("p999", "p99.9 ms"), ("max", "max ms"), ("d50", "|dev| p50 us"), ("d99", "|dev| p99 us"),
-            ("d999", "|dev| p99.9 us"), ("dmax", "|dev| max us"), ("setpoints", "missed setpoints"),
+            ("d999", "|dev| p99.9 us"), ("dmax", "|dev| max us"),
+            ("reader", "|dev| p99.9 us at the drives' reader"), ("setpoints", "missed setpoints"),
             ("cycles", "master late cycles"), ("gc", "gc in slack"), ("status", "status sent/received"),
             ("load", "load avg (1 min)")]
     for _, title in cols:
@@ -498,7 +518,7 @@ def run(args, layout_for, build_rt_floor, c_reference) -> int:
     c_p999 = float(c_row["p999"]) if c_row is not None else math.nan
     if c_row is not None:
         table.add_row(f"reference: C wake-up lateness, {args.stress_period_ms:g} ms", "-", "-", "-", "-", "-",
-                      *(c_row[k] for k in ("p50", "p99", "p999", "max")), "-", c_row["missed"], "-", "-",
+                      *(c_row[k] for k in ("p50", "p99", "p999", "max")), "-", "-", c_row["missed"], "-", "-",
                       c_load)
     for r in rows:
         for k in ("50", "99", "999", "max"):
