@@ -265,6 +265,9 @@ def main() -> int:
     ap.add_argument("--task-priority", type=int, default=-1,
                     help="--stress, own: SCHED_FIFO priority of the task process (default: 50, as "
                          "examples/canon.service runs the daemon, when --rt-priority is above it; 0: normal)")
+    ap.add_argument("--drives-priority", type=int, default=-1,
+                    help="--stress: SCHED_FIFO priority of the simulated drives' process (default: "
+                         "--rt-priority minus one; 0: normal)")
     ap.add_argument("--stress-period-ms", type=float, default=2.0, help="--stress: cycle period (default 2)")
     args = ap.parse_args()
     if args.stress:

@@ -41,6 +41,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 STATUS_CHANNEL = "CANON_STATUS"
+DRIVES_PRIORITY = -1
+"""The drives' process's SCHED_FIFO priority (``--drives-priority``; -1: the master's minus one)."""
 
 
 # ---------------------------------------------------------------- the hogs
@@ -265,7 +267,7 @@ def case(n: int, period: float, seconds: float, rt: int, latency: int | None, st
     config = CanopenConfig(bus, drives, cycle_s=period, feedback_timeout_s=1.0, heartbeat_consumer_ms=2000,
                            pdo_layout=layout, following_error_every=every)
     tmp = tempfile.TemporaryDirectory()
-    sims = Drives(n, bus.channel, Path(tmp.name), max(0, rt - 1))
+    sims = Drives(n, bus.channel, Path(tmp.name), DRIVES_PRIORITY if DRIVES_PRIORITY >= 0 else max(0, rt - 1))
     master = CanopenMaster(config, check_budget=False)
     status: StatusLoad | None = None
     result: dict = {}
@@ -348,7 +350,7 @@ def case_own(n: int, period: float, seconds: float, rt: int, latency: int | None
     where = Path(tmp.name)
     (where / "machine.toml").write_text(machine_file(n, group, period, rt, latency, steer_gc, layout, every))
     (where / "long.ngc").write_text(program(n, seconds))
-    sims = Drives(n, group, where, max(0, rt - 1))
+    sims = Drives(n, group, where, DRIVES_PRIORITY if DRIVES_PRIORITY >= 0 else max(0, rt - 1))
     client = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--status-client",
                                str(seconds + 60), str(where / "status.count")], cwd=ROOT,
                               stdout=subprocess.PIPE, text=True)
@@ -480,6 +482,8 @@ def run(args, layout_for, build_rt_floor, c_reference) -> int:
     tmp = tempfile.TemporaryDirectory()
     exe = build_rt_floor(Path(tmp.name))
     hogs = Hogs()
+    global DRIVES_PRIORITY
+    DRIVES_PRIORITY = args.drives_priority
     task_priority = args.task_priority if args.task_priority >= 0 else (50 if rt > 50 else 0)
     arrangements = {"own": ["own"], "in-process": ["in-process"], "both": ["own", "in-process"]}[
         args.arrangement]
