@@ -15,7 +15,7 @@ refuses over 70 % there; here a case over it is marked, and runs anyway).
 
     python bench/fieldbus.py              # 30 s per case; per case the PDO layout that fits 1 Mbit/s
     python bench/fieldbus.py --seconds 10 --rt-priority 80 --layout compact --fe-every 4
-    python bench/fieldbus.py --stress --seconds 60 --rt-priority 80   # as root: bench/fieldbus_stress.py
+    python bench/fieldbus.py --stress --seconds 60 --rt-priority 80 --steer-gc on  # root; fieldbus_stress.py
     python bench/fieldbus.py --bus socketcan --seconds 5   # vcan0, kernel SYNC: bench/fieldbus_vcan.py
 """
 

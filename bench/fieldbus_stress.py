@@ -1,25 +1,44 @@
-"""The stressed case of ``bench/fieldbus.py --stress``: the master's cycle on a busy PC.
+"""The stressed case of ``bench/fieldbus.py --stress``: the master's cycle on a busy PC (issue 14).
 
 While two CPU hogs run (``stress-ng --cpu 2``; installed with apt-get when missing and running as root,
-else two Python busy loops in two processes, said in the output) and a 100 Hz status load runs in the
-master's process, 3 and 6 simulated drives in another process on udp_multicast (hop_limit 0, inside a
-loopback-only network namespace: the bench re-executes itself in one through ``tests/netns-run`` when
-root) are driven at the chosen period. The drives' process records when each SYNC arrives (its
-CANopen reader thread, the one that runs the drives): the SYNC period as the drives see it (p50, p99,
-p99.9, max) and its deviation from the nominal period; the drives count their missed setpoints.
-In the same run and under the same hogs, ``bench/rt_floor.c`` gives the C reference: the kernel's
-wake-up lateness for a periodic thread at the same priority.
+else two Python busy loops in two processes, said in the output), 3 and 6 drives in another process on
+udp_multicast (hop_limit 0, inside a loopback-only network namespace: the bench re-executes itself in
+one through ``tests/netns-run`` when root) are driven at the chosen period, in two arrangements
+(``--arrangement``, default both):
+
+* ``own``, the daemon's: a :class:`~motiond.runtime.Machine` in the bench's process (the task side)
+  with ``[motion] process = "own"``, so the master's cycle runs in the motion process it starts, as in
+  ``canon daemon``; it runs a long program (every axis back and forth at once: each drive's setpoint
+  changes every cycle), and its own ``canon-status`` thread publishes ``canon.status`` at 100 Hz on LCM
+  (ttl=0) to a client process that counts it. The task process runs SCHED_FIFO 50 when
+  ``--rt-priority`` is above it, as ``examples/canon.service`` runs the daemon (``--task-priority``;
+  0: normal priority, as ``canon daemon`` started by hand). The master's timeouts are 1 s
+  (``late_fault_s``, ``feedback_timeout_s``): what is measured is the SYNC, not a fault.
+* ``in-process``, the earlier measurement: the master in the bench's process beside a status thread
+  that builds a ``canon.status`` from the master's feedback at 100 Hz (a sine on every axis).
+
+The drives' process records each SYNC (its CANopen reader thread, the one that runs the drives): the
+kernel's receive time stamp of its datagram (SO_TIMESTAMPNS, what a drive's hardware would see) and the
+time its reader got it. The SYNC period is taken from the kernel's stamps (p50, p99, p99.9, max, and
+its deviation from the nominal period); the deviation p99.9 from the reader's times is a column of its
+own (it adds the simulator's own scheduling). The drives count their missed setpoints. In the same run
+and under the same hogs (before the cases, not beside them), ``bench/rt_floor.c`` gives the C
+reference: the kernel's wake-up lateness for a periodic thread at the same priority. Each row has the
+1-minute load average when it ended; the ``own`` case prints the motion process's threads during the
+measured window (policy and priority, CPU time, time runnable but waiting for a CPU, preemptions).
 
 Target (issue 14): no setpoint missed at any drive, and the SYNC period's deviation p99.9 no more
 than 1.5 x the C reference's wake-up lateness p99.9.
 
-The status load: the bench runs no daemon, so a thread in the master's process stands in for the
-daemon's status side with a 100 Hz status client: each 10 ms it builds a full ``canon.status`` from
-the master's feedback and publishes it on LCM (ttl=0), and a client process subscribes to it and
-counts what arrives.
+The drives' process gets the master's SCHED_FIFO priority minus one (``--drives-priority``): real
+drives are hardware, and the point is the master's SYNC, not the simulator's own jitter under the hogs.
 
-The drives' process gets the master's SCHED_FIFO priority minus one (when given): real drives are
-hardware, and the point is the master's SYNC, not the simulator's own reception jitter under the hogs.
+    sudo .venv/bin/python bench/fieldbus.py --stress --rt-priority 80 --steer-gc on            # 60 s a case
+    sudo .venv/bin/python bench/fieldbus.py --stress --rt-priority 80 --arrangement own --drives 6 \
+        --seconds 15 --task-priority 0
+
+Measured (2-core VM shared with other agents and a second ``stress-ng --cpu 2``; figures in
+docs/canopen.md, "Benchmark").
 """
 
 from __future__ import annotations
