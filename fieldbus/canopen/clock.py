@@ -116,8 +116,9 @@ def set_fifo(priority: int) -> str:
     The cycle thread's priority alone does not keep its deadlines: every thread of its process that
     takes the interpreter lock (python-can's reader, whatever sends the state out) must be able to give
     it back at once. An ordinary thread holding the lock, preempted by any other busy process, stalls
-    the cycle as long as it waits for a CPU (a priority inversion: ``bench/fieldbus.py --stress``
-    measured SYNC gaps of 50-160 ms so with two CPU hogs, with the cycle thread itself at SCHED_FIFO 80).
+    the cycle as long as it waits for a CPU (a priority inversion: with two CPU hogs and the cycle
+    thread itself at SCHED_FIFO 80, ``bench/fieldbus.py --stress`` measured a SYNC deviation p99.9 of
+    12-15 ms and single gaps up to 179 ms so; 1.3-2.3 ms with the other threads ranked below it).
     So a process whose cycle runs at SCHED_FIFO runs its other threads at SCHED_FIFO too, below it
     (:func:`helper_priority`)."""
     try:
