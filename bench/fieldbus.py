@@ -15,7 +15,7 @@ refuses over 70 % there; here a case over it is marked, and runs anyway).
 
     python bench/fieldbus.py              # 30 s per case; per case the PDO layout that fits 1 Mbit/s
     python bench/fieldbus.py --seconds 10 --rt-priority 80 --layout compact --fe-every 4
-    python bench/fieldbus.py --stress --seconds 60 --rt-priority 80   # as root: bench/fieldbus_stress.py
+    python bench/fieldbus.py --stress --seconds 60 --rt-priority 80 --steer-gc on  # root; fieldbus_stress.py
     python bench/fieldbus.py --bus socketcan --seconds 5   # vcan0, kernel SYNC: bench/fieldbus_vcan.py
 """
 
@@ -258,6 +258,16 @@ def main() -> int:
     ap.add_argument("--steer-gc", choices=("on", "off", "both"), default="both",
                     help="--stress: the cycle runner's garbage collection steering (default both: each case "
                          "twice)")
+    ap.add_argument("--arrangement", choices=("own", "in-process", "both"), default="both",
+                    help="--stress: own: the daemon's [motion] process = \"own\" (a Machine here, the "
+                         "master in its motion process); in-process: the master in the bench's process "
+                         "beside a status thread (the earlier measurement); default both")
+    ap.add_argument("--task-priority", type=int, default=-1,
+                    help="--stress, own: SCHED_FIFO priority of the task process (default: 50, as "
+                         "examples/canon.service runs the daemon, when --rt-priority is above it; 0: normal)")
+    ap.add_argument("--drives-priority", type=int, default=-1,
+                    help="--stress: SCHED_FIFO priority of the simulated drives' process (default: "
+                         "--rt-priority minus one; 0: normal)")
     ap.add_argument("--stress-period-ms", type=float, default=2.0, help="--stress: cycle period (default 2)")
     args = ap.parse_args()
     if args.stress:

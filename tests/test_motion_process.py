@@ -118,6 +118,29 @@ def test_the_liveness_timeouts_default_and_are_checked_with_their_key(tmp_path: 
         assert f"motion.{key}" in text, text
 
 
+def test_the_motion_process_ranks_its_threads_below_a_realtime_cycle(monkeypatch, caplog) -> None:
+    """``rank_threads``: SCHED_FIFO one below the cycle's priority for the calling thread (its later
+    threads inherit it); nothing without a real-time cycle; a refusal is a warning, not an error."""
+    from motiond.runtime import motion_proc
+
+    calls: list[tuple[int, int, int]] = []
+    monkeypatch.setattr(os, "sched_setscheduler", lambda pid, policy, param: calls.append(
+        (pid, policy, param.sched_priority)))
+    motion_proc.rank_threads(0)
+    assert calls == []
+    motion_proc.rank_threads(80)
+    motion_proc.rank_threads(1)
+    assert calls == [(0, os.SCHED_FIFO, 79), (0, os.SCHED_FIFO, 1)]
+
+    def refuse(pid: int, policy: int, param: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    with caplog.at_level("WARNING"):
+        motion_proc.rank_threads(80)
+    assert "stay at normal priority" in caplog.text and "SCHED_FIFO 79" in caplog.text, caplog.text
+
+
 # ---------------------------------------------------------------------- in the namespace
 
 multicast = [pytest.mark.multicast, pytest.mark.timeout(120)]
@@ -231,6 +254,57 @@ def test_estop_on_the_urgent_pipe_stops_the_drives_mid_move(rig, tmp_path: Path)
         assert m.motion.commanded[0] == x, "the setpoints stopped"
         assert took < 2.0
         assert all(s is not State.OPERATION_ENABLED for s in bench.states())
+
+
+def fifo_allowed() -> bool:
+    """Whether this process may use SCHED_FIFO (tried on a thread of its own, which then ends)."""
+    ok: list[bool] = []
+
+    def probe() -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+            ok.append(True)
+        except (AttributeError, OSError):
+            ok.append(False)
+
+    t = threading.Thread(target=probe)
+    t.start()
+    t.join()
+    return ok[0]
+
+
+def thread_policies(pid: int) -> list[tuple[int, int]]:
+    """(policy, real-time priority) of each thread of ``pid`` (/proc/PID/task/TID/stat)."""
+    out = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(OSError):
+            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+            out.append((int(fields[38]), int(fields[37])))
+    return out
+
+
+@pytest.mark.multicast
+@pytest.mark.timeout(120)
+def test_every_thread_of_the_motion_process_runs_fifo_below_a_realtime_cycle(tmp_path: Path) -> None:
+    """With ``realtime_priority``, the motion process's other threads (python-can's reader, the
+    heartbeat, the pipes' threads) run SCHED_FIFO one below the cycle thread: an ordinary thread holding
+    the interpreter lock, preempted by a busy process, would stall the cycle (priority inversion)."""
+    if not fifo_allowed():
+        pytest.skip("SCHED_FIFO needs root or CAP_SYS_NICE")
+    channel = group()
+    text = machine_text("udp_multicast", channel, simulate=False).replace(
+        "simulate = false\n", "simulate = false\nrealtime_priority = 20\ncpu_latency_us = -1\n")
+    path = write(tmp_path, text)
+    drives = DriveProcess(path)
+    try:
+        with own_machine(path) as m:
+            policies = thread_policies(m.motion.pid)
+    finally:
+        drives.stop()
+    fifo = os.SCHED_FIFO
+    assert len(policies) >= 5, policies  # the pipes' threads, python-can's reader, the cycle
+    assert policies.count((fifo, 20)) == 1, policies  # the cycle thread
+    assert all(p in ((fifo, 20), (fifo, 19)) for p in policies), policies
 
 
 TASK = """

@@ -109,6 +109,31 @@ class CpuLatencyRequest:
             self._fd = None
 
 
+def set_fifo(priority: int) -> str:
+    """SCHED_FIFO at ``priority`` for the calling thread (Linux, root or CAP_SYS_NICE); the threads it
+    starts afterwards inherit it. "" when done, else why it was refused.
+
+    The cycle thread's priority alone does not keep its deadlines: every thread of its process that
+    takes the interpreter lock (python-can's reader, whatever sends the state out) must be able to give
+    it back at once. An ordinary thread holding the lock, preempted by any other busy process, stalls
+    the cycle as long as it waits for a CPU (a priority inversion: with two CPU hogs and the cycle
+    thread itself at SCHED_FIFO 80, ``bench/fieldbus.py --stress`` measured a SYNC deviation p99.9 of
+    12-15 ms and single gaps up to 179 ms so; 1.3-2.3 ms with the other threads ranked below it).
+    So a process whose cycle runs at SCHED_FIFO runs its other threads at SCHED_FIFO too, below it
+    (:func:`helper_priority`)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (AttributeError, OSError) as exc:
+        return str(exc) or type(exc).__name__
+    return ""
+
+
+def helper_priority(cycle_priority: int) -> int:
+    """The SCHED_FIFO priority of the threads that share the interpreter lock with a cycle thread at
+    ``cycle_priority``: one below it (they never preempt it for a CPU), at least 1."""
+    return max(1, cycle_priority - 1)
+
+
 class PeriodicRunner:
     """Call ``step(k, t)`` every ``period_s`` on its own thread (``k``: deadline number, ``t``: the
     deadline, ``time.monotonic`` seconds) until :meth:`stop`, ``cycles`` steps are done, or ``step``
@@ -165,15 +190,15 @@ class PeriodicRunner:
 
     def _set_realtime(self) -> None:
         """SCHED_FIFO for this thread (Linux, root or CAP_SYS_NICE): the kernel then wakes it ahead
-        of ordinary threads; it still needs the interpreter lock (see ``sys.setswitchinterval``)."""
+        of ordinary threads; it still needs the interpreter lock (see ``sys.setswitchinterval``, and
+        :func:`set_fifo` for the threads it shares that lock with)."""
         if not self.realtime_priority:
             return
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.realtime_priority))
-            self.realtime = True
-        except (AttributeError, OSError) as exc:
+        refused = set_fifo(self.realtime_priority)
+        self.realtime = not refused
+        if refused:
             log.warning("cycle thread stays at normal priority (SCHED_FIFO %d refused: %s)",
-                        self.realtime_priority, exc)
+                        self.realtime_priority, refused)
 
     def _set_affinity(self) -> None:
         """Pin this thread (pid 0: the calling thread on Linux) to ``cpu_affinity``."""

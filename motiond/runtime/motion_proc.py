@@ -482,6 +482,21 @@ def _picklable(exc: BaseException) -> BaseException:
         return RuntimeError(f"{type(exc).__name__}: {exc}")
 
 
+def rank_threads(cycle_priority: int) -> None:
+    """With a SCHED_FIFO cycle (``[canopen] realtime_priority``): the calling thread, and so every
+    thread it starts afterwards, at SCHED_FIFO just below the cycle thread (python-can's reader, the
+    heartbeat, the pipes' threads): none of them, holding the interpreter lock, waits behind an ordinary
+    process while the cycle waits for the lock (:func:`~fieldbus.canopen.clock.set_fifo`)."""
+    if not cycle_priority:
+        return
+    from fieldbus.canopen.clock import helper_priority, set_fifo
+
+    refused = set_fifo(helper_priority(cycle_priority))
+    if refused:
+        log.warning("the motion process's threads stay at normal priority (SCHED_FIFO %d refused: %s)",
+                    helper_priority(cycle_priority), refused)
+
+
 def main(conns: dict[str, Any], limits: Any, canopen: Any, late_fault_s: float, simulated: bool,
          log_level: int, task_timeout_s: float = 0.5) -> None:
     """The motion process's entry point (spawned by MotionProxy.open)."""
@@ -489,6 +504,7 @@ def main(conns: dict[str, Any], limits: Any, canopen: Any, late_fault_s: float, 
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     logging.basicConfig(level=log_level, format="motion[%(process)d] %(levelname)s %(name)s: %(message)s")
     sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
+    rank_threads(canopen.realtime_priority)  # before any thread starts: they all inherit it
     import planner.core  # noqa: F401  (ruckig, numpy: not on the cycle thread)
 
     server = MotionServer(conns, limits, canopen, late_fault_s, simulated, task_timeout_s)
