@@ -516,6 +516,7 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
         if abs(velocity) > lim.max_velocity:
             raise CommandRefused(f"jog velocity {abs(velocity):g} beyond axis {a}'s max_velocity "
                                  f"{lim.max_velocity:g}")
+        self.io_hooks.refuse_jog()  # the door interlock
         self.states.manual("jog")
         self.motion.jog(i, velocity, distance, self.interp.position, self.interp.feed)
 
