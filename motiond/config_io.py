@@ -121,6 +121,8 @@ class IoMap:
     spindle: SpindleParams = field(default_factory=SpindleParams)
     mcodes: dict[int, UserMCode] = field(default_factory=dict)
     sim_probe_z: float | None = None  # [io.sim] probe_z: the simulated module's probe trips at or below
+    # [io.sim] limit_<axis>_<min|max>: the simulated module's limit switch is active at or beyond
+    sim_limits: dict[str, float] = field(default_factory=dict)
 
     @property
     def points(self) -> tuple[NamedPoint, ...]:
@@ -223,10 +225,12 @@ def read_io(root: Table, modbus: ModbusConfig | None, axes: tuple[str, ...],
         raise funcs.error("spindle_oriented", "needs spindle_orient (the output that asks for it) too")
     spindle = _spindle(io.table("spindle"), bindings)
     mcodes = _mcodes(io.table("mcodes"), modbus, drive_axes)
-    sim_probe_z = _sim_probe(io.table("sim"), bindings, axes)
+    sim = io.table("sim")
+    sim_limits = _sim_limits(sim, bindings)
+    sim_probe_z = _sim_probe(sim, bindings, axes)
     funcs.check_unknown()
     io.check_unknown()
-    result = IoMap(bindings, spindle, mcodes, sim_probe_z)
+    result = IoMap(bindings, spindle, mcodes, sim_probe_z, sim_limits)
     _check_outputs(result, modbus, io)
     return shared_points(result)
 
@@ -337,6 +341,20 @@ def _sim_probe(t: Table, bindings: dict[str, Binding], axes: tuple[str, ...]) ->
     if "z" not in axes:
         raise t.error("probe_z", "the machine has no z axis")
     return z
+
+
+def _sim_limits(t: Table, bindings: dict[str, Binding]) -> dict[str, float]:
+    """``[io.sim] limit_x_max = 290.0`` ...: the simulated I/O module's limit switch input is active
+    while the commanded machine position of the axis is at or beyond it (at or below for ``_min``);
+    docs/wiring.md."""
+    out: dict[str, float] = {}
+    for name in [k for k in t.data if k.startswith("limit_")]:
+        b = bindings.get(name)
+        if _AXIS_RE.match(name) is None or b is None or b.point is None:
+            raise t.error(name, f"needs io.functions.{name} bound to a Modbus point (the simulated module "
+                                "drives it)")
+        out[name] = t.get(name, float)
+    return out
 
 
 def _mcodes(t: Table, modbus: ModbusConfig | None, drive_axes: tuple[str, ...]) -> dict[int, UserMCode]:

@@ -4,6 +4,7 @@ function bound to one switches it from the program. docs/wiring.md."""
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -60,7 +61,14 @@ def machine(tmp_path: Path) -> Iterator[Machine]:
     assert old in text
     f = tmp_path / "m.toml"
     f.write_text(text.replace(old, f'coolant_mist = {{ drive = "z", bit = {MIST} }}'))
-    m = Machine(load_machine(str(f)), lc=None, var_file=tmp_path / "p.var", modbus_port=0)
+    with started(f, tmp_path) as m:
+        yield m
+
+
+@contextlib.contextmanager
+def started(config: Path, tmp_path: Path) -> Iterator[Machine]:
+    """The machine of file ``config``, started and enabled (its simulated module on a free port)."""
+    m = Machine(load_machine(str(config)), lc=None, var_file=tmp_path / "p.var", modbus_port=0)
     m.start()
     try:
         m.bring_up()

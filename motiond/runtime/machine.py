@@ -352,7 +352,8 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
             if dev.simulate:
                 mod = SimIoModule(host="127.0.0.1", port=dev.port, unit=dev.unit,
                                   size=size_for(self.modbus, dev.name))
-                apply(mod, wiring.get(dev.name), self._sim_z)
+                apply(mod, wiring.get(dev.name), self._sim_z,
+                      lambda a: self.motion.commanded[self.names.index(a)])  # [io.sim] limits
                 try:
                     mod.start()
                 except OSError as exc:
