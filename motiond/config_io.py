@@ -3,9 +3,9 @@
 ``[io.functions]`` binds each machine function (E-stop, machine enable, spindle, coolant, operator
 buttons, door, limit and home switches) to one point: a Modbus coil, discrete input, input or holding
 register on any ``[[modbus.devices]]`` device, or a bit of a drive's digital inputs (0x60FD), which the
-CANopen master already receives. ``[io.spindle]`` holds the spindle's numbers (speed limits, at-speed
-tolerance and timeouts) and ``[io.mcodes.M100]`` ... ``[io.mcodes.M199]`` the user M codes: outputs to
-set and/or an input to wait for.
+CANopen master already receives, or outputs (0x60FE), which the master writes. ``[io.spindle]``
+holds the spindle's numbers (speed limits, at-speed tolerance and timeouts) and ``[io.mcodes.M100]``
+... ``[io.mcodes.M199]`` the user M codes: outputs to set and/or an input to wait for.
 
 :func:`read_io` checks everything against the Modbus devices and the axes and raises
 :class:`~motiond.configkit.ConfigError` naming the key: an unknown function, a device that does not
@@ -67,7 +67,8 @@ OUTPUT_TABLES = ("coil", "holding_register")
 @dataclass(frozen=True)
 class Binding:
     """One function (or an M code's point) bound to a point. ``point``: a Modbus point (its key is
-    :attr:`name`); otherwise ``drive_axis`` and ``bit`` name a drive's 0x60FD bit. ``active_low``: the
+    :attr:`name`); otherwise ``drive_axis`` and ``bit`` name a drive's 0x60FD bit (an input) or 0x60FE
+    bit (an output). ``active_low``: the
     function is active when the point reads (or is written) 0."""
 
     name: str
@@ -83,7 +84,7 @@ class Binding:
     def where(self) -> str:
         """``device 'io' discrete input 8`` or ``drive x 0x60FD bit 16``, for messages."""
         if self.point is None:
-            return f"drive {self.drive_axis} 0x60FD bit {self.bit}"
+            return f"drive {self.drive_axis} {'0x60FE' if self.direction == OUT else '0x60FD'} bit {self.bit}"
         p = self.point
         return f"Modbus device {p.device!r} {p.table.replace('_', ' ')} {p.address}"
 
@@ -120,6 +121,8 @@ class IoMap:
     spindle: SpindleParams = field(default_factory=SpindleParams)
     mcodes: dict[int, UserMCode] = field(default_factory=dict)
     sim_probe_z: float | None = None  # [io.sim] probe_z: the simulated module's probe trips at or below
+    # [io.sim] limit_<axis>_<min|max>: the simulated module's limit switch is active at or beyond
+    sim_limits: dict[str, float] = field(default_factory=dict)
 
     @property
     def points(self) -> tuple[NamedPoint, ...]:
@@ -222,10 +225,12 @@ def read_io(root: Table, modbus: ModbusConfig | None, axes: tuple[str, ...],
         raise funcs.error("spindle_oriented", "needs spindle_orient (the output that asks for it) too")
     spindle = _spindle(io.table("spindle"), bindings)
     mcodes = _mcodes(io.table("mcodes"), modbus, drive_axes)
-    sim_probe_z = _sim_probe(io.table("sim"), bindings, axes)
+    sim = io.table("sim")
+    sim_limits = _sim_limits(sim, bindings)
+    sim_probe_z = _sim_probe(sim, bindings, axes)
     funcs.check_unknown()
     io.check_unknown()
-    result = IoMap(bindings, spindle, mcodes, sim_probe_z)
+    result = IoMap(bindings, spindle, mcodes, sim_probe_z, sim_limits)
     _check_outputs(result, modbus, io)
     return shared_points(result)
 
@@ -250,11 +255,9 @@ def _binding(t: Table, name: str, direction: str, kind: str, modbus: ModbusConfi
             raise t.error("drive", "a point is either on a drive (drive, bit) or on a Modbus device, "
                                    "not both")
         axis = t.get("drive", str)
-        if direction == OUT:
-            raise t.error("drive", "drive digital outputs (0x60FE) are not driven by the CANopen master yet; "
-                                   "bind this output to a Modbus coil")
         if kind == ANALOG:
-            raise t.error("drive", "a drive's digital inputs (0x60FD) are bits; an analog function needs a "
+            what = "outputs (0x60FE)" if direction == OUT else "inputs (0x60FD)"
+            raise t.error("drive", f"a drive's digital {what} are bits; an analog function needs a "
                                    "Modbus register")
         if axis not in drive_axes:
             raise t.error("drive", f"no [canopen.axes.{axis}] drive (drives: "
@@ -340,6 +343,20 @@ def _sim_probe(t: Table, bindings: dict[str, Binding], axes: tuple[str, ...]) ->
     return z
 
 
+def _sim_limits(t: Table, bindings: dict[str, Binding]) -> dict[str, float]:
+    """``[io.sim] limit_x_max = 290.0`` ...: the simulated I/O module's limit switch input is active
+    while the commanded machine position of the axis is at or beyond it (at or below for ``_min``);
+    docs/wiring.md."""
+    out: dict[str, float] = {}
+    for name in [k for k in t.data if k.startswith("limit_")]:
+        b = bindings.get(name)
+        if _AXIS_RE.match(name) is None or b is None or b.point is None:
+            raise t.error(name, f"needs io.functions.{name} bound to a Modbus point (the simulated module "
+                                "drives it)")
+        out[name] = t.get(name, float)
+    return out
+
+
 def _mcodes(t: Table, modbus: ModbusConfig | None, drive_axes: tuple[str, ...]) -> dict[int, UserMCode]:
     out: dict[int, UserMCode] = {}
     for name in list(t.data):
@@ -372,6 +389,7 @@ def _mcodes(t: Table, modbus: ModbusConfig | None, drive_axes: tuple[str, ...]) 
 def _check_outputs(io: IoMap, modbus: ModbusConfig | None, t: Table) -> None:
     """Two owners writing one coil or register would fight: refused naming the second. M codes may
     share an output among themselves (M101 closes a clamp, M102 opens it)."""
+    _check_drive_outputs(io, t)
     if modbus is None:
         return
     used: dict[tuple[str, str, int], str] = {}
@@ -393,13 +411,33 @@ def _check_outputs(io: IoMap, modbus: ModbusConfig | None, t: Table) -> None:
     for mc in io.mcodes.values():
         for b, _v in mc.sets:
             p = b.point
-            assert p is not None
+            if p is None:
+                continue  # a drive's bit: _check_drive_outputs
             k = (p.device, p.table, p.address)
             owner = used.get(k)
             if owner is not None and not owner.startswith("io.mcodes."):
                 raise ConfigError(t.file, b.key, f"{p.table.replace('_', ' ')} {p.address} of device "
                                                  f"{p.device!r} is already written by {owner}: bound twice")
             used[k] = b.key
+
+
+def _check_drive_outputs(io: IoMap, t: Table) -> None:
+    """A drive's 0x60FE bit written by two functions (or by a function and an M code) is refused
+    naming the second; M codes may share one among themselves, as a coil."""
+    used: dict[tuple[str, int], str] = {}
+    for b in io.functions.values():
+        if b.point is None and b.direction == OUT:
+            if (b.drive_axis, b.bit) in used:
+                raise ConfigError(t.file, b.key, f"{b.where} is already written by "
+                                                 f"{used[(b.drive_axis, b.bit)]}: bound twice")
+            used[(b.drive_axis, b.bit)] = b.key
+    for mc in io.mcodes.values():
+        for b, _v in mc.sets:
+            owner = used.get((b.drive_axis, b.bit)) if b.point is None else None
+            if owner is not None and not owner.startswith("io.mcodes."):
+                raise ConfigError(t.file, b.key, f"{b.where} is already written by {owner}: bound twice")
+            if b.point is None:
+                used[(b.drive_axis, b.bit)] = b.key
 
 
 def shared_points(io: IoMap) -> IoMap:
@@ -413,7 +451,9 @@ def shared_points(io: IoMap) -> IoMap:
     for code, mc in io.mcodes.items():
         sets = []
         for b, v in mc.sets:
-            assert b.point is not None
+            if b.point is None:  # a drive's 0x60FE bit: no point to share
+                sets.append((b, v))
+                continue
             p = by_addr.setdefault((b.point.device, b.point.table, b.point.address), b.point)
             sets.append((dataclasses.replace(b, point=p), v))
         mcodes[code] = dataclasses.replace(mc, sets=tuple(sets))

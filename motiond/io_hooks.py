@@ -14,7 +14,8 @@ side calls them through its ``MotionHooks``: ``io_cycle``, ``io_event``, ``io_wa
 * :meth:`IoHooks.on_event` (cycle thread, each event on the setpoint): spindle, coolant outputs;
 * :meth:`IoHooks.on_wait` (cycle thread, the planner stands at a sync point): True when the I/O map
   completes it (M3/M4 with at-speed, M19 with oriented, a user M code);
-* :meth:`IoHooks.refuse_estop_reset`, :meth:`IoHooks.refuse_resume`: the input-side refusals;
+* :meth:`IoHooks.refuse_estop_reset`, :meth:`IoHooks.refuse_resume`, :meth:`IoHooks.refuse_jog`: the
+  input-side refusals (a jog while the door is open; a jog in progress stops when it opens);
 * :meth:`IoHooks.stopped`: E-stop, fault or abort: the wait is gone; on E-stop and fault the spindle,
   coolant and machine enable are switched off.
 
@@ -35,7 +36,18 @@ from typing import Any
 
 from gcode_canon import commands as C
 from motiond.config_io import IoMap
-from motiond.machine_io import ABORT, ESTOP, FAULT, LIMIT, PAUSE, RELEASE, RESUME, MachineIO, MachineState
+from motiond.machine_io import (
+    ABORT,
+    ESTOP,
+    FAULT,
+    JOG_STOP,
+    LIMIT,
+    PAUSE,
+    RELEASE,
+    RESUME,
+    MachineIO,
+    MachineState,
+)
 from motiond.states import CommandRefused, State
 
 log = logging.getLogger(__name__)
@@ -48,13 +60,17 @@ class IoHooks:
         self.m = machine
         self.map = io
         self.empty = io.empty  # no map: the hooks cost nothing per cycle
-        self.mio = MachineIO(io, None, tuple(machine.names))
+        self.mio = MachineIO(io, None, tuple(machine.names), self._drive_out)
         self._door_held = False  # the door stopped the spindle and coolant (restored on cycle start)
         self._resume_at: float | None = None  # cycle start after the door: resume once at speed, by then
 
     def start(self, executor: Any) -> None:
         """The Modbus executor is up: the functions on Modbus points can be read and written."""
-        self.mio = MachineIO(self.map, executor, tuple(self.m.names))
+        self.mio = MachineIO(self.map, executor, tuple(self.m.names), self._drive_out)
+
+    def _drive_out(self, axis: int, bit: int, on: bool) -> Any:
+        """A drive's 0x60FE bit, written by the CANopen master (the motion side's)."""
+        return self.m.motion.drive_output(axis, bit, on)
 
     @property
     def wait_types(self) -> tuple[type[C.Canon], ...]:
@@ -72,7 +88,8 @@ class IoHooks:
             estop=snap.state is State.ESTOP,
             enabled=snap.enabled and snap.state in (State.IDLE, State.RUNNING, State.PAUSED),
             running=snap.state is State.RUNNING, paused=snap.state is State.PAUSED,
-            velocity=velocity, drive_inputs=drive_inputs)
+            velocity=velocity, drive_inputs=drive_inputs,
+            jogging=bool(getattr(self.m.motion, "jogging", False)))
         for act in self.mio.poll(st):
             self._act(act)
         if self._resume_at is not None:
@@ -125,6 +142,9 @@ class IoHooks:
                 m.resume()
             except CommandRefused as exc:
                 m.event("WARNING", f"{act.reason}: {exc}", kind="io_refused", source="modbus")
+        elif act.kind == JOG_STOP:
+            m.motion.jog_stop()
+            m.event("WARNING", act.reason, kind="io_jog_stop", source="modbus")
         elif act.kind == ABORT:
             with contextlib.suppress(CommandRefused):
                 m.abort()
@@ -203,6 +223,12 @@ class IoHooks:
                 why = self.mio.estop_problem()
         if why:
             raise CommandRefused(f"cannot reset the estop: {why}")
+
+    def refuse_jog(self) -> None:
+        """Raise :class:`CommandRefused` while the door is open (or its switch cannot be read)."""
+        why = self.mio.jog_problem()
+        if why:
+            raise CommandRefused(f"cannot jog: {why}")
 
     def refuse_resume(self) -> None:
         if self.mio.door_open:

@@ -25,6 +25,7 @@ from __future__ import annotations
 import concurrent.futures
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -33,14 +34,15 @@ from motiond.config_io import DIGITAL, Binding, IoMap
 
 log = logging.getLogger(__name__)
 
-ESTOP, FAULT, LIMIT, RELEASE, PAUSE, RESUME, ABORT = (
-    "estop", "fault", "limit", "release", "pause", "resume", "abort")
+ESTOP, FAULT, LIMIT, RELEASE, PAUSE, RESUME, ABORT, JOG_STOP = (
+    "estop", "fault", "limit", "release", "pause", "resume", "abort", "jog_stop")
 
 
 @dataclass(frozen=True)
 class Action:
     """Something the machine must do now: ``kind`` one of ESTOP, FAULT, LIMIT (a limit switch: stop
-    as a drive's does; ``axis`` set), RELEASE (the sync point is done), PAUSE, RESUME, ABORT."""
+    as a drive's does; ``axis`` set), RELEASE (the sync point is done), PAUSE, RESUME, ABORT, JOG_STOP
+    (the door opened during a jog)."""
 
     kind: str
     reason: str = ""
@@ -78,21 +80,28 @@ class MachineState:
     paused: bool
     velocity: tuple[float, ...] = ()  # commanded, per axis (in the machine's axis order)
     drive_inputs: tuple[int, ...] = ()  # 0x60FD per axis
+    jogging: bool = False  # a jog moves an axis
 
 
 class MachineIO:
     """The I/O map acted on (module docstring). ``executor``: the Modbus executor (None: a machine
-    without Modbus; drive-input functions still work). ``axes``: the machine's axis names in order."""
+    without Modbus; drive-input functions still work). ``axes``: the machine's axis names in order.
+    ``drive_out``: writes a drive's 0x60FE bit (the CANopen master's ``set_output``: never blocks)."""
 
-    def __init__(self, io: IoMap, executor: Any, axes: tuple[str, ...]) -> None:
+    def __init__(self, io: IoMap, executor: Any, axes: tuple[str, ...],
+                 drive_out: Callable[[int, int, bool], concurrent.futures.Future[float]] | None = None,
+                 ) -> None:
         self.io = io
         self.ex = executor
+        self.drive_out = drive_out  # a drive's 0x60FE bit: (axis index, bit, on) -> future (the master's)
+        self._drive_written: dict[tuple[str, int], float] = {}  # 0x60FE bits as last written
         self.axes = axes
         self.f = io.functions
         self._values: dict[str, float] = {}  # outputs as commanded
         self._inputs: dict[str, bool | None] = {}  # inputs as last read (None: unreadable)
         self._wait: _Wait | None = None
         self.door_open = False
+        self._jog_stopped = False  # the door stopped the jog in progress
         self.estop_reason = ""  # why the E-stop input holds the machine in ESTOP ("" it does not)
         self.switched: list[Switched] = []
         self._spindle_rpm = 0.0
@@ -142,7 +151,10 @@ class MachineIO:
         from fieldbus.modbus.faults import IoError
 
         raw = float(value) if b.kind != DIGITAL else 1.0 if bool(value) != b.active_low else 0.0
-        if self.ex is None or b.point is None:
+        if b.point is None:
+            self._write_drive(b, raw, value, cmd, futures, force)
+            return
+        if self.ex is None:
             return
         if not force and self.ex.commanded_point(b.point.key) == raw:
             return
@@ -154,6 +166,20 @@ class MachineIO:
             self._unwritten[b.point.key] = raw
             return
         self._unwritten.pop(b.point.key, None)
+        if futures is not None:
+            futures.append(fut)
+        self.switched.append(Switched(b.name, float(value), cmd.file if cmd else "", cmd.line if cmd else 0))
+
+    def _write_drive(self, b: Binding, raw: float, value: float, cmd: C.Canon | None,
+                     futures: list[concurrent.futures.Future[float]] | None, force: bool) -> None:
+        """A drive's 0x60FE bit, through the master (its own thread writes it by SDO)."""
+        key = (b.drive_axis, b.bit)
+        if self.drive_out is None or (not force and self._drive_written.get(key) == raw):
+            return
+        fut = self.drive_out(self.axes.index(b.drive_axis), b.bit, bool(raw))
+        self._drive_written[key] = raw
+        fut.add_done_callback(lambda f: f.exception() is None or log.warning(
+            "%s not written: %s", b.name, f.exception()))
         if futures is not None:
             futures.append(fut)
         self.switched.append(Switched(b.name, float(value), cmd.file if cmd else "", cmd.line if cmd else 0))
@@ -303,15 +329,25 @@ class MachineIO:
         v = self.ex.worker.snapshot.named.get(b.point.key)
         return v is not None and abs(abs(v) - rpm) <= tol
 
-    def estop_problem(self) -> str:
-        """Why the machine may not leave ESTOP because of its E-stop input ("" it may)."""
-        b = self.f.get("estop")
+    def _input_problem(self, name: str, what: str, active: str) -> str:
+        """Why input ``name`` stands in the way ("" it does not): ``active`` when it is active, a
+        sentence naming ``what`` it is when it cannot be read."""
+        b = self.f.get(name)
         if b is None:
             return ""
         state = self._read(b)
         if state is None:
-            return f"the E-stop input cannot be read ({b.where}: link down or not polled yet)"
-        return f"the E-stop input is active ({b.key}, {b.where})" if state else ""
+            return f"the {what} cannot be read ({b.where}: link down or not polled yet)"
+        return f"{active} ({b.key}, {b.where})" if state else ""
+
+    def estop_problem(self) -> str:
+        """Why the machine may not leave ESTOP because of its E-stop input ("" it may)."""
+        return self._input_problem("estop", "E-stop input", "the E-stop input is active")
+
+    def jog_problem(self) -> str:
+        """Why a jog may not start because of the inputs ("" it may): the door open (or unreadable)."""
+        why = self._input_problem("door_open", "door switch", "the door is open")
+        return f"{why}; close it first" if why.startswith("the door is open") else why
 
     def poll(self, st: MachineState, now: float | None = None) -> list[Action]:
         """Once per cycle: the actions the inputs and waits ask for (module docstring)."""
@@ -365,6 +401,11 @@ class MachineIO:
         if self.door_open and st.running:
             out.append(Action(PAUSE, f"door open ({self.f['door_open'].where}): motion held; close it and "
                                      "press cycle start"))
+        if self.door_open and st.jogging and not self._jog_stopped:
+            self._jog_stopped = True  # once per jog: the jog stops on its ramp
+            out.append(Action(JOG_STOP, f"door open ({self.f['door_open'].where}): jog stopped"))
+        elif not st.jogging:
+            self._jog_stopped = False
         if rose("feed_hold") and st.running:
             out.append(Action(PAUSE, "feed hold button"))
         if rose("abort"):

@@ -11,10 +11,12 @@ From the map (:class:`motiond.config_io.IoMap`) each simulated device gets
   speed at once when it is switched off; spindle_oriented follows spindle_orient the same way; a user M
   code's wait input follows its first output.
 
-Limit and home switches are not driven by the module (it does not know where the axes are): a test or
-an operator sets them. The one exception is the probe (``[io.sim] probe_z``): where the module runs
-in the daemon's process, :func:`apply` is given the commanded machine position and the probe input
-is computed at each read: active while Z is at or below ``probe_z``.
+Limit and home switches are not driven by the module unless ``[io.sim]`` places them (it does not know
+where the axes are otherwise): a test or an operator sets them. Where the module runs in the daemon's
+process, :func:`apply` is given the commanded machine position and these inputs are computed at each
+read: the probe (``[io.sim] probe_z``) active while Z is at or below ``probe_z``; a limit switch
+(``[io.sim] limit_x_max = 290.0`` ...) active while the axis is at or beyond its position (at or
+below for ``_min``).
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ class SimWiring:
     levels: list[tuple[str, int, int]] = field(default_factory=list)  # (table, address, value)
     rules: list[Rule] = field(default_factory=list)
     probe: tuple[Binding, float] | None = None  # the probe input and the Z it trips at (or below)
+    limits: list[tuple[Binding, float]] = field(default_factory=list)  # limit inputs, where they trip
 
 
 def wiring_for(io: IoMap) -> dict[str, SimWiring]:
@@ -78,12 +81,16 @@ def wiring_for(io: IoMap) -> dict[str, SimWiring]:
     probe = f.get("probe")
     if probe is not None and probe.point is not None and io.sim_probe_z is not None:
         of(probe).probe = (probe, io.sim_probe_z)
+    for name, where in io.sim_limits.items():
+        of(f[name]).limits.append((f[name], where))
     return out
 
 
-def apply(module: Any, wiring: SimWiring | None, z: Callable[[], float] | None = None) -> None:
+def apply(module: Any, wiring: SimWiring | None, z: Callable[[], float] | None = None,
+          position: Callable[[str], float] | None = None) -> None:
     """Give a started or not yet started ``SimIoModule`` its rules and resting levels; ``z``: the
-    commanded machine Z, for the probe (none: the probe input is left to the operator)."""
+    commanded machine Z, for the probe (none: the probe input is left to the operator); ``position``:
+    an axis's commanded machine position, for the limit switches (none: left to the operator)."""
     if wiring is None:
         return
     module.rules.extend(wiring.rules)
@@ -94,3 +101,12 @@ def apply(module: Any, wiring: SimWiring | None, z: Callable[[], float] | None =
         assert b.point is not None
         module.computed.append((b.point.table, b.point.address,
                                 lambda: int((z() <= height) != b.active_low)))
+    for b, where in wiring.limits if position is not None else ():
+        module.computed.append((b.point.table, b.point.address, _limit(b, where, position)))
+
+
+def _limit(b: Binding, where: float, position: Callable[[str], float]) -> Callable[[], int]:
+    """The raw level of limit switch ``b`` placed at ``where`` (module docstring)."""
+    m = b.name.split("_")  # limit_<axis>_<min|max>
+    axis, beyond = m[1], (lambda p: p >= where) if m[2] == "max" else (lambda p: p <= where)
+    return lambda: int(beyond(position(axis)) != b.active_low)

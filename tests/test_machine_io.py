@@ -112,8 +112,19 @@ set = [{ device = "io", coil = 14, value = 0 }]
     ("[io.functions]\nspindle_on = { device = \"io\", coil = 3 }\n"
      "spindle_cw = { device = \"io\", coil = 4 }\n",
      "io.functions.spindle_cw", "the spindle is bound twice"),
-    ("[io.functions]\nmachine_enable = { drive = \"x\", bit = 3 }\n", "io.functions.machine_enable.drive",
-     "0x60FE"),
+    ("[io.functions]\nmachine_enable = { drive = \"y\", bit = 3 }\n", "io.functions.machine_enable.drive",
+     "no [canopen.axes.y]"),
+    ("[io.functions]\nmachine_enable = { drive = \"x\", bit = 32 }\n", "io.functions.machine_enable.bit",
+     "between 0 and 31"),
+    ("[io.functions]\nmachine_enable = { drive = \"x\", bit = 3 }\n"
+     "coolant_flood = { drive = \"x\", bit = 3 }\n",
+     "io.functions.coolant_flood", "drive x 0x60FE bit 3 is already written by io.functions.machine_enable: "
+                                   "bound twice"),
+    ("[io.functions]\ncoolant_flood = { drive = \"z\", bit = 4 }\n[io.mcodes.M103]\n"
+     "set = [{ drive = \"z\", bit = 4 }]\n", "io.mcodes.M103.set[0]", "already written by "
+                                                                      "io.functions.coolant_flood"),
+    ("[io.functions]\nspindle_speed = { drive = \"x\", bit = 3 }\n", "io.functions.spindle_speed.drive",
+     "digital outputs (0x60FE) are bits"),
     ("[io.functions]\nestop = { drive = \"y\", bit = 3 }\n", "io.functions.estop.drive",
      "no [canopen.axes.y]"),
     ("[io.functions]\nestop = { device = \"io\", discrete_input = 1, active = \"open\" }\n",

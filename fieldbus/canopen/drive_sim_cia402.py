@@ -62,6 +62,13 @@ class StateMachineMixin:
             bits |= DI_HOME
         return bits
 
+    def digital_outputs(self) -> int:
+        """0x60FE:01 as the master last wrote it (the physical outputs; 0 before any write), masked by
+        0x60FE:02 (a bit outside the mask is not driven, as CiA 402 has it)."""
+        store = self.node.data_store.get(0x60FE, {})
+        word, mask = (int.from_bytes(store.get(sub, b"\0"), "little") for sub in (1, 2))
+        return word & mask
+
     def _controlword(self, cw: int) -> None:
         if self.ignore_controlword:
             return

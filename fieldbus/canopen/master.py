@@ -33,6 +33,8 @@ Design choices:
   fault), naming axis, node and switch. After a reset the axis may move off the switch, not onto it.
 * The spindle drive (``[canopen.spindle]``, :mod:`~fieldbus.canopen.master_spindle`), in a velocity
   mode, is booted, enabled, stopped and parked with the axes; its RPDO goes out before each SYNC too.
+* The drives' digital outputs (0x60FE, :mod:`~fieldbus.canopen.master_outputs`): :meth:`set_output`
+  never blocks; its own thread writes them by SDO.
 * Faults are reported once (the first, which caused the stop) in :attr:`fault`; later ones go to
   :attr:`fault_log`.
 
@@ -58,6 +60,7 @@ from fieldbus.canopen.busload import BusLoad, alternatives, bus_load
 from fieldbus.canopen.busopen import open_bus
 from fieldbus.canopen.config import CanopenConfig
 from fieldbus.canopen.master_boot import BootMixin
+from fieldbus.canopen.master_outputs import OutputsMixin
 from fieldbus.canopen.master_records import (
     INPUT_BITS,
     NEGATIVE_LIMIT,
@@ -81,7 +84,7 @@ __all__ = ["INPUT_BITS", "NEGATIVE_LIMIT", "POSITIVE_LIMIT", "BusBudgetError", "
 log = logging.getLogger(__name__)
 
 
-class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin):
+class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin, OutputsMixin):
     """Master of the configured drives on one bus. ``bus``: an open python-can bus to use (else one is
     made from ``config.bus``). ``check_budget=False`` only reports the bus load (benchmarks on the
     virtual bus, which has no bitrate)."""

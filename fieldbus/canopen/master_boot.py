@@ -35,10 +35,11 @@ class BootMixin(MasterCore):
         code; then 0)."""
         where = f"0x{index:04X}:{sub:02X} ({what})"
         try:
-            if fmt is not None and value is not None:
-                d.node.sdo.download(index, sub, struct.pack("<" + fmt, value))
-                return value
-            raw = d.node.sdo.upload(index, sub)
+            with d.sdo_lock:
+                if fmt is not None and value is not None:
+                    d.node.sdo.download(index, sub, struct.pack("<" + fmt, value))
+                    return value
+                raw = d.node.sdo.upload(index, sub)
         except SdoAbortedError as exc:
             if exc.code in ok_aborts:
                 return 0
@@ -133,6 +134,7 @@ class BootMixin(MasterCore):
                                    f"{d.nmt_state})")
             time.sleep(0.002)
         d.heartbeat_at = time.monotonic()
+        self._restore_outputs(d)  # type: ignore[attr-defined]  (OutputsMixin)
         log.info("%s booted", d.describe())
 
     def _load_dcf(self, d: DriveBook) -> None:

@@ -105,6 +105,10 @@ class DriveBook:
         self.active = False  # the cycle sends this drive its target every SYNC
         self.inputs = 0  # 0x60FD, from TPDO4 (and read by SDO on enable)
         self.has_inputs = False  # the drive has 0x60FD, mapped in TPDO4
+        self.outputs = 0  # 0x60FE:01 as commanded (master_outputs)
+        self.outputs_mask = 0  # the bits the master drives (0x60FE:02)
+        self.outputs_mask_written = 0
+        self.sdo_lock = threading.Lock()  # one SDO transfer at a time (canopen's client has no lock)
         self.limits_armed = 0  # limit switch bits active at the last check (a new one is an edge)
         self.missing: dict[int, int] = {}  # optional objects the drive lacks: their abort codes (boot)
         # what the drive said at boot: (index, sub) -> value, None where it lacks the object

@@ -111,6 +111,7 @@ class SpindleBook:
         self.missing: dict[int, int] = {}
         self.qs_option = SPINDLE_QUICK_STOP_OPTION
         self.has_inputs = False
+        self.sdo_lock = threading.Lock()  # one SDO transfer at a time (as DriveBook's)
 
     def describe(self) -> str:
         return f"node {self.cfg.node_id} (spindle)"

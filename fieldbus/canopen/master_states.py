@@ -305,6 +305,7 @@ class StateMachineMixin(MasterCore):
         if self.network is None:
             return
         self._stop_kernel_sync()
+        self._stop_outputs()  # type: ignore[attr-defined]  (OutputsMixin)
         with self._lock:
             if any(d.active for d in [*self.drives, *self._spindle_books()]):
                 self._quick_stop_locked()

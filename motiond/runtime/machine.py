@@ -358,7 +358,8 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
             if dev.simulate:
                 mod = SimIoModule(host="127.0.0.1", port=dev.port, unit=dev.unit,
                                   size=size_for(self.modbus, dev.name))
-                apply(mod, wiring.get(dev.name), self._sim_z)
+                apply(mod, wiring.get(dev.name), self._sim_z,
+                      lambda a: self.motion.commanded[self.names.index(a)])  # [io.sim] limits
                 try:
                     mod.start()
                 except OSError as exc:
@@ -522,6 +523,7 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
         if abs(velocity) > lim.max_velocity:
             raise CommandRefused(f"jog velocity {abs(velocity):g} beyond axis {a}'s max_velocity "
                                  f"{lim.max_velocity:g}")
+        self.io_hooks.refuse_jog()  # the door interlock
         self.states.manual("jog")
         self.motion.jog(i, velocity, distance, self.interp.position, self.interp.feed)
 

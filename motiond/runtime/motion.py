@@ -302,6 +302,17 @@ class MotionCore(Cycle):
                 self._sync_cond.wait(0.05)
         return True
 
+    def drive_output(self, axis: int, bit: int, on: bool) -> Any:
+        """Bit ``bit`` of drive ``axis``'s digital outputs (0x60FE), for the I/O map: a future, the
+        master's ``canon-do`` thread writes it by SDO (never blocks the caller)."""
+        if self.master is None:
+            import concurrent.futures
+
+            fut: concurrent.futures.Future[float] = concurrent.futures.Future()
+            fut.set_exception(RuntimeError("the CANopen master is not open"))
+            return fut
+        return self.master.set_output(axis, bit, on)
+
     def use_probe_input(self, mio: Any) -> None:
         """G38.x on the I/O map's ``probe`` input (read by ``mio``, the task's
         :class:`~motiond.machine_io.MachineIO`) unless a drive's touch probe is the probe."""

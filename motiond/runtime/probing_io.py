@@ -95,9 +95,21 @@ class InputProbing:
                 self._hit = tuple(planner.position)  # this cycle's setpoint
                 self._held = planner.holding
                 planner.abort()  # the rest of the move (and its sync point) is dropped at rest
+                if not self._unreadable:
+                    self._note_trip(cmd)
         elif planner.is_idle:
             self._armed = None
             stopped_at_rest(self.core, planner, cmd, self._held)
+
+    def _note_trip(self, cmd: C.Probe) -> None:
+        """The trip in the job's record, in the cycle that saw it: the run summary lists it with the
+        functions switched (``probe=1 (line N)``)."""
+        from motiond.runtime.records import OutputSwitch
+
+        stream = self.core.stream
+        if stream is not None:
+            stream.outputs.append(OutputSwitch(self.core.cycle, time.monotonic(), "function", -1, 1.0, True,
+                                               cmd.file, cmd.line, name="probe"))
 
     def answer(self, cmd: C.Probe, cancel: threading.Event) -> Probed | None:
         """Job thread, the interpreter's probe callback: wait for the move's end; None when ``cancel``

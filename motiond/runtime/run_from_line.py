@@ -60,6 +60,7 @@ class RunFrom:
         self.started = False  # the restore and the approach are queued: commands go to the planner
         self.skipped = 0
         self.outputs: list[C.DigitalOutput | C.AnalogOutput] = []
+        self.mcodes: dict[int, C.UserMCode] = {}  # user M codes (M100-M199): the last one of each code
         self.tool_cmd: C.ToolChange | C.SetToolNumber | None = None
         self.end_line = 0  # where a skipped M2/M30 ended the program
         self.state: StartState | None = None
@@ -69,6 +70,9 @@ class RunFrom:
         self.skipped += 1
         if isinstance(cmd, C.DigitalOutput | C.AnalogOutput):
             self.outputs.append(cmd)
+        elif isinstance(cmd, C.UserMCode):
+            self.mcodes.pop(cmd.code, None)  # kept in the order of their last occurrence
+            self.mcodes[cmd.code] = cmd
         elif isinstance(cmd, C.ToolChange | C.SetToolNumber):
             self.tool_cmd = cmd
         elif isinstance(cmd, C.ProgramEnd):
@@ -180,6 +184,22 @@ class RunFromLineMixin(MachinePart):
 
         self.motion.run_on_cycle(on_cycle, wait=False)
 
+    def _user_mcodes(self, run_from: RunFrom, f: str, n: int, did: list[str]) -> list[C.Canon]:
+        """The skipped user M codes to replay (docs/daemon.md, "Run from line"): of those bound to set
+        outputs (``[io.mcodes]``), the last occurrence of each code, in the order of those occurrences.
+        For every output the M code that last wrote it comes last, so each ends as the skipped part
+        left it; each runs with its wait (a clamp closed is confirmed again). An M code that only waits
+        changes nothing and is not replayed."""
+        mcodes = self.io_hooks.map.mcodes  # type: ignore[attr-defined]
+        out: list[C.Canon] = []
+        for code, cmd in run_from.mcodes.items():
+            mc = mcodes.get(code)
+            if mc is None or not mc.sets:
+                continue
+            out.append(dataclasses.replace(cmd, file=f, line=n))
+            did.append(f"M{code} (as line {cmd.line})")
+        return out
+
     def _start_from(self, job: Job, run_from: RunFrom) -> bool:
         """Job thread, run from line: queue what restores the skipped part's state, then the approach.
 
@@ -191,7 +211,9 @@ class RunFromLineMixin(MachinePart):
            left in the spindle, when it differs from the one there at the start (M61 when the skipped
            part declared it with M61); then the prepared tool (T);
         3. Z up, alone, to the higher of where it stands and the start point's Z;
-        4. spindle speed, spindle on (M3/M4) or off (M5), coolant (mist, flood);
+        4. the user M codes (M100-M199) that set outputs: the last occurrence of each, in the order of
+           those (so every output ends as the skipped part left it), each with its wait; then spindle
+           speed, spindle on (M3/M4) or off (M5), coolant (mist, flood);
         5. the other axes (X Y and any rotary) to the start point, at that Z;
         6. Z down to the start point;
         7. the skipped part's path control mode (G61/G64 P) and override switches (M48-M53).
@@ -199,7 +221,8 @@ class RunFromLineMixin(MachinePart):
         Machine coordinates; Z is the tool axis whatever G17/G18/G19 selects (those choose the arc
         plane, not the spindle's direction; the tool length offset is along Z too), and up is +Z. A
         machine without a Z axis moves all axes together. Outputs (M62-M65, M67, M68), dwells, stops
-        and messages of the skipped part are not replayed: a WARNING lists the outputs.
+        and messages of the skipped part are not replayed: a WARNING lists the outputs (the user M
+        codes are, step 4).
         False when the job was cancelled meanwhile.
         """
         run_from.started = True
@@ -231,8 +254,10 @@ class RunFromLineMixin(MachinePart):
             k = self.limits.pose_index[zi]
             z_safe = max(current[k], target[k])
             moves = [current._replace(**{C.AXES[k]: z_safe}), target._replace(**{C.AXES[k]: z_safe}), target]
+        restore: list[C.Canon] = self._user_mcodes(run_from, f, n, did)
         # under G96 the speed is a surface speed: its mode first, so that the planner makes rpm of it
-        restore: list[C.Canon] = [] if st.css is None else [dataclasses.replace(st.css, file=f, line=n)]
+        if st.css is not None:
+            restore.append(dataclasses.replace(st.css, file=f, line=n))
         restore.append(C.SetSpindleSpeed(st.speed, file=f, line=n))
         if st.spindle:
             restore.append(C.SpindleOn(C.SpindleDirection.CW if st.spindle > 0 else C.SpindleDirection.CCW,

@@ -1,0 +1,110 @@
+"""The drives' digital outputs (CiA 402 0x60FE) as points of the I/O map: the master writes them by SDO
+on its own thread (fieldbus.canopen.master_outputs), the simulated drive keeps them, and an I/O map
+function bound to one switches it from the program. docs/wiring.md."""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from canopen_helpers import Rig, make_config
+from test_run_from_line import wait_for
+
+from fieldbus.canopen.drive_sim import SimDrive
+from fieldbus.canopen.master import CanopenError
+from motiond.config import load_machine
+from motiond.runtime import Machine
+from motiond.states import State
+
+EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "canon.toml"
+MIST = 17  # drive z's 0x60FE bit the tests bind coolant_mist to
+
+
+def test_the_master_writes_a_drive_output_bit_and_the_drive_keeps_it() -> None:
+    rig = Rig(make_config(2))
+    try:
+        rig.master.boot()
+        t0 = time.monotonic()
+        done = rig.master.set_output(1, 16, True).result(5.0)
+        assert done >= t0
+        assert rig.sim(2).digital_outputs() == 1 << 16
+        rig.master.set_output(1, 17, True).result(5.0)
+        rig.master.set_output(1, 16, False).result(5.0)
+        assert rig.sim(2).digital_outputs() == 1 << 17  # the other bits as commanded
+        assert rig.sim(1).digital_outputs() == 0
+        assert rig.master.outputs() == (0, 1 << 17)
+        rig.master.boot()  # an NMT reset: the master writes the commanded word again
+        assert rig.sim(2).digital_outputs() == 1 << 17
+    finally:
+        rig.close()
+
+
+def test_a_drive_without_0x60fe_fails_the_write_naming_node_and_object() -> None:
+    cfg = make_config(1)
+    rig = Rig(cfg, sims=[SimDrive(1, absent_objects={0x60FE})])
+    try:
+        rig.master.boot()
+        exc = rig.master.set_output(0, 3, True).exception(5.0)
+        assert isinstance(exc, CanopenError)
+        assert "node 1 (axis x)" in str(exc) and "0x60FE" in str(exc) and "aborted by the drive" in str(exc)
+    finally:
+        rig.close()
+
+
+@pytest.fixture
+def machine(tmp_path: Path) -> Iterator[Machine]:
+    text = EXAMPLE.read_text()
+    old = 'coolant_mist = { device = "io", coil = 12 }'
+    assert old in text
+    f = tmp_path / "m.toml"
+    f.write_text(text.replace(old, f'coolant_mist = {{ drive = "z", bit = {MIST} }}'))
+    with started(f, tmp_path) as m:
+        yield m
+
+
+@contextlib.contextmanager
+def started(config: Path, tmp_path: Path) -> Iterator[Machine]:
+    """The machine of file ``config``, started and enabled (its simulated module on a free port)."""
+    m = Machine(load_machine(str(config)), lc=None, var_file=tmp_path / "p.var", modbus_port=0)
+    m.start()
+    try:
+        m.bring_up()
+        yield m
+    finally:
+        m.shutdown()
+
+
+def _status(m: Machine) -> dict[str, float]:
+    s = m.status()
+    return dict(zip(s.io_function_names, s.io_function_values, strict=True))
+
+
+def _mist_on(machine: Machine, tmp_path: Path, text: str) -> tuple[SimDrive, object]:
+    """Run ``text`` (M7 on line 3) and wait until drive z's bit is on: the drive and the job."""
+    z = machine.sim_drives[machine.names.index("z")]
+    prog = tmp_path / "p.ngc"
+    prog.write_text(text)
+    job = machine.run(prog)
+    wait_for(lambda: z.digital_outputs() == 1 << MIST, "drive z 0x60FE bit 17 on after M7")
+    return z, job
+
+
+def test_m7_m9_switch_a_drive_output_bit(machine: Machine, tmp_path: Path) -> None:
+    z, job = _mist_on(machine, tmp_path, "%\nG21 G90 G94\nM7\nG4 P1.0\nG1 X2 F3000\nM9\nM2\n%\n")
+    assert _status(machine)["coolant_mist"] == 1.0  # in the LCM status as the other functions
+    result = machine.wait_job(job, 30.0)
+    assert result is not None and result.ok, result.error if result else "timeout"
+    wait_for(lambda: z.digital_outputs() == 0, "the bit off after M9")  # written on the master's thread
+    names = [(o.name, o.value, o.line) for o in result.outputs if o.kind == "function"]
+    assert names == [("coolant_mist", 1.0, 3), ("coolant_mist", 0.0, 6)]
+
+
+def test_estop_drops_a_drive_output_bit(machine: Machine, tmp_path: Path) -> None:
+    z, job = _mist_on(machine, tmp_path, "%\nG21 G90 G94\nM7\nG4 P5.0\nM2\n%\n")
+    machine.estop("test")
+    wait_for(lambda: machine.states.state is State.ESTOP, "ESTOP")
+    wait_for(lambda: z.digital_outputs() == 0, "the drive output off on E-stop")
+    machine.wait_job(job, 10.0)
