@@ -51,6 +51,8 @@ class IoHooks:
         self.mio = MachineIO(io, None, tuple(machine.names))
         self._door_held = False  # the door stopped the spindle and coolant (restored on cycle start)
         self._resume_at: float | None = None  # cycle start after the door: resume once at speed, by then
+        self.stop_seen: tuple[str, float] | None = None
+        """The last E-stop or limit switch acted on: its kind and when (monotonic), for the latency."""
 
     def start(self, executor: Any) -> None:
         """The Modbus executor is up: the functions on Modbus points can be read and written."""
@@ -95,6 +97,8 @@ class IoHooks:
 
     def _act(self, act: Any) -> None:
         m = self.m
+        if act.kind in (ESTOP, LIMIT):
+            self.stop_seen = (act.kind, time.monotonic())
         if act.kind == ESTOP:
             m.estop(act.reason)
         elif act.kind == LIMIT:  # as a drive's limit switch: every drive quick-stopped now, then FAULTED

@@ -13,19 +13,32 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from test_motion_process import OWN, own_mode
 from test_run_from_line import Recorder, wait_for
 
 from motiond.config import load_machine
 from motiond.runtime import Machine
 from motiond.states import CommandRefused, State
 
+EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "canon.toml"
+"""The demo machine's wiring in a file (the motion in its own process needs one: test_motion_process)."""
+OWN_STOP_CYCLES = 5
+"""With the motion in its own process: the quick stop of an E-stop input or a limit switch leaves the
+motion process within this many cycles of the task's I/O loop acting on the input (docs/wiring.md:
+measured on the loaded 2-core test PC, worst ~3 ms, median 0.2 ms)."""
+
 
 class Rig(Recorder):
     """test_run_from_line's started, enabled demo machine, with its setpoints traced and the cycle of
-    every state change kept."""
+    every state change kept. ``own``: the same wiring with the motion in a process of its own."""
 
-    def __init__(self, tmp: Path) -> None:
-        super().__init__(tmp)
+    def __init__(self, tmp: Path, own: bool = False) -> None:
+        if own:
+            path = tmp / "own.toml"
+            path.write_text(own_mode(EXAMPLE.read_text()))
+            super().__init__(tmp, str(path), modbus_port=0)
+        else:
+            super().__init__(tmp)
         self.tmp = tmp
         self.machine.trace = []
         self.state_cycles: list[tuple[State, int, float]] = []
@@ -42,9 +55,9 @@ class Rig(Recorder):
         return self.machine.motion.commanded[0]
 
 
-@pytest.fixture
-def rig(tmp_path: Path) -> Iterator[Rig]:
-    r = Rig(tmp_path)
+@pytest.fixture(params=["thread", OWN])
+def rig(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Rig]:
+    r = Rig(tmp_path, own=request.param == "own")
     try:
         yield r
     finally:
@@ -105,6 +118,8 @@ def test_estop_input_during_motion_stops_at_once_and_drops_machine_enable(rig: R
     poll_s = rig.machine.modbus.devices[0].poll_ms / 1000.0
     # seen by the next poll, acted on in the next cycle (generous: the PC may be loaded)
     assert t_estop - t_pressed < poll_s + 1.0
+    if rig.machine.motion_mode == "own":  # the motion process's cycles: the quick stop's came by pipe
+        cycle = stop_latency(rig, rig.machine.motion.last_estop, "estop")
     # no setpoint streamed after the cycle that saw it
     assert max(c for c, _t, _p, _e in rig.machine.trace) <= cycle
     assert rig.x() < 100.0
@@ -136,6 +151,18 @@ def test_a_modbus_limit_switch_during_motion_stops_naming_axis_and_switch(rig: R
     assert "axis x" in err and "limit_x_max" in err and "discrete input 17" in err, err
     assert rig.machine.master.fault is not None  # stopped as a drive's limit switch stops it
     assert rig.x() < 100.0
+    if rig.machine.motion_mode == "own":
+        stop_latency(rig, rig.machine.motion.last_quick_stop, "limit")
+
+
+def stop_latency(rig: Rig, stop: tuple[float, float, int, int] | None, kind: str) -> int:
+    """With the motion in its own process: the quick stop left the motion process within
+    OWN_STOP_CYCLES of the I/O loop acting on the input; the motion process's cycle then."""
+    seen = rig.machine.io_hooks.stop_seen
+    assert stop is not None and seen is not None and seen[0] == kind, (stop, seen)
+    _arrived, sent, _cycle, cycle_after = stop
+    assert 0.0 <= sent - seen[1] < OWN_STOP_CYCLES * rig.machine.T, (sent - seen[1], rig.machine.T)
+    return cycle_after
 
 
 def test_door_opened_mid_program_holds_and_resumes_on_close_and_cycle_start(rig: Rig) -> None:

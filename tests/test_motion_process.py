@@ -81,10 +81,16 @@ def test_own_process_on_the_virtual_bus_is_refused_with_the_key(tmp_path: Path) 
     assert "motion.process" in text and "virtual" in text and "udp_multicast" in text, text
 
 
-def test_own_process_with_modbus_io_is_refused(tmp_path: Path) -> None:
-    extra = '\n[[modbus.devices]]\nname = "io"\nhost = "127.0.0.1"\nport = 1502\n'
-    text = check(write(tmp_path, machine_text("udp_multicast", "239.74.165.1", simulate=True, extra=extra)))
-    assert "motion.process" in text and "Modbus" in text, text
+def test_own_process_with_the_io_map_and_a_touch_probe_is_accepted(tmp_path: Path) -> None:
+    """The Modbus I/O, the I/O map and a drive's touch probe cross the boundary (docs/daemon.md)."""
+    from motiond.config import load_machine
+    from motiond.config_check import validate_machine
+    from motiond.config_motion import motion_process
+
+    path = tmp_path / "own.toml"
+    path.write_text(own_mode((ROOT / "examples" / "canon.toml").read_text()))
+    validate_machine(str(path))
+    assert motion_process(load_machine(str(path))) == "own"
 
 
 def test_an_unknown_process_mode_is_refused(tmp_path: Path) -> None:
@@ -125,6 +131,22 @@ multicast = [pytest.mark.multicast, pytest.mark.timeout(120)]
 
 def group() -> str:
     return f"239.74.166.{1 + os.getpid() % 250}"
+
+
+def own_mode(text: str) -> str:
+    """A machine file's ``text`` (simulated drives on the virtual bus) with the motion in a process of
+    its own: the simulated drives then run in a third process, on udp_multicast (the namespace only),
+    answering SDO within 1 s as this file's machine (a loaded PC, udp_multicast). The thread-mode
+    tests of the I/O map and the probes run their bodies on it too."""
+    lines = [line for line in text.splitlines() if not line.startswith(("interface =", "channel ="))]
+    lines = [line for line in lines if not line.startswith("sdo_timeout_s =")]
+    out = "\n".join(lines).replace("[canopen]\n", f'[canopen]\ninterface = "udp_multicast"\n'
+                                                 f'channel = "{group()}"\nsdo_timeout_s = 1.0\n', 1)
+    return out + '\n[motion]\nprocess = "own"\n'
+
+
+OWN = pytest.param("own", marks=[pytest.mark.multicast, pytest.mark.timeout(180)])
+"""The ``own`` case of a test parametrized over the motion's process mode."""
 
 
 class Bench:
