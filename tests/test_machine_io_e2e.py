@@ -22,10 +22,11 @@ from motiond.states import CommandRefused, State
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "canon.toml"
 """The demo machine's wiring in a file (the motion in its own process needs one: test_motion_process)."""
-OWN_STOP_CYCLES = 5
+OWN_STOP_CYCLES = 50
 """With the motion in its own process: the quick stop of an E-stop input or a limit switch leaves the
-motion process within this many cycles of the task's I/O loop acting on the input (docs/wiring.md:
-measured on the loaded 2-core test PC, worst ~3 ms, median 0.2 ms)."""
+motion process within this many cycles of the task's I/O loop acting on the input. Measured on the
+loaded 2-core test PC (bench/io_stop_latency.py, docs/wiring.md): median 1-2 ms, p90 up to 6 ms, worst
+70 ms in 60 trips (the motion process descheduled); 50 cycles is 100 ms."""
 
 
 class Rig(Recorder):
@@ -119,7 +120,7 @@ def test_estop_input_during_motion_stops_at_once_and_drops_machine_enable(rig: R
     # seen by the next poll, acted on in the next cycle (generous: the PC may be loaded)
     assert t_estop - t_pressed < poll_s + 1.0
     if rig.machine.motion_mode == "own":  # the motion process's cycles: the quick stop's came by pipe
-        cycle = stop_latency(rig, rig.machine.motion.last_estop, "estop")
+        cycle = stop_latency(rig, "last_estop", "estop")
     # no setpoint streamed after the cycle that saw it
     assert max(c for c, _t, _p, _e in rig.machine.trace) <= cycle
     assert rig.x() < 100.0
@@ -152,15 +153,18 @@ def test_a_modbus_limit_switch_during_motion_stops_naming_axis_and_switch(rig: R
     assert rig.machine.master.fault is not None  # stopped as a drive's limit switch stops it
     assert rig.x() < 100.0
     if rig.machine.motion_mode == "own":
-        stop_latency(rig, rig.machine.motion.last_quick_stop, "limit")
+        stop_latency(rig, "last_quick_stop", "limit")
 
 
-def stop_latency(rig: Rig, stop: tuple[float, float, int, int] | None, kind: str) -> int:
-    """With the motion in its own process: the quick stop left the motion process within
-    OWN_STOP_CYCLES of the I/O loop acting on the input; the motion process's cycle then."""
+def stop_latency(rig: Rig, which: str, kind: str) -> int:
+    """With the motion in its own process: the quick stop (``which``: the motion process's record of
+    it, in its states) left the motion process within OWN_STOP_CYCLES of the I/O loop acting on the
+    input; the motion process's cycle then."""
     seen = rig.machine.io_hooks.stop_seen
-    assert stop is not None and seen is not None and seen[0] == kind, (stop, seen)
-    _arrived, sent, _cycle, cycle_after = stop
+    assert seen is not None and seen[0] == kind, seen
+    wait_for(lambda: (getattr(rig.machine.motion, which) or (0.0, 0.0))[1] >= seen[1],
+             f"the motion process's {which} in its state")
+    _arrived, sent, _cycle, cycle_after = getattr(rig.machine.motion, which)
     assert 0.0 <= sent - seen[1] < OWN_STOP_CYCLES * rig.machine.T, (sent - seen[1], rig.machine.T)
     return cycle_after
 

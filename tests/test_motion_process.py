@@ -233,6 +233,24 @@ def test_a_program_runs_through_the_motion_process(rig, tmp_path: Path) -> None:
 
 @pytest.mark.multicast
 @pytest.mark.timeout(120)
+def test_a_program_right_after_an_mdi_line_runs_to_its_end(rig, tmp_path: Path) -> None:
+    """The MDI line's end is told once, for its stream: a late one does not end the next job."""
+    path, _channel, _bench = rig
+    prog = tmp_path / "short.ngc"
+    prog.write_text(SHORT)
+    with own_machine(path) as m:
+        m.bring_up()
+        for x in (1.0, 2.0, 3.0):
+            done = m.wait_job(m.mdi(f"G0 X{x:g}"), 30.0)
+            assert done is not None and done.ok, done
+            wait_for(lambda: m.states.state.value == "idle", 10.0, "IDLE after the MDI line")
+            result = m.wait_job(m.run(str(prog)), 60.0)
+            assert result is not None and result.ok, result
+            assert result.final_commanded == pytest.approx((5.0, 4.0, 2.0), abs=1e-6), result.final_commanded
+
+
+@pytest.mark.multicast
+@pytest.mark.timeout(120)
 def test_estop_on_the_urgent_pipe_stops_the_drives_mid_move(rig, tmp_path: Path) -> None:
     path, _channel, bench = rig
     prog = tmp_path / "long.ngc"

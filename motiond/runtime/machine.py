@@ -247,8 +247,12 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
         if self.motion_mode == "own":
             from motiond.runtime.motion_proxy import MotionProxy
 
+            # the I/O map stays here: what the motion process must know of it
+            io_setup = {"map": not self.io_hooks.empty, "modbus": self.modbus is not None,
+                        "orient_text": self.io_hooks.orient_text()}
             self.motion: Any = MotionProxy(self.limits, canopen, late_fault_s=late_fault_s,
-                                           simulated=self.simulated, hooks=_TaskHooks(self), watch=watch)
+                                           simulated=self.simulated, hooks=_TaskHooks(self), watch=watch,
+                                           io_setup=io_setup)
         else:
             self.motion = MotionCore(self.limits, canopen, late_fault_s=late_fault_s,
                                      simulated=self.simulated, hooks=_TaskHooks(self))
@@ -314,9 +318,6 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
 
                     self.sim_drives.append(sim_spindle(self.canopen.spindle))
                 self.sim_bus = SimBus(self.sim_drives, self.canopen.bus)
-            if self.motion_mode == "own":  # the I/O map stays here: what the motion process must know
-                self.motion.io_setup = {"map": not self.io_hooks.empty, "modbus": self.modbus is not None,
-                                        "orient_text": self.io_hooks.orient_text()}
             try:
                 self.motion.open()
             except CanopenError as exc:

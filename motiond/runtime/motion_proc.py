@@ -8,8 +8,9 @@ thread of its own here so that none waits behind another:
   more than :data:`~motiond.runtime.cycle.QUEUE_MAX` ahead of what the cycle took (``consumed`` in the
   state), so the reader never blocks; items of a generation the task has since dropped are discarded.
 * ``urgent`` (task -> motion): estop, quick_stop, abort, pause, resume, feed_override, jog_stop,
-  post_fault. The quick stop of an E-stop is sent from the reader thread the moment it arrives; the
-  rest is posted to the cycle thread and runs at the start of the next cycle.
+  post_fault, release_wait, spindle_hold, probe_trip (:mod:`motiond.runtime.probing_child`). The quick
+  stop of an E-stop or a quick_stop is sent from the reader thread the moment it arrives; the rest is
+  posted to the cycle thread and runs at the start of the next cycle.
 * ``req`` (both ways): everything else, a reply per request (the value or the exception): the stream
   and planner calls, ``position``, ``drained``, and the master's SDO calls of the service operations
   (enable, disable, home, boot, reset_faults), which run on a worker thread so that a homing does not
@@ -97,6 +98,7 @@ class ChildHooks:
         self.prime: list[C.Canon] = []
         self.waits: tuple[type[C.Canon], ...] = ()
         self.io_map = False  # the task has an I/O map: the spindle and coolant events go to it
+        self.done_for = -1  # the stream whose stream_done was posted
 
     def _post(self, name: str, *args: Any, **kw: Any) -> None:
         core = self.s.core
@@ -117,7 +119,12 @@ class ChildHooks:
         self._post("cancel_stream", error, aborted)
 
     def stream_done(self) -> None:
-        self._post("stream_done")
+        """Posted once per stream, with its id: the cycle calls it every cycle until the task's
+        ``end_stream`` arrives, and a late one must not end the task's next job."""
+        sid = self.s.stream_id
+        if self.done_for != sid:
+            self.done_for = sid
+            self._post("stream_done", sid)
 
     def aborted(self) -> None:
         self._post("aborted")

@@ -119,7 +119,8 @@ class MotionProxy:
     """The motion side's interface over the process boundary (module docstring)."""
 
     def __init__(self, limits: Any, canopen: Any, *, late_fault_s: float, simulated: bool,
-                 hooks: MotionHooks, watch: Watch | None = None) -> None:
+                 hooks: MotionHooks, watch: Watch | None = None,
+                 io_setup: dict[str, Any] | None = None) -> None:
         self.watch = watch or Watch()
         self._last_state = 0.0  # monotonic: when the newest state arrived (0: none yet)
         self.silent = ""  # why the watch tripped ("" it did not, or the states run again)
@@ -131,7 +132,7 @@ class MotionProxy:
         self.n = len(limits.names)
         self.master: Any = None
         self.io: Any = None  # the task's IoExecutor (Machine sets it), None without Modbus
-        self.io_setup: dict[str, Any] = {}
+        self.io_setup: dict[str, Any] = io_setup or {}
         """For the motion process at open: ``map`` (an I/O map), ``modbus`` (Modbus outputs),
         ``orient_text`` (:meth:`~motiond.io_hooks.IoHooks.orient_text`)."""
         self.probe_client: Any = None  # G38.x (motiond.runtime.probing_proxy), None: no probe
@@ -290,6 +291,9 @@ class MotionProxy:
         """``canon-hooks``: one hook of the motion process."""
         if name == "io_event":  # the job's record here (its outputs: the run summary)
             self.hooks.io_event(args[0], self.stream)
+        elif name == "stream_done":  # of the stream it names: a late one does not end the next job
+            if args[0] == self._stream_id and self.stream is not None:
+                self.hooks.stream_done()
         elif name == "io_setpoint":
             if self.io is not None:
                 self.io.on_setpoint(_Events(tuple(args[0])))
