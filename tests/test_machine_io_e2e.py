@@ -107,6 +107,20 @@ def test_m8_m9_switch_the_coolant_coil(rig: Rig) -> None:
     assert names == [("coolant_flood", 1.0, 3), ("coolant_flood", 0.0, 5)]
 
 
+def test_m62_m63_ride_on_the_next_move_and_switch_their_coil(rig: Rig) -> None:
+    """The synchronized outputs go out with their setpoint (with the motion in its own process: as a
+    hook in order with its cycle's state, the Modbus worker being the task's)."""
+    n = after_start(rig)
+    job = rig.machine.run(rig.program("%\nG21 G90 G94\nM62 P0\nG1 X2 F3000\nM63 P0\nG1 X3\nM2\n%\n"))
+    result = rig.machine.wait_job(job, 30.0)
+    assert result is not None and result.ok, result.error if result else "timeout"
+    t_on = first_write(rig, "coil", 0, 1, n)
+    t_off = first_write(rig, "coil", 0, 0, n)
+    assert t_on < t_off
+    digital = [(o.index, o.value, o.line) for o in result.outputs if o.kind == "digital"]
+    assert digital == [(0, 1.0, 3), (0, 0.0, 5)], digital
+
+
 def test_estop_input_during_motion_stops_at_once_and_drops_machine_enable(rig: Rig) -> None:
     wait_for(lambda: rig.sim.get("coil", 8) == 1, "machine enable on once enabled")
     n = len(rig.sim.writes)
