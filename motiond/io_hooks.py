@@ -18,6 +18,11 @@ side calls them through its ``MotionHooks``: ``io_cycle``, ``io_event``, ``io_wa
 * :meth:`IoHooks.stopped`: E-stop, fault or abort: the wait is gone; on E-stop and fault the spindle,
   coolant and machine enable are switched off.
 
+With the motion in its own process (``[motion] process = "own"``) these run in the task process all
+the same: :meth:`IoHooks.cycle` on the ``canon-io`` thread (:mod:`motiond.runtime.io_loop`) from the
+motion process's states, :meth:`IoHooks.on_event` and :meth:`IoHooks.on_wait` on the ``canon-hooks``
+thread as the motion process posts them; what they do to the motion goes down the urgent pipe.
+
 The door (``door_open``) opened on a running program holds the motion (feed hold, as the command) and
 stops the spindle and the coolant (their outputs off; a spindle drive to speed 0), as a machine
 builder's door interlock does. Once it is closed, cycle start restores them as they were and the
