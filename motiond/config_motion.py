@@ -8,8 +8,8 @@ talks to it through :class:`~motiond.runtime.motion_proxy.MotionProxy`.
 "own" needs a bus that reaches across processes (socketcan, or udp_multicast for simulated drives in
 another process): python-can's ``virtual`` channels exist only inside one process, so the drives
 simulated there could not be reached from the motion process. The Modbus I/O (``[modbus]``, the
-``[io]`` map) and a drive's touch probe are not carried across the boundary yet: they are refused with
-"own" rather than half working.
+``[io]`` map) stays in the task process (:mod:`motiond.runtime.io_loop`); a drive's touch probe and
+the probe input cross as requests and urgent messages (docs/daemon.md).
 
 The liveness watch of the two processes (``task_timeout_ms``, ``motion_timeout_ms``, "own" only):
 :class:`Watch`.
@@ -68,14 +68,6 @@ def motion_settings(config: MachineConfig, canopen: Any = None) -> tuple[str, Wa
         raise t.error("process", '"own" needs a bus that crosses processes ([canopen] interface = '
                       '"socketcan", or "udp_multicast" for simulated drives): python-can\'s virtual '
                       'bus exists inside one process only')
-    for key in ("modbus", "io"):
-        if key in root.data:
-            raise t.error("process", f'"own" does not carry the Modbus I/O ([{key}]) across the process '
-                          'boundary yet: use process = "thread" on this machine')
-    probes = [d.axis for d in canopen.drives if getattr(d, "touch_probe", 0)]
-    if probes:
-        raise t.error("process", f'"own" does not carry a drive\'s touch probe (axis {probes[0]}) across '
-                      'the process boundary yet: use process = "thread" on this machine')
     return mode, watch
 
 

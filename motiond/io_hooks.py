@@ -19,6 +19,11 @@ side calls them through its ``MotionHooks``: ``io_cycle``, ``io_event``, ``io_wa
 * :meth:`IoHooks.stopped`: E-stop, fault or abort: the wait is gone; on E-stop and fault the spindle,
   coolant and machine enable are switched off.
 
+With the motion in its own process (``[motion] process = "own"``) these run in the task process all
+the same: :meth:`IoHooks.cycle` on the ``canon-io`` thread (:mod:`motiond.runtime.io_loop`) from the
+motion process's states, :meth:`IoHooks.on_event` and :meth:`IoHooks.on_wait` on the ``canon-hooks``
+thread as the motion process posts them; what they do to the motion goes down the urgent pipe.
+
 The door (``door_open``) opened on a running program holds the motion (feed hold, as the command) and
 stops the spindle and the coolant (their outputs off; a spindle drive to speed 0), as a machine
 builder's door interlock does. Once it is closed, cycle start restores them as they were and the
@@ -63,6 +68,8 @@ class IoHooks:
         self.mio = MachineIO(io, None, tuple(machine.names), self._drive_out)
         self._door_held = False  # the door stopped the spindle and coolant (restored on cycle start)
         self._resume_at: float | None = None  # cycle start after the door: resume once at speed, by then
+        self.stop_seen: tuple[str, float] | None = None
+        """The last E-stop or limit switch acted on: its kind and when (monotonic), for the latency."""
 
     def start(self, executor: Any) -> None:
         """The Modbus executor is up: the functions on Modbus points can be read and written."""
@@ -112,6 +119,8 @@ class IoHooks:
 
     def _act(self, act: Any) -> None:
         m = self.m
+        if act.kind in (ESTOP, LIMIT):
+            self.stop_seen = (act.kind, time.monotonic())
         if act.kind == ESTOP:
             m.estop(act.reason)
         elif act.kind == LIMIT:  # as a drive's limit switch: every drive quick-stopped now, then FAULTED

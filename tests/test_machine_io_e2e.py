@@ -13,19 +13,33 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from test_motion_process import OWN, own_mode
 from test_run_from_line import Recorder, wait_for
 
 from motiond.config import load_machine
 from motiond.runtime import Machine
 from motiond.states import CommandRefused, State
 
+EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "canon.toml"
+"""The demo machine's wiring in a file (the motion in its own process needs one: test_motion_process)."""
+OWN_STOP_CYCLES = 50
+"""With the motion in its own process: the quick stop of an E-stop input or a limit switch leaves the
+motion process within this many cycles of the task's I/O loop acting on the input. Measured on the
+loaded 2-core test PC (bench/io_stop_latency.py, docs/wiring.md): median 1-2 ms, p90 up to 6 ms, worst
+70 ms in 60 trips (the motion process descheduled); 50 cycles is 100 ms."""
+
 
 class Rig(Recorder):
     """test_run_from_line's started, enabled demo machine, with its setpoints traced and the cycle of
-    every state change kept."""
+    every state change kept. ``own``: the same wiring with the motion in a process of its own."""
 
-    def __init__(self, tmp: Path) -> None:
-        super().__init__(tmp)
+    def __init__(self, tmp: Path, own: bool = False) -> None:
+        if own:
+            path = tmp / "own.toml"
+            path.write_text(own_mode(EXAMPLE.read_text()))
+            super().__init__(tmp, str(path), modbus_port=0)
+        else:
+            super().__init__(tmp)
         self.tmp = tmp
         self.machine.trace = []
         self.state_cycles: list[tuple[State, int, float]] = []
@@ -42,9 +56,9 @@ class Rig(Recorder):
         return self.machine.motion.commanded[0]
 
 
-@pytest.fixture
-def rig(tmp_path: Path) -> Iterator[Rig]:
-    r = Rig(tmp_path)
+@pytest.fixture(params=["thread", OWN])
+def rig(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Rig]:
+    r = Rig(tmp_path, own=request.param == "own")
     try:
         yield r
     finally:
@@ -93,6 +107,20 @@ def test_m8_m9_switch_the_coolant_coil(rig: Rig) -> None:
     assert names == [("coolant_flood", 1.0, 3), ("coolant_flood", 0.0, 5)]
 
 
+def test_m62_m63_ride_on_the_next_move_and_switch_their_coil(rig: Rig) -> None:
+    """The synchronized outputs go out with their setpoint (with the motion in its own process: as a
+    hook in order with its cycle's state, the Modbus worker being the task's)."""
+    n = after_start(rig)
+    job = rig.machine.run(rig.program("%\nG21 G90 G94\nM62 P0\nG1 X2 F3000\nM63 P0\nG1 X3\nM2\n%\n"))
+    result = rig.machine.wait_job(job, 30.0)
+    assert result is not None and result.ok, result.error if result else "timeout"
+    t_on = first_write(rig, "coil", 0, 1, n)
+    t_off = first_write(rig, "coil", 0, 0, n)
+    assert t_on < t_off
+    digital = [(o.index, o.value, o.line) for o in result.outputs if o.kind == "digital"]
+    assert digital == [(0, 1.0, 3), (0, 0.0, 5)], digital
+
+
 def test_estop_input_during_motion_stops_at_once_and_drops_machine_enable(rig: Rig) -> None:
     wait_for(lambda: rig.sim.get("coil", 8) == 1, "machine enable on once enabled")
     n = len(rig.sim.writes)
@@ -105,6 +133,8 @@ def test_estop_input_during_motion_stops_at_once_and_drops_machine_enable(rig: R
     poll_s = rig.machine.modbus.devices[0].poll_ms / 1000.0
     # seen by the next poll, acted on in the next cycle (generous: the PC may be loaded)
     assert t_estop - t_pressed < poll_s + 1.0
+    if rig.machine.motion_mode == "own":  # the motion process's cycles: the quick stop's came by pipe
+        cycle = stop_latency(rig, "last_estop", "estop")
     # no setpoint streamed after the cycle that saw it
     assert max(c for c, _t, _p, _e in rig.machine.trace) <= cycle
     assert rig.x() < 100.0
@@ -136,6 +166,21 @@ def test_a_modbus_limit_switch_during_motion_stops_naming_axis_and_switch(rig: R
     assert "axis x" in err and "limit_x_max" in err and "discrete input 17" in err, err
     assert rig.machine.master.fault is not None  # stopped as a drive's limit switch stops it
     assert rig.x() < 100.0
+    if rig.machine.motion_mode == "own":
+        stop_latency(rig, "last_quick_stop", "limit")
+
+
+def stop_latency(rig: Rig, which: str, kind: str) -> int:
+    """With the motion in its own process: the quick stop (``which``: the motion process's record of
+    it, in its states) left the motion process within OWN_STOP_CYCLES of the I/O loop acting on the
+    input; the motion process's cycle then."""
+    seen = rig.machine.io_hooks.stop_seen
+    assert seen is not None and seen[0] == kind, seen
+    wait_for(lambda: (getattr(rig.machine.motion, which) or (0.0, 0.0))[1] >= seen[1],
+             f"the motion process's {which} in its state")
+    _arrived, sent, _cycle, cycle_after = getattr(rig.machine.motion, which)
+    assert 0.0 <= sent - seen[1] < OWN_STOP_CYCLES * rig.machine.T, (sent - seen[1], rig.machine.T)
+    return cycle_after
 
 
 def test_door_opened_mid_program_holds_and_resumes_on_close_and_cycle_start(rig: Rig) -> None:

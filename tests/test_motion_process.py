@@ -81,10 +81,16 @@ def test_own_process_on_the_virtual_bus_is_refused_with_the_key(tmp_path: Path) 
     assert "motion.process" in text and "virtual" in text and "udp_multicast" in text, text
 
 
-def test_own_process_with_modbus_io_is_refused(tmp_path: Path) -> None:
-    extra = '\n[[modbus.devices]]\nname = "io"\nhost = "127.0.0.1"\nport = 1502\n'
-    text = check(write(tmp_path, machine_text("udp_multicast", "239.74.165.1", simulate=True, extra=extra)))
-    assert "motion.process" in text and "Modbus" in text, text
+def test_own_process_with_the_io_map_and_a_touch_probe_is_accepted(tmp_path: Path) -> None:
+    """The Modbus I/O, the I/O map and a drive's touch probe cross the boundary (docs/daemon.md)."""
+    from motiond.config import load_machine
+    from motiond.config_check import validate_machine
+    from motiond.config_motion import motion_process
+
+    path = tmp_path / "own.toml"
+    path.write_text(own_mode((ROOT / "examples" / "canon.toml").read_text()))
+    validate_machine(str(path))
+    assert motion_process(load_machine(str(path))) == "own"
 
 
 def test_an_unknown_process_mode_is_refused(tmp_path: Path) -> None:
@@ -148,6 +154,22 @@ multicast = [pytest.mark.multicast, pytest.mark.timeout(120)]
 
 def group() -> str:
     return f"239.74.166.{1 + os.getpid() % 250}"
+
+
+def own_mode(text: str) -> str:
+    """A machine file's ``text`` (simulated drives on the virtual bus) with the motion in a process of
+    its own: the simulated drives then run in a third process, on udp_multicast (the namespace only),
+    answering SDO within 1 s as this file's machine (a loaded PC, udp_multicast). The thread-mode
+    tests of the I/O map and the probes run their bodies on it too."""
+    lines = [line for line in text.splitlines() if not line.startswith(("interface =", "channel ="))]
+    lines = [line for line in lines if not line.startswith("sdo_timeout_s =")]
+    out = "\n".join(lines).replace("[canopen]\n", f'[canopen]\ninterface = "udp_multicast"\n'
+                                                 f'channel = "{group()}"\nsdo_timeout_s = 1.0\n', 1)
+    return out + '\n[motion]\nprocess = "own"\n'
+
+
+OWN = pytest.param("own", marks=[pytest.mark.multicast, pytest.mark.timeout(180)])
+"""The ``own`` case of a test parametrized over the motion's process mode."""
 
 
 class Bench:
@@ -230,6 +252,24 @@ def test_a_program_runs_through_the_motion_process(rig, tmp_path: Path) -> None:
         wait_for(lambda: all(abs(a - c) < 0.01 for a, c in zip(m.motion.actual, (5.0, 4.0, 2.0),
                                                                   strict=True)), 5.0, "drives at the end")
         assert bench.states() == [State.OPERATION_ENABLED] * 3
+
+
+@pytest.mark.multicast
+@pytest.mark.timeout(120)
+def test_a_program_right_after_an_mdi_line_runs_to_its_end(rig, tmp_path: Path) -> None:
+    """The MDI line's end is told once, for its stream: a late one does not end the next job."""
+    path, _channel, _bench = rig
+    prog = tmp_path / "short.ngc"
+    prog.write_text(SHORT)
+    with own_machine(path) as m:
+        m.bring_up()
+        for x in (1.0, 2.0, 3.0):
+            done = m.wait_job(m.mdi(f"G0 X{x:g}"), 30.0)
+            assert done is not None and done.ok, done
+            wait_for(lambda: m.states.state.value == "idle", 10.0, "IDLE after the MDI line")
+            result = m.wait_job(m.run(str(prog)), 60.0)
+            assert result is not None and result.ok, result
+            assert result.final_commanded == pytest.approx((5.0, 4.0, 2.0), abs=1e-6), result.final_commanded
 
 
 @pytest.mark.multicast

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 from test_machine_io import load
+from test_motion_process import OWN, own_mode
 from test_run_from_line import wait_for
 
 from motiond.config import load_machine
@@ -48,10 +49,11 @@ probe_z = {TRIP_Z}
 """
 
 
-@pytest.fixture
-def machine(tmp_path: Path) -> Iterator[Machine]:
+@pytest.fixture(params=["thread", OWN])
+def machine(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Machine]:
+    """The probe machine, its motion in the canon process or (``own``) in one of its own."""
     f = tmp_path / "m.toml"
-    f.write_text(MACHINE)
+    f.write_text(own_mode(MACHINE) if request.param == "own" else MACHINE)
     m = Machine(load_machine(str(f)), lc=None, var_file=tmp_path / "p.var", modbus_port=0).start()
     try:
         m.bring_up()
@@ -106,6 +108,10 @@ def test_g38_2_stops_at_the_modbus_probe_and_stores_the_commanded_point(machine:
     assert TRIP_Z - bound <= z <= TRIP_Z + 1e-9, (z, bound)
     # it is the commanded position of a cycle
     assert any(abs(pos[1] - z) < 1e-12 for _c, _t, pos, _e in machine.trace), z
+    if machine.motion_mode == "own":  # the time the task saw it crossed: the cycle running then
+        seen = machine.motion.probe_client.seen_at
+        at_seen = [pos[1] for _c, t, pos, _e in machine.trace if t <= seen]
+        assert at_seen and abs(z - at_seen[-1]) <= v * machine.T + 1e-9, (z, at_seen[-1:], v * machine.T)
     assert machine.interp.parameter(2) == 1.0
     # the move was stopped (jerk-limited) near the trip, far from the programmed end
     assert machine.motion.commanded[1] > -1.5, machine.motion.commanded

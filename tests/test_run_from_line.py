@@ -58,8 +58,8 @@ TOL = 1e-6
 class Recorder:
     """A started, enabled demo machine whose events are kept as (severity, text, kind, file, line)."""
 
-    def __init__(self, tmp: Path) -> None:
-        self.machine = Machine(load_machine(None), lc=None, var_file=tmp / "params.var")
+    def __init__(self, tmp: Path, config: str | None = None, **kw: Any) -> None:
+        self.machine = Machine(load_machine(config), lc=None, var_file=tmp / "params.var", **kw)
         self.events: list[tuple[str, str, str, str, int]] = []
         emit = self.machine.event
 
@@ -69,8 +69,12 @@ class Recorder:
             emit(severity, text, kind=kind, source=source, file=file, line=line)
 
         self.machine.event = event  # type: ignore[method-assign]
-        self.machine.start()
-        self.machine.bring_up()
+        try:
+            self.machine.start()
+            self.machine.bring_up()
+        except BaseException:  # no fixture will shut it down: its processes and threads must not outlive it
+            self.machine.shutdown()
+            raise
 
     def kinds(self, kind: str) -> list[tuple[str, str, str, str, int]]:
         return [e for e in self.events if e[2] == kind]

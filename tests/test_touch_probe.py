@@ -9,6 +9,7 @@ from typing import Any
 
 import pytest
 from canopen_helpers import Rig, make_config, wait_for
+from test_motion_process import own_mode
 
 from fieldbus.canopen.drive_sim import SimDrive
 from fieldbus.canopen.master import CanopenError
@@ -108,6 +109,8 @@ node_id = 1
 node_id = 2
 {probe}
 """
+OWN_PROBE = pytest.param({"own": True}, marks=[pytest.mark.multicast, pytest.mark.timeout(180)])
+"""The probe machine with the motion in a process of its own (test_motion_process.own_mode)."""
 HEIGHT = -3.21237  # the surface the probe touches, mm: between two cycles' positions at any feed here
 
 
@@ -132,7 +135,11 @@ def machine(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Any]:
     from motiond.config import load_machine
     from motiond.runtime import Machine
 
-    path = machine_file(tmp_path, z_table(**getattr(request, "param", {})))
+    param = dict(getattr(request, "param", {}))
+    own = param.pop("own", False)  # the motion in a process of its own (the touch probe crosses)
+    path = machine_file(tmp_path, z_table(**param))
+    if own:
+        path.write_text(own_mode(path.read_text()))
     m = Machine(load_machine(str(path)), lc=None, var_file=tmp_path / "p.var").start()
     try:
         m.bring_up()
@@ -152,8 +159,8 @@ def run(m: Any, tmp_path: Path, text: str) -> Any:
     return result
 
 
-@pytest.mark.parametrize("machine", [{}, {"direction": -1}, {"probe": 2, "level_bit": 15}], indirect=True,
-                         ids=["z up", "z counts down", "touch probe 2"])
+@pytest.mark.parametrize("machine", [{}, {"direction": -1}, {"probe": 2, "level_bit": 15}, OWN_PROBE],
+                         indirect=True, ids=["z up", "z counts down", "touch probe 2", "own process"])
 def test_g38_2_stops_at_the_surface_and_stores_the_latched_height(machine: Any, tmp_path: Path) -> None:
     m = machine
     m.trace = []  # (cycle, time, setpoint, events) of every cycle
@@ -166,7 +173,7 @@ def test_g38_2_stops_at_the_surface_and_stores_the_latched_height(machine: Any, 
     assert m.interp.parameter(5070) == 1.0
     # X on the probing line where Z touched: X2 + (Z travelled / 10) * 2
     assert m.interp.parameter(1) == pytest.approx(2 + 2 * (-z / 10.0), abs=1e-6)
-    assert m.planner.position[1] == pytest.approx(z + 2, abs=1e-9)  # #5063 in the next line
+    assert m.motion.position()[1] == pytest.approx(z + 2, abs=1e-9)  # #5063 in the next line
     lowest = min(positions[1] for _, _, positions, _ in m.trace)
     assert HEIGHT - 0.5 < lowest < HEIGHT  # stopped past the surface (a jerk-limited stop), not at Z-10
 
@@ -189,6 +196,7 @@ def test_g38_3_without_contact_goes_on_and_g38_2_without_contact_is_an_error(mac
     assert "p.ngc:4:" in result.error and "without making contact" in result.error
 
 
+@pytest.mark.parametrize("machine", [{}, OWN_PROBE], indirect=True, ids=["thread", "own process"])
 @pytest.mark.parametrize("code, start, state", [("G38.2", -4, "tripped (in contact)"),
                                                 ("G38.4", 0, "clear (out of contact)")])
 def test_g38_2_and_g38_4_with_the_probe_already_in_that_state_are_errors(machine: Any, tmp_path: Path,
@@ -207,6 +215,7 @@ def test_g38_2_and_g38_4_with_the_probe_already_in_that_state_are_errors(machine
     assert m.motion.position()[1] == pytest.approx(start, abs=1e-3)
 
 
+@pytest.mark.parametrize("machine", [{}, OWN_PROBE], indirect=True, ids=["thread", "own process"])
 @pytest.mark.parametrize("code, start, end", [("G38.3", -4.0, -10), ("G38.5", 0.0, 5)])
 def test_g38_3_and_g38_5_with_the_probe_already_in_that_state_trip_where_the_machine_stands(
         machine: Any, tmp_path: Path, code: str, start: float, end: float) -> None:
@@ -296,6 +305,7 @@ def test_a_trip_during_a_feed_hold_leaves_the_planner_holding() -> None:
     probe = SimpleNamespace(drive=drive, tripped=False)
     m = SimpleNamespace(limits=SimpleNamespace(pose_index=(2,)), master=SimpleNamespace(drives=[drive]),
                         _sync_cond=threading.Condition(), _sync_reached=None)
+    m._sync_point_reached = lambda w: setattr(m, "_sync_reached", w)
     dp = DriveProbing(m, probe)  # type: ignore[arg-type]
     cmd = Probe(Pose(0, 0, -5), ProbeMode.TOWARD_ERROR)
     dp._armed = cmd

@@ -321,9 +321,14 @@ class Cycle:
         elif self.stream is not None and self.stream.answered_ahead:
             p.release()  # MDI: the job answered this M66 or probe before it queued it: nobody waits
         else:  # M66, probe: the job thread is waiting for this
-            with self._sync_cond:
-                self._sync_reached = w
-                self._sync_cond.notify_all()
+            self._sync_point_reached(w)
+
+    def _sync_point_reached(self, w: Any) -> None:
+        """Cycle thread: the planner stands at ``w`` (an M66, a probe's end or its stop): the job thread
+        waiting for it wakes."""
+        with self._sync_cond:
+            self._sync_reached = w
+            self._sync_cond.notify_all()
 
     def _at_rest(self) -> None:
         """Cycle thread, planner idle: finish an abort, a fault's stop, a job."""

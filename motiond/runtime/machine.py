@@ -253,13 +253,18 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
         if self.motion_mode == "own":
             from motiond.runtime.motion_proxy import MotionProxy
 
+            # the I/O map stays here: what the motion process must know of it
+            io_setup = {"map": not self.io_hooks.empty, "modbus": self.modbus is not None,
+                        "orient_text": self.io_hooks.orient_text()}
             self.motion: Any = MotionProxy(self.limits, canopen, late_fault_s=late_fault_s,
-                                           simulated=self.simulated, hooks=_TaskHooks(self), watch=watch)
+                                           simulated=self.simulated, hooks=_TaskHooks(self), watch=watch,
+                                           io_setup=io_setup)
         else:
             self.motion = MotionCore(self.limits, canopen, late_fault_s=late_fault_s,
                                      simulated=self.simulated, hooks=_TaskHooks(self))
         self.sim_bus: Any = None
         self.sim_drives: list[Any] = []
+        self.io_loop: Any = None  # "own": the I/O map's cycle in this process (motiond.runtime.io_loop)
         self.io = None
         self.sim_io: dict[str, Any] = {}
         self._job: Job | None = None
@@ -328,9 +333,16 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
                                    f"{self.canopen.bus.channel!r}: {exc}") from None
             if self.modbus is not None:
                 self._start_io()
-            if "probe" in self.io_hooks.map.functions and self.motion_mode != "own":
+            if "probe" in self.io_hooks.map.functions:
                 self.motion.use_probe_input(self.io_hooks.mio)  # G38.x on the I/O map's probe input
             self.motion.start_cycle()
+            probe = getattr(self.motion, "probe_client", None)
+            probe = probe if probe is not None and probe.mio is not None else None
+            if self.motion_mode == "own" and (not self.io_hooks.empty or probe is not None):
+                from motiond.runtime.io_loop import IoLoop
+
+                self.io_loop = IoLoop(self, probe)
+                self.io_loop.start()
             self._service_closed = False
             self._service_thread = threading.Thread(target=self._service_main, name="canon-service",
                                                     daemon=True)
@@ -398,6 +410,9 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
                 self._disable_drives()
             except Exception:
                 log.exception("disabling the drives at shutdown")
+        if self.io_loop is not None:
+            self.io_loop.stop()
+            self.io_loop = None
         self.motion.stop_cycle()
         if self.io is not None:
             try:

@@ -29,8 +29,8 @@ In (task -> motion)
     stopped and back), :meth:`~MotionCore.spindle_at_speed`; and the manual ones, :meth:`~MotionCore.jog`,
     :meth:`~MotionCore.jog_stop`.
   * :meth:`~MotionCore.use_probe_input`: G38.x on the I/O map's probe input where no drive has a
-    touch probe (:mod:`motiond.runtime.probing_io`; not with ``[motion] process = "own"``, which has no
-    Modbus I/O).
+    touch probe (:mod:`motiond.runtime.probing_io`; with ``[motion] process = "own"`` the input is read
+    in the task process: :mod:`motiond.runtime.probing_proxy`).
   * control of the stream: ``hold_stream`` (the drives get no setpoint: a service operation talks to
     them), ``optional_stop``, :meth:`~MotionCore.new_planner`, :meth:`~MotionCore.drop_planner`,
     :meth:`~MotionCore.release_wait`, :meth:`~MotionCore.post_fault`, :meth:`~MotionCore.clear_fault`,
@@ -51,7 +51,8 @@ Out (motion -> task)
     ``io_cycle`` at the start of each cycle with the drives' 0x60FD inputs and the velocities,
     ``io_event`` per setpoint event, ``io_wait`` at a sync point, ``planner_waits``, ``orient_text``).
     The Modbus executor (``io``) is the motion side's too: the I/O map's outputs go out from the cycle
-    thread, never waiting on the network.
+    thread, never waiting on the network (with ``[motion] process = "own"`` it stays in the task
+    process, and these hooks cross the boundary: :mod:`motiond.runtime.io_loop`).
   * :meth:`~MotionCore.wait_sync_point`: the job thread waits until the planner stands at an M66 or
     a probe; with a drive's touch probe (``has_touch_probe``) :meth:`~MotionCore.probe` instead: the
     probing move's end or its trip, and the probed point (:class:`~motiond.runtime.probing.Probed`).

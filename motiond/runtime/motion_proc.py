@@ -8,8 +8,9 @@ thread of its own here so that none waits behind another:
   more than :data:`~motiond.runtime.cycle.QUEUE_MAX` ahead of what the cycle took (``consumed`` in the
   state), so the reader never blocks; items of a generation the task has since dropped are discarded.
 * ``urgent`` (task -> motion): estop, quick_stop, abort, pause, resume, feed_override, jog_stop,
-  post_fault. The quick stop of an E-stop is sent from the reader thread the moment it arrives; the
-  rest is posted to the cycle thread and runs at the start of the next cycle.
+  post_fault, release_wait, spindle_hold, probe_trip (:mod:`motiond.runtime.probing_child`). The quick
+  stop of an E-stop or a quick_stop is sent from the reader thread the moment it arrives; the rest is
+  posted to the cycle thread and runs at the start of the next cycle.
 * ``req`` (both ways): everything else, a reply per request (the value or the exception): the stream
   and planner calls, ``position``, ``drained``, and the master's SDO calls of the service operations
   (enable, disable, home, boot, reset_faults), which run on a worker thread so that a homing does not
@@ -53,6 +54,7 @@ from typing import Any
 from gcode_canon import commands as C
 from motiond.runtime.cycle import END
 from motiond.runtime.motion import MotionCore
+from motiond.runtime.probing_child import ProbeServer
 from motiond.runtime.records import Stream
 
 log = logging.getLogger(__name__)
@@ -84,14 +86,20 @@ class _CountingQueue(queue.Queue):  # type: ignore[type-arg]
         return super()._get()
 
 
+IO_EVENTS = (C.SpindleOn, C.SpindleOff, C.SpindleOrient, C.SetSpindleSpeed, C.Coolant)
+"""The setpoint events the task's I/O map switches outputs for (``io_event``)."""
+
+
 class ChildHooks:
     """:class:`~motiond.runtime.motion.MotionHooks` in the motion process: posted to the task; the
-    ones with a value answer from what the task pushed ahead (``prime``, ``waits``)."""
+    ones with a value answer from what the task pushed ahead (``prime``, ``waits``, ``io_map``)."""
 
     def __init__(self, server: MotionServer) -> None:
         self.s = server
         self.prime: list[C.Canon] = []
         self.waits: tuple[type[C.Canon], ...] = ()
+        self.io_map = False  # the task has an I/O map: the spindle and coolant events go to it
+        self.done_for = -1  # the stream whose stream_done was posted
 
     def _post(self, name: str, *args: Any, **kw: Any) -> None:
         core = self.s.core
@@ -112,7 +120,12 @@ class ChildHooks:
         self._post("cancel_stream", error, aborted)
 
     def stream_done(self) -> None:
-        self._post("stream_done")
+        """Posted once per stream, with its id: the cycle calls it every cycle until the task's
+        ``end_stream`` arrives, and a late one must not end the task's next job."""
+        sid = self.s.stream_id
+        if self.done_for != sid:
+            self.done_for = sid
+            self._post("stream_done", sid)
 
     def aborted(self) -> None:
         self._post("aborted")
@@ -130,16 +143,39 @@ class ChildHooks:
         return self.waits
 
     def io_cycle(self, drive_inputs: tuple[int, ...], velocity: tuple[float, ...]) -> None:
-        pass  # no I/O map in "own" mode (motiond.config_motion refuses one)
+        pass  # the task's I/O loop does it (motiond.runtime.io_loop), from the states sent there
 
     def io_event(self, ev: C.Canon, stream: Any) -> None:
-        pass
+        if self.io_map and isinstance(ev, IO_EVENTS):
+            self._post("io_event", ev)  # in order with the state of its cycle (MotionServer._out)
 
     def io_wait(self, w: C.Canon) -> bool:
+        """The task's I/O map completes the sync points of the types it gave (``waits``): it is told,
+        the planner stays at rest until its release comes down the urgent pipe."""
+        if isinstance(w, self.waits):
+            self._post("io_wait", w)
+            return True
         return False
 
     def orient_text(self) -> str:
-        return ""
+        return self.s.orient_text
+
+
+class TaskIo:
+    """``core.io`` in the motion process when the task holds the Modbus I/O: the synchronized outputs
+    (M62-M63, M67) riding on a setpoint go to the task as a hook, in order with its state (the task
+    checked them before sending them: ``check`` has nothing to add)."""
+
+    def __init__(self, hooks: ChildHooks) -> None:
+        self.hooks = hooks
+
+    def check(self, cmd: C.Canon) -> str | None:
+        return None
+
+    def on_setpoint(self, sp: Any) -> None:
+        events = [ev for ev in sp.events if isinstance(ev, C.DigitalOutput | C.AnalogOutput)]
+        if events:
+            self.hooks._post("io_setpoint", events)
 
 
 class ChildCore(MotionCore):
@@ -148,13 +184,12 @@ class ChildCore(MotionCore):
     sync_seq = 0
     seq_of: dict[int, tuple[Any, int]]
 
-    def _on_wait(self, w: Any) -> None:
-        super()._on_wait(w)
-        if self._sync_reached is w:
-            entry = self.seq_of.pop(id(w), None)
-            if entry is not None:
-                self.sync_seq = entry[1]
-                self.server.wake.set()
+    def _sync_point_reached(self, w: Any) -> None:
+        super()._sync_point_reached(w)
+        entry = self.seq_of.pop(id(w), None)
+        if entry is not None:
+            self.sync_seq = entry[1]
+            self.server.wake.set()
 
 
 class MotionServer:
@@ -175,6 +210,9 @@ class MotionServer:
         self.hooks = ChildHooks(self)
         core = ChildCore(limits, canopen, late_fault_s=late_fault_s, simulated=simulated, hooks=self.hooks)
         core.seq_of = {}
+        self.orient_text = ""  # the task's I/O map's words for M19 (ChildHooks.orient_text)
+        self.probes = ProbeServer(core)
+        self.trace_on = False
         core.server = self  # type: ignore[attr-defined]
         core._cmdq = _CountingQueue()  # bounded by the task's credit, never blocks the reader
         self.core = core
@@ -186,6 +224,8 @@ class MotionServer:
         self.stream_id = 0
         self.last_estop: tuple[float, float, int, int] | None = None
         """The last E-stop: when it arrived, when its quick stop was sent (monotonic), the cycle then."""
+        self.last_quick_stop: tuple[float, float, int, int] | None = None
+        """The same for the last quick stop (a limit switch of the task's I/O map, the task's watch)."""
         self.alive = True
         self.send_lock = threading.Lock()
         self.fence_lock = threading.Lock()
@@ -225,6 +265,8 @@ class MotionServer:
                         item = END
                     elif isinstance(item, SYNC_TYPES):
                         core.seq_of[id(item)] = (item, seq)
+                        if isinstance(item, C.Probe):
+                            self.probes.adopt(item)
                     core._cmdq.put(item)
 
     # ------------------------------------------------------------------ urgent calls
@@ -250,8 +292,13 @@ class MotionServer:
                 elif name == "post_fault":
                     core.post_fault(*args)
                 elif name == "quick_stop":
+                    arrived, cycle = time.monotonic(), core.cycle
                     core.quick_stop(*args)
-                else:  # abort, pause, resume, feed_override, jog_stop: on the next cycle, not waited for
+                    self.last_quick_stop = (arrived, time.monotonic(), cycle, core.cycle)
+                elif name == "probe_trip":
+                    self.probes.trip(*args)
+                else:  # abort, pause, resume, feed_override, jog_stop, release_wait, spindle_hold: on
+                    # the next cycle, not waited for
                     method = getattr(MotionCore, name)
                     core.run_on_cycle(lambda m=method, a=args: _call_on_cycle(core, m, a), wait=False)
             except Exception:
@@ -299,10 +346,16 @@ class MotionServer:
             raise AttributeError(f"the motion process does not serve master.{attr}")
         if name == "set":
             attr, value = args
+            if attr == "trace":  # a list to record the setpoints in, sent with the states
+                self.trace_on = bool(value)
+                core.trace = [] if value else None
+                return None
             if attr not in ("hold_stream", "optional_stop"):
                 raise AttributeError(attr)
             setattr(core, attr, value)
             return None
+        if name.startswith("probe_"):
+            return self.probes.call(name, args)
         if name == "new_planner":
             prime, waits, estops = args
             self.hooks.prime, self.hooks.waits = prime, waits
@@ -316,10 +369,18 @@ class MotionServer:
         if name == "fence":
             return core.run_on_cycle(lambda: self.fence(args[0]))
         if name == "drained":
+            # counted before the planner is looked at: a command taken meanwhile is then in the planner
+            # (taken and fed in one step), not counted as consumed while the planner still looks idle
+            consumed = core._cmdq.taken + self.discarded
             idle = core.run_on_cycle(lambda: core.planner is None or (
                 core.planner.is_idle and core.planner.queue_length == 0))
-            return core._cmdq.taken + self.discarded, bool(idle)
+            return consumed, bool(idle)
         if name == "open":
+            io = args[0] if args else {}
+            self.hooks.io_map = bool(io.get("map"))
+            self.orient_text = io.get("orient_text", "")
+            if io.get("modbus"):
+                core.io = TaskIo(self.hooks)
             core.open()
             return core.drive_probe is not None
         if name == "close":
@@ -349,8 +410,20 @@ class MotionServer:
             "stopping": core.stopping, "fault_stopping": core.fault_stopping, "jogging": core.jogging,
             "consumed": core._cmdq.taken + self.discarded, "sync_seq": core.sync_seq,
             "stream": None if st is None else vars(st).copy(), "stream_id": self.stream_id,
-            "last_estop": self.last_estop,
+            "last_estop": self.last_estop, "last_quick_stop": self.last_quick_stop,
+            "drive_inputs": core.drive_inputs, "spindle_at_speed": core.spindle_at_speed(),
+            "trace_new": self._trace_new(),
         }
+
+    def _trace_new(self) -> list[Any]:
+        """The setpoints recorded since the last state (``set trace``), taken out of the record."""
+        tr = self.core.trace
+        if not self.trace_on or tr is None:
+            return []
+        n = len(tr)  # the cycle thread appends meanwhile: only what is there now goes
+        new = tr[:n]
+        del tr[:n]
+        return new
 
     def _out(self) -> None:
         """The state, then the hooks. A hook posted by the cycle thread goes once that cycle's step has

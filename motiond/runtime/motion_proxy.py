@@ -14,7 +14,14 @@ motion process (:mod:`motiond.runtime.motion_proc`, which describes the pipes):
   ``canon-hooks`` thread, which also runs :meth:`run_on_cycle` (so the task's job bookkeeping stays
   ordered with them, as on the cycle thread in one process).
 * the hooks that answer with a value are pushed ahead: the planner's priming commands and wait types
-  go with each ``new_planner``; the I/O hooks are not needed (no I/O map in this mode).
+  go with each ``new_planner``; whether the task has an I/O map and Modbus outputs, and M19's words,
+  at ``open`` (``io_setup``).
+* the I/O map stays here (the Modbus worker is the task's): its per-cycle work runs on the task's
+  ``canon-io`` thread (:mod:`motiond.runtime.io_loop`) from the states' drive inputs and velocities;
+  the spindle and coolant events and the synchronized outputs come as hooks (``io_event``,
+  ``io_setpoint``) in order with their cycle's state; a sync point the I/O map completes comes as the
+  ``io_wait`` hook and its release goes down the urgent pipe (``release_wait``), as do the door's
+  ``spindle_hold`` and the probe input's trip. G38.x: :mod:`motiond.runtime.probing_proxy`.
 
 The liveness watch, both ways (``[motion] task_timeout_ms``, ``motion_timeout_ms``:
 :class:`~motiond.config_motion.Watch`): the ``canon-motion-ping`` thread sends a ping down the urgent
@@ -47,6 +54,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from gcode_canon import commands as C
+from gcode_canon.errors import GCodeError
 from motiond.config_motion import Watch
 from motiond.runtime.cycle import END, LATE_LOG, QUEUE_MAX
 from motiond.runtime.motion import MotionHooks, MotionSnapshot
@@ -110,7 +119,8 @@ class MotionProxy:
     """The motion side's interface over the process boundary (module docstring)."""
 
     def __init__(self, limits: Any, canopen: Any, *, late_fault_s: float, simulated: bool,
-                 hooks: MotionHooks, watch: Watch | None = None) -> None:
+                 hooks: MotionHooks, watch: Watch | None = None,
+                 io_setup: dict[str, Any] | None = None) -> None:
         self.watch = watch or Watch()
         self._last_state = 0.0  # monotonic: when the newest state arrived (0: none yet)
         self.silent = ""  # why the watch tripped ("" it did not, or the states run again)
@@ -121,8 +131,12 @@ class MotionProxy:
         self.hooks = hooks
         self.n = len(limits.names)
         self.master: Any = None
-        self.io: Any = None  # no Modbus I/O in this mode (motiond.config_motion)
-        self.trace: Any = None  # not recorded across the boundary
+        self.io: Any = None  # the task's IoExecutor (Machine sets it), None without Modbus
+        self.io_setup: dict[str, Any] = io_setup or {}
+        """For the motion process at open: ``map`` (an I/O map), ``modbus`` (Modbus outputs),
+        ``orient_text`` (:meth:`~motiond.io_hooks.IoHooks.orient_text`)."""
+        self.probe_client: Any = None  # G38.x (motiond.runtime.probing_proxy), None: no probe
+        self._trace: list[Any] | None = None
         self.planner = None  # the motion process's own
         self.runner = None
         self.stream: Stream | None = None
@@ -172,7 +186,10 @@ class MotionProxy:
             threading.Thread(target=target, name=name, daemon=True).start()
         self.master = MasterProxy(self)
         try:
-            self.request("open", timeout=OPEN_TIMEOUT_S)
+            if self.request("open", self.io_setup, timeout=OPEN_TIMEOUT_S):  # a drive's touch probe
+                from motiond.runtime.probing_proxy import ProbeClient
+
+                self.probe_client = ProbeClient(self)
         except BaseException:
             self.close()
             raise
@@ -236,6 +253,10 @@ class MotionProxy:
         with self._urgent_lock, contextlib.suppress(OSError, ValueError):
             self._conns["urgent"].send((name, args))
 
+    def urgent(self, name: str, *args: Any) -> None:
+        """Down the urgent pipe, not waited for (``probe_trip``)."""
+        self._urgent(name, *args)
+
     def _receive_replies(self) -> None:
         conn = self._conns["req"]
         while True:
@@ -264,15 +285,34 @@ class MotionProxy:
                     self._take_state(body)
                 else:
                     name, args, kw = body
-                    self._dispatch.put(lambda n=name, a=args, k=kw: getattr(self.hooks, n)(*a, **k))
+                    self._dispatch.put(lambda n=name, a=args, k=kw: self._hook(n, a, k))
+
+    def _hook(self, name: str, args: tuple[Any, ...], kw: dict[str, Any]) -> None:
+        """``canon-hooks``: one hook of the motion process."""
+        if name == "io_event":  # the job's record here (its outputs: the run summary)
+            self.hooks.io_event(args[0], self.stream)
+        elif name == "stream_done":  # of the stream it names: a late one does not end the next job
+            if args[0] == self._stream_id and self.stream is not None:
+                self.hooks.stream_done()
+        elif name == "io_setpoint":
+            if self.io is not None:
+                self.io.on_setpoint(_Events(tuple(args[0])))
+        else:
+            getattr(self.hooks, name)(*args, **kw)
 
     def _take_state(self, st: dict[str, Any]) -> None:
         self.late_log.extend(st.pop("late_new"))
+        trace = st.pop("trace_new", None)
+        if trace and self._trace is not None:
+            self._trace.extend(trace)
         stream = st.pop("stream")
         if stream is not None and self.stream is not None and st.get("stream_id") == self._stream_id:
+            here = [o for o in self.stream.outputs if o.kind == "function"]  # the I/O map's, noted here
             for k, v in stream.items():
                 if k != "answered_ahead":
                     setattr(self.stream, k, v)
+            if here:
+                self.stream.outputs = sorted([*self.stream.outputs, *here], key=lambda o: o.t)
         self._last_state = time.monotonic()
         with self._cond:
             self._state = st
@@ -357,6 +397,16 @@ class MotionProxy:
                 if cancel.is_set() or self.dead:
                     return False
                 self._cond.wait(0.05)
+        if isinstance(item, C.DigitalOutput | C.AnalogOutput | C.WaitInput) and self.io is not None:
+            problem = self.io.check(item)  # checked here: the Modbus I/O is this process's
+            if problem:
+                self.post_fault(str(GCodeError(problem, item.file, item.line)), "planner")
+                return False
+        if isinstance(item, C.Probe) and self.probe_client is not None:
+            if not self.probe_client.before_move(item, cancel):
+                return False
+            if self.probe_client.tripped_at_start:
+                return True  # G38.3/G38.5 with the probe already in that state: the move is not made
         with self._cmd_lock:
             if cancel.is_set() or self.dead:
                 return False
@@ -409,13 +459,26 @@ class MotionProxy:
         self._seq_of.pop(id(cmd), None)
         return True
 
-    has_touch_probe = False  # refused in this mode (motiond.config_motion)
+    def use_probe_input(self, mio: Any) -> None:
+        """G38.x on the I/O map's probe input, read here (unless a drive's touch probe is the probe)."""
+        if self.probe_client is None:
+            from motiond.runtime.probing_proxy import ProbeClient
+
+            client = ProbeClient(self, mio)
+            self.request("probe_input", client.where)
+            self.probe_client = client
+
+    @property
+    def has_touch_probe(self) -> bool:
+        return self.probe_client is not None
 
     def probe(self, cmd: Any, cancel: threading.Event) -> Any:
-        raise AssertionError("no touch probe in the own-process mode")
+        assert self.probe_client is not None
+        return self.probe_client.answer(cmd, cancel)
 
     def release_wait(self) -> None:
-        self.request("release_wait", dead=lambda: None)
+        """Urgent: the I/O loop releases a wait with it (it must not queue behind requests)."""
+        self._urgent("release_wait")
 
     # ------------------------------------------------------------------ the planner
     def new_planner(self, unless: Callable[[], bool] | None = None) -> None:
@@ -467,6 +530,12 @@ class MotionProxy:
 
     def feed_override(self, factor: float) -> None:
         self._urgent("feed_override", factor)
+
+    def spindle_hold(self, on: bool) -> None:
+        self._urgent("spindle_hold", on)
+
+    def spindle_at_speed(self) -> bool:
+        return bool(self._get("spindle_at_speed", True))
 
     def jog(self, i: int, velocity: float, distance: float, base: Any, feed: float) -> None:
         self.request("jog", i, velocity, distance, base, feed)
@@ -520,6 +589,24 @@ class MotionProxy:
     jogging = _value("jogging", False)
     last_estop = _value("last_estop")
     """(arrived, quick stop sent, cycle then, cycle after): monotonic times, this host's clock."""
+    last_quick_stop = _value("last_quick_stop")
+    """The same for the last quick stop (an I/O map's limit switch)."""
+    drive_inputs = _value("drive_inputs", ())
+
+    @property
+    def velocity(self) -> tuple[float, ...]:
+        return self.snapshot().velocity
+
+    @property
+    def trace(self) -> list[Any] | None:
+        """A list: the motion process records (cycle, monotonic time, positions, events) of every
+        setpoint into it, sent with the states (tests)."""
+        return self._trace
+
+    @trace.setter
+    def trace(self, value: list[Any] | None) -> None:
+        self._trace = value
+        self.request("set", "trace", value is not None, dead=lambda: None)
 
     @property
     def commanded(self) -> tuple[float, ...]:
@@ -528,3 +615,10 @@ class MotionProxy:
     @property
     def actual(self) -> tuple[float, ...]:
         return self._get("actual", tuple(0.0 for _ in range(self.n)))
+
+
+class _Events:
+    """A setpoint as the IoExecutor reads it (its events only)."""
+
+    def __init__(self, events: tuple[Any, ...]) -> None:
+        self.events = events

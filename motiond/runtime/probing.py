@@ -66,15 +66,25 @@ def stopped_at_rest(core: Any, planner: Any, cmd: C.Probe, held: bool) -> None:
     planner's stop (which clears it)."""
     if held:
         planner.hold()
-    with core._sync_cond:
-        core._sync_reached = cmd
-        core._sync_cond.notify_all()
+    core._sync_point_reached(cmd)
 
 
 def release(core: Any) -> None:
     """Cycle thread: the probe answered: the planner waiting at its sync point goes on."""
     if core.planner is not None and core.planner.waiting_for is not None:
         core.planner.release()
+
+
+def unwatch(probing: Any) -> None:
+    """Any thread: ``probing``'s move is over (or its job cancelled): no longer watched, and the
+    planner waiting at its sync point goes on (on the cycle thread, waited for)."""
+    core = probing.core
+
+    def on_cycle() -> None:
+        probing._armed = None
+        release(core)
+
+    core.run_on_cycle(on_cycle)
 
 
 class DriveProbing:
@@ -148,33 +158,42 @@ class DriveProbing:
     def answer(self, cmd: C.Probe, cancel: threading.Event) -> Probed | None:
         """Job thread, the interpreter's probe callback: wait for the move's end, read the latch. None
         when ``cancel`` is set meanwhile."""
+        if self.tripped_at_start:
+            return self.at_start(cmd)
+        if not self.core.wait_sync_point(cmd, cancel):
+            self.unwatch()
+            return None
+        return self.latched(cmd)
+
+    def unwatch(self) -> None:
+        unwatch(self)
+
+    def at_start(self, cmd: C.Probe) -> Probed:
+        """G38.3/G38.5 with the probe already in that state: tripped where the machine stands."""
+        from fieldbus.canopen.master import CanopenError
+
+        self.tripped_at_start = False
+        try:
+            self.probe.disarm()
+        except CanopenError as exc:
+            raise GCodeError(f"G{cmd.mode.value}: disarming the touch probe: {exc}", cmd.file,
+                             cmd.line) from None
+        assert self._start is not None
+        here = self._start[self.index]
+        return Probed(True, self._start, self.probe.axis, here, self.probe.drive.scale.to_counts(here))
+
+    def latched(self, cmd: C.Probe) -> Probed:
+        """The planner stands at the probing move's end (or its stop): the probed point from the latch."""
         from fieldbus.canopen.master import CanopenError
 
         core = self.core
-        if self.tripped_at_start:
-            self.tripped_at_start = False
-            try:
-                self.probe.disarm()
-            except CanopenError as exc:
-                raise GCodeError(f"G{cmd.mode.value}: disarming the touch probe: {exc}", cmd.file,
-                                 cmd.line) from None
-            assert self._start is not None
-            here = self._start[self.index]
-            return Probed(True, self._start, self.probe.axis, here, self.probe.drive.scale.to_counts(here))
-
-        def unwatch() -> None:
-            self._armed = None
-            release(core)
-
         try:
-            if not core.wait_sync_point(cmd, cancel):
-                return None
             result = self.probe.result()
         except CanopenError as exc:
             raise GCodeError(f"G{cmd.mode.value}: reading the touch probe: {exc}", cmd.file, cmd.line) \
                 from None
         finally:
-            core.run_on_cycle(unwatch)
+            self.unwatch()
         end = self._end(cmd)
         if not result.tripped:
             return Probed(False, end)

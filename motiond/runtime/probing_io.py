@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 from gcode_canon import commands as C
 from gcode_canon.errors import GCodeError
-from motiond.runtime.probing import IDLE_POLL_S, Probed, release, stopped_at_rest
+from motiond.runtime.probing import IDLE_POLL_S, Probed, stopped_at_rest, unwatch
 
 if TYPE_CHECKING:
     import threading
@@ -40,7 +40,7 @@ class InputProbing:
     def __init__(self, core: Any, mio: Any) -> None:
         self.core = core
         self.mio = mio
-        self.binding = mio.f["probe"]
+        self.binding = None if mio is None else mio.f["probe"]
         self._armed: C.Probe | None = None  # the probing move being watched (cycle thread reads)
         self._stopping = False
         self._held = False
@@ -60,25 +60,17 @@ class InputProbing:
             if cancel.is_set():
                 return False
             time.sleep(IDLE_POLL_S)
-        level = self.mio._read(self.binding)
-        if level is None:
-            raise GCodeError(f"G{cmd.mode.value}: the probe input cannot be read ({self._where()}: link "
-                             "down or not polled yet); nothing moved", cmd.file, cmd.line)
         self._start = core.position()
-        self.tripped_at_start = level == cmd.mode.toward
-        if self.tripped_at_start:
-            if cmd.mode.error_on_miss:
-                self.tripped_at_start = False
-                state = "tripped (in contact)" if cmd.mode.toward else "clear (out of contact)"
-                raise GCodeError(f"G{cmd.mode.value}: the probe ({self._where()}) is already {state} at "
-                                 "the start of the move; nothing moved", cmd.file, cmd.line)
-            return True
+        self.tripped_at_start = at_start(cmd, self.mio._read(self.binding), self._where())
+        if not self.tripped_at_start:
+            self._arm(cmd)
+        return True
 
+    def _arm(self, cmd: C.Probe) -> None:
         def watch() -> None:
             self._armed, self._stopping, self._hit, self._unreadable = cmd, False, None, False
 
-        core.run_on_cycle(watch)
-        return True
+        self.core.run_on_cycle(watch)
 
     def on_cycle(self, planner: Any) -> None:
         """Cycle thread, every cycle: stop the probing move on the trip; at rest, wake the job thread."""
@@ -88,11 +80,10 @@ class InputProbing:
         if not self._stopping:
             if planner.waiting_for is cmd:
                 return  # the move ended untripped: the sync point answers it
-            level = self.mio._read(self.binding)
-            if level is None or level == cmd.mode.toward:
+            trip = self._trip(cmd, planner)
+            if trip is not None:
                 self._stopping = True
-                self._unreadable = level is None
-                self._hit = tuple(planner.position)  # this cycle's setpoint
+                self._hit, self._unreadable = trip
                 self._held = planner.holding
                 planner.abort()  # the rest of the move (and its sync point) is dropped at rest
                 if not self._unreadable:
@@ -111,6 +102,14 @@ class InputProbing:
             stream.outputs.append(OutputSwitch(self.core.cycle, time.monotonic(), "function", -1, 1.0, True,
                                                cmd.file, cmd.line, name="probe"))
 
+    def _trip(self, cmd: C.Probe, planner: Any) -> tuple[tuple[float, ...], bool] | None:
+        """Cycle thread: the input in the sought state (or unreadable): the probed point, this cycle's
+        setpoint, and whether it was unreadable; None: not tripped."""
+        level = self.mio._read(self.binding)
+        if level is None or level == cmd.mode.toward:
+            return tuple(planner.position), level is None
+        return None
+
     def answer(self, cmd: C.Probe, cancel: threading.Event) -> Probed | None:
         """Job thread, the interpreter's probe callback: wait for the move's end; None when ``cancel``
         is set meanwhile."""
@@ -119,19 +118,37 @@ class InputProbing:
             self.tripped_at_start = False
             assert self._start is not None
             return Probed(True, self._start, "probe input")
-
-        def unwatch() -> None:
-            self._armed = None
-            release(core)
-
         try:
             if not core.wait_sync_point(cmd, cancel):
                 return None
         finally:
-            core.run_on_cycle(unwatch)
-        if self._unreadable:
-            raise GCodeError(f"G{cmd.mode.value}: the probe input could not be read during the move "
-                             f"({self._where()}): the move was stopped", cmd.file, cmd.line)
-        if self._hit is None:
-            return Probed(False, tuple(cmd.end[k] for k in core.limits.pose_index))
-        return Probed(True, self._hit, "probe input")
+            unwatch(self)
+        return outcome(cmd, core.limits.pose_index, self._hit, self._unreadable, self._where())
+
+
+def at_start(cmd: C.Probe, level: bool | None, where: str) -> bool:
+    """The probe input's ``level`` read at rest before a probing move: True when it is already in the
+    state the move seeks and the move is not made (G38.3/G38.5: tripped where the machine stands);
+    GCodeError naming the line for G38.2/G38.4 there, or an input that cannot be read."""
+    if level is None:
+        raise GCodeError(f"G{cmd.mode.value}: the probe input cannot be read ({where}: link "
+                         "down or not polled yet); nothing moved", cmd.file, cmd.line)
+    if level != cmd.mode.toward:
+        return False
+    if cmd.mode.error_on_miss:
+        state = "tripped (in contact)" if cmd.mode.toward else "clear (out of contact)"
+        raise GCodeError(f"G{cmd.mode.value}: the probe ({where}) is already {state} at "
+                         "the start of the move; nothing moved", cmd.file, cmd.line)
+    return True
+
+
+def outcome(cmd: C.Probe, pose_index: tuple[int, ...], hit: tuple[float, ...] | None, unreadable: bool,
+            where: str) -> Probed:
+    """A probing move on the probe input has ended: the probed point (``hit``: the commanded position
+    of the cycle that saw the trip; None: no trip, the move's end)."""
+    if unreadable:
+        raise GCodeError(f"G{cmd.mode.value}: the probe input could not be read during the move "
+                         f"({where}): the move was stopped", cmd.file, cmd.line)
+    if hit is None:
+        return Probed(False, tuple(cmd.end[k] for k in pose_index))
+    return Probed(True, hit, "probe input")
