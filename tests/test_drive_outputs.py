@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 from canopen_helpers import Rig, make_config
+from test_motion_process import Bench, group, own_mode
 from test_run_from_line import wait_for
 
 from fieldbus.canopen.drive_sim import SimDrive
@@ -108,3 +109,41 @@ def test_estop_drops_a_drive_output_bit(machine: Machine, tmp_path: Path) -> Non
     wait_for(lambda: machine.states.state is State.ESTOP, "ESTOP")
     wait_for(lambda: z.digital_outputs() == 0, "the drive output off on E-stop")
     machine.wait_job(job, 10.0)
+
+
+@pytest.mark.multicast
+@pytest.mark.timeout(180)
+def test_a_drive_output_is_written_from_the_task_with_the_motion_in_its_own_process(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """With the motion in a process of its own the task's I/O side asks the motion process, whose master
+    writes 0x60FE; the answer comes when the drive confirmed the SDO write, and the caller never waits
+    for it (``MotionProxy.drive_output``). Checked on the drive by the test's own SDO client, once the
+    master's write is answered (two SDO clients at once on one node would answer each other's frames)."""
+    text = EXAMPLE.read_text().replace('coolant_mist = { device = "io", coil = 12 }',
+                                       f'coolant_mist = {{ drive = "z", bit = {MIST} }}')
+    f = tmp_path / "own.toml"
+    f.write_text(own_mode(text))
+    with started(f, tmp_path) as m:
+        assert m.motion_mode == "own" and not m.sim_drives
+        z = m.names.index("z")
+        bench = Bench(group())
+        try:
+            t0 = time.monotonic()
+            fut = m.motion.drive_output(z, MIST, True)
+            assert fut.result(10.0) >= t0 - 1.0  # the master's time of the write (its clock: monotonic)
+            assert int(bench.nodes[2].sdo[0x60FE][1].raw) == 1 << MIST
+            m.motion.drive_output(z, MIST, False).result(10.0)
+            assert int(bench.nodes[2].sdo[0x60FE][1].raw) == 0
+            with pytest.raises(ValueError, match="0x60FE bit 40"):  # refused by the motion process
+                m.motion.drive_output(z, 40, True).result(10.0)
+            # and from a program: M7 / M9 switch it with nothing left unwritten
+            prog = tmp_path / "p.ngc"
+            prog.write_text("%\nG21 G90 G94\nM7\nG4 P0.5\nM9\nG4 P0.5\nM2\n%\n")
+            result = m.wait_job(m.run(prog), 60.0)
+            assert result is not None and result.ok, result.error if result else "timeout"
+            names = [(o.name, o.value, o.line) for o in result.outputs if o.kind == "function"]
+            assert names == [("coolant_mist", 1.0, 3), ("coolant_mist", 0.0, 5)]
+            assert not [r for r in caplog.records if "not written" in r.getMessage()]
+            assert int(bench.nodes[2].sdo[0x60FE][1].raw) == 0
+        finally:
+            bench.close()

@@ -320,10 +320,28 @@ class MotionServer:
                 return self._task_gone("its request pipe closed")
             if name.startswith("master.") and name[7:] in MASTER_METHODS:
                 self.sdo.submit(self._answer, rid, name, args, kw)
+            elif name == "drive_output":  # the master's own thread writes it: answered when written
+                self._answer_when_done(rid, args)
             else:
                 self._answer(rid, name, args, kw)
             if name == "close":
                 return
+
+    def _answer_when_done(self, rid: int, args: tuple[Any, ...]) -> None:
+        """``drive_output``: the master's future (its ``canon-do`` thread writes 0x60FE by SDO, in the
+        order asked), answered when it is done; this thread never waits for the SDO."""
+
+        def reply(fut: concurrent.futures.Future[Any]) -> None:
+            exc = fut.exception()
+            answer = (rid, True, fut.result()) if exc is None else (rid, False, _picklable(exc))
+            with self.send_lock, contextlib.suppress(OSError, ValueError):
+                self.conns["req"].send(answer)
+
+        try:
+            self.core.drive_output(*args).add_done_callback(reply)
+        except Exception as exc:  # a bit out of range: refused at once
+            with self.send_lock, contextlib.suppress(OSError, ValueError):
+                self.conns["req"].send((rid, False, _picklable(exc)))
 
     def _answer(self, rid: int, name: str, args: tuple[Any, ...], kw: dict[str, Any]) -> None:
         try:

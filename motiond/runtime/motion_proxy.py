@@ -247,6 +247,25 @@ class MotionProxy:
         finally:
             self._pending.pop(rid, None)
 
+    def request_later(self, name: str, *args: Any) -> concurrent.futures.Future[Any]:
+        """Ask the motion process without waiting: the future gets its answer (or its exception, or
+        MotionProcessGone when the process is gone or hung)."""
+        fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
+        if self.dead or self.silent or "req" not in self._conns:
+            why = self.dead or self.silent or "the motion process is not running"
+            fut.set_exception(MotionProcessGone(why))
+            return fut
+        rid = next(self._rid)
+        self._pending[rid] = fut
+        fut.add_done_callback(lambda _f: self._pending.pop(rid, None))
+        try:
+            with self._req_lock:
+                self._conns["req"].send((rid, name, args, {}))
+        except (OSError, ValueError):
+            with contextlib.suppress(concurrent.futures.InvalidStateError):
+                fut.set_exception(MotionProcessGone(self.dead or "the motion process is gone"))
+        return fut
+
     def _urgent(self, name: str, *args: Any) -> None:
         if self.dead or "urgent" not in self._conns:
             return
@@ -458,6 +477,10 @@ class MotionProxy:
                 self._cond.wait(0.05)
         self._seq_of.pop(id(cmd), None)
         return True
+
+    def drive_output(self, axis: int, bit: int, on: bool) -> concurrent.futures.Future[Any]:
+        """:meth:`MotionCore.drive_output` in the motion process: never waits (the I/O loop calls it)."""
+        return self.request_later("drive_output", axis, bit, on)
 
     def use_probe_input(self, mio: Any) -> None:
         """G38.x on the I/O map's probe input, read here (unless a drive's touch probe is the probe)."""
