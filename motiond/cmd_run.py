@@ -41,7 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "as canon daemon's)")
     parser.add_argument("--late-fault-ms", type=float, metavar="MS",
                         help="a cycle starting later than this is a fault (default: 10 cycles, at least "
-                             "50 ms; 1 s with simulated drives)")
+                             "50 ms; 1 s with simulated drives in the canon process: [motion] "
+                             "process \"thread\")")
 
 
 def _line_number(text: str) -> int:
