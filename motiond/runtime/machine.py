@@ -339,9 +339,10 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
             self.shutdown()
             raise
         self.started = True
+        bus = f"{self.canopen.bus.interface} bus {self.canopen.bus.channel}"
         self.event("INFO", f"machine {self.limits.name!r} up: {self.n} drives, cycle {self.T * 1e3:g} ms, "
-                           f"{'simulated' if self.simulated else self.canopen.bus.interface} bus",
-                   kind="startup", source="motiond")
+                           f"{'simulated drives on ' if self.simulated else ''}{bus}, motion side "
+                           f"{self.motion_mode}", kind="startup", source="motiond")
         return self
 
     def _start_io(self) -> None:
