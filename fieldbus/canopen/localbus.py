@@ -158,6 +158,7 @@ class LocalBus(can.BusABC):
                  send_buffer: int = SEND_BUFFER, can_filters: Any = None, **kwargs: Any) -> None:
         self.channel = str(channel)
         self.dir = channel_dir(self.channel)
+        self._dir_path = str(self.dir)  # looked at on every send
         self.channel_info = f"{INTERFACE} bus {self.dir}"
         self.receive_own_messages = receive_own_messages
         self.send_buffer = send_buffer
@@ -236,7 +237,7 @@ class LocalBus(can.BusABC):
     def _refresh(self) -> None:
         """Connect to new socket files of the directory, drop those gone (module docstring)."""
         try:
-            mtime = os.stat(self.dir).st_mtime_ns
+            mtime = os.stat(self._dir_path).st_mtime_ns
         except FileNotFoundError:
             return
         seen, listed = self._seen
@@ -244,7 +245,7 @@ class LocalBus(can.BusABC):
             return
         now = time.time_ns()
         try:
-            names = {n for n in os.listdir(self.dir) if n.endswith(SUFFIX) and not n.startswith(".")}
+            names = {n for n in os.listdir(self._dir_path) if n.endswith(SUFFIX) and not n.startswith(".")}
         except FileNotFoundError:
             names = set()
         if not self.receive_own_messages:
