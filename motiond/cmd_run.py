@@ -1,7 +1,9 @@
 """``canon run FILE.ngc``: boot the machine, run one program on it, print a summary, exit.
 
-With no ``--config`` it runs on the built-in demo machine: three simulated drives on a virtual CAN
-bus in this process, the simulated Modbus I/O module on loopback (a free port), LCM on the default
+With no ``--config`` it runs on the built-in demo machine: three simulated drives on canon's local
+CAN bus (``canon_local``, a channel of the run's own; the motion side a thread of this process while
+the Modbus I/O is not carried across processes: ``[motion] process = "auto"``), the simulated Modbus
+I/O module on loopback (a free port), LCM on the default
 URL (a host with no multicast route gets one warning line and telemetry inside this process only).
 It is the daemon's core (:class:`motiond.runtime.Machine`) doing what an operator would: leave
 E-stop, enable the drives, run the file, then shut down safely.
