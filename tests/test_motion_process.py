@@ -159,6 +159,9 @@ def test_simulated_drives_out_of_the_motion_process_keep_the_configured_limits(t
     assert thread.canopen.feedback_timeout_s == SIM_FEEDBACK_TIMEOUT_S
     assert thread.canopen.heartbeat_consumer_ms == SIM_HEARTBEAT_CONSUMER_MS
     assert thread.late_fault_s == SIM_LATE_FAULT_S
+    # and there master and drives share the process: python-can's virtual bus, no sockets; canon_local
+    # where the drives are in another process
+    assert thread.canopen.bus.interface == "virtual" and sent.bus.interface == "canon_local"
 
 
 @pytest.mark.timeout(180)
