@@ -42,9 +42,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="leave E-stop and enable the drives at start (benches, simulations)")
     parser.add_argument("--late-fault-ms", type=float, metavar="MS",
                         help="a cycle starting later than this is a fault (default: 10 cycles, at least "
-                             "50 ms; 1 s with simulated drives)")
+                             "50 ms; 1 s with simulated drives in the canon process: [motion] "
+                             "process \"thread\")")
     parser.add_argument("--feedback-timeout-ms", type=float, metavar="MS",
-                        help="a drive sending no TPDO for this long is a fault (default 100; 500 simulated)")
+                        help="a drive sending no TPDO for this long is a fault (default 100; 500 with "
+                             "simulated drives in the canon process)")
 
 
 def _seconds(ms: float | None) -> float | None:

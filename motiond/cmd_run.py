@@ -1,7 +1,10 @@
 """``canon run FILE.ngc``: boot the machine, run one program on it, print a summary, exit.
 
-With no ``--config`` it runs on the built-in demo machine: three simulated drives on a virtual CAN
-bus in this process, the simulated Modbus I/O module on loopback (a free port), LCM on the default
+With no ``--config`` it runs on the built-in demo machine: three simulated drives on canon's local
+CAN bus (``canon_local``, a channel of the run's own; while the Modbus I/O is not carried across
+processes the motion side is a thread of this process, ``[motion] process = "auto"``, and master and
+drives then share python-can's virtual bus), the simulated Modbus
+I/O module on loopback (a free port), LCM on the default
 URL (a host with no multicast route gets one warning line and telemetry inside this process only).
 It is the daemon's core (:class:`motiond.runtime.Machine`) doing what an operator would: leave
 E-stop, enable the drives, run the file, then shut down safely.
@@ -41,7 +44,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "as canon daemon's)")
     parser.add_argument("--late-fault-ms", type=float, metavar="MS",
                         help="a cycle starting later than this is a fault (default: 10 cycles, at least "
-                             "50 ms; 1 s with simulated drives)")
+                             "50 ms; 1 s with simulated drives in the canon process: [motion] "
+                             "process \"thread\")")
 
 
 def _line_number(text: str) -> int:

@@ -1,8 +1,9 @@
 """Read the ``[canopen]`` part of the machine file into ``fieldbus.canopen.config`` dataclasses.
 
 Every mistake names the file and the dotted key (``machine.toml: canopen.axes.y.node_id: ...``).
-With no ``[canopen]`` table, the demo set-up: a virtual bus, one simulated drive per axis, node ids
-1..n in axis order.
+With no ``[canopen]`` table, the demo set-up: canon's local bus (``canon_local``, which crosses
+processes: the motion side and the simulated drives may each run in a process of their own), one
+simulated drive per axis, node ids 1..n in axis order.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from typing import Any
 from fieldbus.canopen.config import (
     CANON_OWNED,
     HOLDING_QUICK_STOP_OPTIONS,
+    LOCAL_INTERFACE,
     SDO_TYPES,
     SPINDLE_MODES,
     CanBusConfig,
@@ -38,7 +40,7 @@ def demo_canopen(axis_names: Sequence[str], cycle_s: float,
                  axis_limits: Mapping[str, Mapping[str, Any]] | None = None) -> CanopenConfig:
     drives = tuple(DriveConfig(name, i + 1, **_limits(name, axis_limits))
                    for i, name in enumerate(axis_names))
-    return CanopenConfig(CanBusConfig(), drives, cycle_s=cycle_s, simulate=True)
+    return CanopenConfig(CanBusConfig(LOCAL_INTERFACE), drives, cycle_s=cycle_s, simulate=True)
 
 
 def _limits(name: str, axis_limits: Mapping[str, Mapping[str, Any]] | None) -> dict[str, Any]:
@@ -68,6 +70,12 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
             raise t.error("channel", "udp_multicast needs an IPv4 multicast group such as 239.74.163.1 "
                                      "(python-can's IPv6 default sends frames off this host), "
                                      f"got {channel!r}")
+    elif interface == LOCAL_INTERFACE:
+        from fieldbus.canopen.localbus import channel_problem
+
+        problem = channel_problem(channel)
+        if problem:
+            raise t.error("channel", f"{LOCAL_INTERFACE} needs {problem}")
     bitrate = t.get("bitrate", int, 1_000_000, check=in_range(10_000, 1_000_000))
     producer = t.get("heartbeat_producer_ms", int, 100, check=in_range(0, 65535))
     consumer = t.get("heartbeat_consumer_ms", int, 3 * producer, check=in_range(0, 65535))

@@ -38,6 +38,7 @@ class CheckedMachine:
     modbus: Any  # fieldbus.modbus.config.ModbusConfig | None
     telemetry: Any  # telemetry.config.TelemetryConfig
     io: Any = None  # motiond.config_io.IoMap
+    motion: Any = None  # motiond.config_motion.MotionChoice
 
 
 def validate_machine(path: str | None) -> CheckedMachine:
@@ -73,6 +74,7 @@ def validate_machine(path: str | None) -> CheckedMachine:
                 raise ConfigErrors([exc]) from None
             found.extend(exc.errors if isinstance(exc, ConfigErrors) else [exc])
     errors.extend(found)
+    motion = None
     root = config.root if config is not None and config.root is not None else \
         Table(load_toml(path) if path else {}, path or "")
     file = path or ""
@@ -101,13 +103,13 @@ def validate_machine(path: str | None) -> CheckedMachine:
     if config is not None:
         read(lambda: _tool_table(config))
         if canopen is not None:
-            from motiond.config_motion import motion_process
+            from motiond.config_motion import motion_choice
 
-            read(lambda: motion_process(config, canopen))
+            motion = read(lambda: motion_choice(config, canopen))
     if errors:
         raise ConfigErrors(errors)
     assert config is not None
-    return CheckedMachine(config, canopen, load, modbus, tele, io)
+    return CheckedMachine(config, canopen, load, modbus, tele, io, motion)
 
 
 def load_checked(path: str | None) -> MachineConfig:
@@ -224,6 +226,8 @@ def describe(m: CheckedMachine) -> list[Any]:
                f"SYNC timed by {'the kernel' if c.kernel_sync else 'the master'}; bus load "
                f"{100 * m.bus_load.fraction:.1f} % of {100 * c.max_bus_load:.0f} % allowed "
                f"({m.bus_load.describe()})")
+    if m.motion is not None:
+        out.append(m.motion.describe())
     if m.modbus is None:
         out.append("Modbus I/O: none (M62-M68 are refused)")
     else:

@@ -1,15 +1,20 @@
 """``[motion]`` of the machine file: where the motion side runs (docs/daemon.md, issue 14).
 
-``process = "thread"`` (the default) runs :class:`~motiond.runtime.motion.MotionCore` as a thread of
-the one canon process. ``process = "own"`` runs it in a child process of its own
-(:mod:`motiond.runtime.motion_proc`), so that nothing else shares its interpreter lock; the task side
-talks to it through :class:`~motiond.runtime.motion_proxy.MotionProxy`.
+``process = "thread"`` runs :class:`~motiond.runtime.motion.MotionCore` as a thread of the one canon
+process. ``process = "own"`` runs it in a child process of its own (:mod:`motiond.runtime.motion_proc`),
+so that nothing else shares its interpreter lock; the task side talks to it through
+:class:`~motiond.runtime.motion_proxy.MotionProxy`. ``process = "auto"`` (the default) is "own" where
+the machine allows it and "thread" otherwise (:func:`motion_choice` says which and why).
 
-"own" needs a bus that reaches across processes (socketcan, or udp_multicast for simulated drives in
-another process): python-can's ``virtual`` channels exist only inside one process, so the drives
+"own" needs a bus that reaches across processes (:data:`~fieldbus.canopen.config.CROSS_PROCESS_INTERFACES`:
+canon's local bus ``canon_local`` or ``udp_multicast`` for simulated drives in another process,
+``socketcan``): python-can's ``virtual`` channels exist only inside one process, so the drives
 simulated there could not be reached from the motion process. The Modbus I/O (``[modbus]``, the
 ``[io]`` map) stays in the task process (:mod:`motiond.runtime.io_loop`); a drive's touch probe and
-the probe input cross as requests and urgent messages (docs/daemon.md).
+the probe input cross as requests and urgent messages (docs/daemon.md). An explicit "own" takes them;
+"auto" keeps a machine with them in "thread" for now and says why: carrying them across is new, and
+the one-process path is the one long proven with the I/O map (the measured extra latency of an E-stop
+input through the task: docs/wiring.md).
 
 The liveness watch of the two processes (``task_timeout_ms``, ``motion_timeout_ms``, "own" only):
 :class:`Watch`.
@@ -17,6 +22,7 @@ The liveness watch of the two processes (``task_timeout_ms``, ``motion_timeout_m
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -25,7 +31,9 @@ from motiond.configkit import Table, in_range, one_of
 if TYPE_CHECKING:
     from motiond.config import MachineConfig
 
-MODES = ("thread", "own")
+log = logging.getLogger(__name__)
+
+MODES = ("auto", "thread", "own")
 TIMEOUT_RANGE_MS = (100.0, 10000.0)
 
 
@@ -46,31 +54,82 @@ class Watch:
     motion_timeout_ms: float = 500.0
 
 
-def motion_settings(config: MachineConfig, canopen: Any = None) -> tuple[str, Watch]:
+@dataclass(frozen=True)
+class MotionChoice:
+    """``[motion]`` as read: the mode that runs ("thread" or "own"), what the file asked for ("auto",
+    "thread" or "own"), why (for "auto": the reason "own" was or was not taken), the watch."""
+
+    mode: str
+    asked: str
+    reason: str
+    watch: Watch
+
+    def describe(self) -> str:
+        where = "its own process" if self.mode == "own" else "a thread of the canon process"
+        why = f": {self.reason}" if self.reason else ""
+        return f'motion side in {where} (process = "{self.asked}"{why})'
+
+
+def motion_choice(config: MachineConfig, canopen: Any = None) -> MotionChoice:
     """``[motion]``: the process mode, checked against the rest of the file (ConfigError naming the
-    key), and the liveness watch. ``canopen``: the CanopenConfig already read (read here when None)."""
+    key for an explicit "own" this machine cannot have), and the liveness watch. ``canopen``: the
+    CanopenConfig already read (read here when None)."""
     root = config.root
-    if root is None or "motion" not in root.data:
-        return "thread", Watch()
-    t = Table(root.data, root.file).table("motion")
-    mode = t.get("process", str, default="thread", check=one_of(*MODES))
+    data = root.data if root is not None else {}
+    t = Table(data, root.file if root is not None else "").table("motion")
+    asked = t.get("process", str, default="auto", check=one_of(*MODES))
     limits = in_range(*TIMEOUT_RANGE_MS)
     watch = Watch(t.get("task_timeout_ms", float, default=Watch.task_timeout_ms, check=limits),
                   t.get("motion_timeout_ms", float, default=Watch.motion_timeout_ms, check=limits))
     t.check_unknown()
-    if mode == "thread":
-        return mode, watch
+    if asked == "thread":
+        return MotionChoice("thread", asked, "", watch)
     if canopen is None:
         from motiond.config_canopen import canopen_for_machine
 
         canopen = canopen_for_machine(config)
-    if canopen.bus.interface == "virtual":
-        raise t.error("process", '"own" needs a bus that crosses processes ([canopen] interface = '
-                      '"socketcan", or "udp_multicast" for simulated drives): python-can\'s virtual '
-                      'bus exists inside one process only')
-    return mode, watch
+    problem = _own_problem(config, canopen)
+    if asked == "own" and problem is not None and problem[1]:
+        raise t.error("process", f'"own" {problem[1]}')
+    if asked == "own" or problem is None:
+        reason = "" if asked == "own" else f"the {canopen.bus.interface} bus crosses processes"
+        return MotionChoice("own", asked, reason, watch)
+    log.debug("[motion] process = \"auto\": thread, as %s", problem[0])
+    return MotionChoice("thread", asked, problem[0], watch)
+
+
+def _own_problem(config: MachineConfig, canopen: Any) -> tuple[str, str] | None:
+    """Why this machine does not run "own": (the reason in a phrase, the refusal of an explicit "own",
+    "" when an explicit "own" is taken: only "auto" keeps "thread" then); None: it does."""
+    from fieldbus.canopen.config import CROSS_PROCESS_INTERFACES
+
+    interface = canopen.bus.interface
+    if interface not in CROSS_PROCESS_INTERFACES:
+        return (f"the {interface} bus does not cross processes",
+                'needs a bus that crosses processes ([canopen] interface = "canon_local" or '
+                '"udp_multicast" for simulated drives, "socketcan"): python-can\'s virtual bus exists '
+                'inside one process only' if interface == "virtual" else
+                f'needs a bus that crosses processes ([canopen] interface = "canon_local", '
+                f'"udp_multicast" or "socketcan"), not {interface!r}')
+    data = config.root.data if config.root is not None else {}
+    from motiond.config_modbus import modbus_for
+
+    for key in ("modbus", "io"):
+        if key in data or (key == "modbus" and modbus_for(config) is not None):
+            return (f"the Modbus I/O ([{key}]) runs beside the motion (\"own\" takes it when asked)", "")
+    probes = [d.axis for d in canopen.drives if getattr(d, "touch_probe", 0)]
+    if probes:
+        return (f"a drive's touch probe (axis {probes[0]}) runs beside the motion (\"own\" takes it when "
+                "asked)", "")
+    return None
+
+
+def motion_settings(config: MachineConfig, canopen: Any = None) -> tuple[str, Watch]:
+    """The process mode that runs ("thread" or "own") and the watch (:func:`motion_choice`)."""
+    choice = motion_choice(config, canopen)
+    return choice.mode, choice.watch
 
 
 def motion_process(config: MachineConfig, canopen: Any = None) -> str:
-    """The ``[motion] process`` mode (:func:`motion_settings`)."""
-    return motion_settings(config, canopen)[0]
+    """The ``[motion] process`` mode that runs (:func:`motion_choice`)."""
+    return motion_choice(config, canopen).mode

@@ -10,7 +10,8 @@ Two different machine files can name the same hardware: the same CAN interface a
 Modbus module. So the fieldbus endpoints a machine file reaches beyond this process are locked too
 (:func:`bus_keys`), each in its own lock file: a second process on ``socketcan can0`` is refused
 whatever machine file it was started with. python-can's ``virtual`` bus and simulated Modbus devices
-live inside one process and are not locked.
+live inside one process and are not locked, nor is the local bus (``canon_local``) of simulated drives:
+the machine gives them a channel of its own.
 """
 
 from __future__ import annotations
@@ -40,7 +41,10 @@ def bus_keys(canopen: Any, modbus: Any) -> list[tuple[str, str]]:
     """(lock key, what it is) for each fieldbus endpoint outside this process that the machine uses:
     its CAN interface and channel, each real Modbus device (TCP endpoint and unit, or serial port)."""
     keys: list[tuple[str, str]] = []
-    if canopen is not None and canopen.bus.interface != "virtual":
+    from fieldbus.canopen.config import LOCAL_INTERFACE
+
+    private = ("virtual", LOCAL_INTERFACE) if canopen is not None and canopen.simulate else ("virtual",)
+    if canopen is not None and canopen.bus.interface not in private:  # a machine's own simulated bus
         bus = f"{canopen.bus.interface} {canopen.bus.channel}"
         keys.append((f"can:{bus}", f"CAN bus {bus}"))
     for dev in getattr(modbus, "devices", ()) or ():

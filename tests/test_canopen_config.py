@@ -46,7 +46,7 @@ def test_reads_the_canopen_table():
 
 def test_no_canopen_table_gives_the_demo():
     c = read({}, ("x", "y", "z"))
-    assert c.bus.interface == "virtual" and c.simulate
+    assert c.bus.interface == "canon_local" and c.simulate  # crosses processes: the motion side's own
     assert [(d.axis, d.node_id) for d in c.drives] == [("x", 1), ("y", 2), ("z", 3)]
 
 
@@ -170,7 +170,7 @@ def test_from_the_machine_file(tmp_path):
     assert (x.node_id, x.max_velocity, x.quick_stop_deceleration, x.max_position) == (9, 100.0, 2000.0, 50.0)
     assert c.cycle_s == 0.004
     demo = canopen_for_machine(load_machine(None))
-    assert demo.bus.interface == "virtual" and [d.node_id for d in demo.drives] == [1, 2, 3]
+    assert demo.bus.interface == "canon_local" and [d.node_id for d in demo.drives] == [1, 2, 3]
 
 
 def test_bus_tools_share_overrides_and_refuse_ipv6_multicast() -> None:

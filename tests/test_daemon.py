@@ -53,7 +53,7 @@ class Daemon:
     """A machine with its command server on the process's shared memq, and what it publishes."""
 
     def __init__(self, tmp: Path, tele: TelemetryConfig | None = None, late_fault_s: float = 2.0,
-                 config: Any = None) -> None:
+                 config: Any = None, feedback_timeout_s: float | None = None) -> None:
         self.lc = shared_memq()
         self.tele = tele or TelemetryConfig(url="memq://")
         self.statuses: list[Any] = []
@@ -65,7 +65,8 @@ class Daemon:
                      self.lc.subscribe("CANON_EVENT", self._on_event)]
         config = load_machine(None) if config is None else config
         self.machine, self.server = start(config, self.lc, self.tele, key=TEST_KEY, var_file=self.var,
-                                          programs=[tmp], late_fault_s=late_fault_s)
+                                          programs=[tmp], late_fault_s=late_fault_s,
+                                          feedback_timeout_s=feedback_timeout_s)
 
     def _on_status(self, _ch: str, data: bytes) -> None:
         s = status.decode(data)

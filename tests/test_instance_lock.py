@@ -104,12 +104,15 @@ def test_lock_is_per_machine_file_and_released(tmp_path: Path) -> None:
     InstanceLock(la, "machine file a.toml").acquire().release()
 
 
-def _machine_file(tmp_path: Path, name: str, interface: str, modbus_simulated: bool) -> str:
+def _machine_file(tmp_path: Path, name: str, interface: str, modbus_simulated: bool,
+                  drives_simulated: bool = False) -> str:
     text = (ROOT / "examples" / "canon.toml").read_text()
     text = text.replace('name = "example mill"', f'name = "{name}"', 1)
-    text = text.replace('interface = "virtual"', f'interface = "{interface}"', 1)
+    text = text.replace('interface = "canon_local"', f'interface = "{interface}"', 1)
     text = text.replace('channel = "canon"', 'channel = "can0"', 1)
-    text = text.replace("simulate = true                # simulated drives", "simulate = false  # drives", 1)
+    if not drives_simulated:
+        text = text.replace("simulate = true                # simulated drives", "simulate = false  # drives",
+                            1)
     if not modbus_simulated:
         assert "simulate = true" in text.split("[[modbus.devices]]", 1)[1]
         head, tail = text.split("[[modbus.devices]]", 1)
@@ -147,5 +150,15 @@ def test_two_machine_files_on_one_bus_are_refused(tmp_path: Path) -> None:
     e = _machine_file(tmp_path, "mill-e", "virtual", modbus_simulated=True)
     f = _machine_file(tmp_path, "mill-f", "virtual", modbus_simulated=True)
     both = [lock_machine(e, load_machine(e), state), lock_machine(f, load_machine(f), state)]
+    for lock in both:
+        lock.release()
+    # canon's local bus crosses processes: real (not simulated) drives on it are locked like an adapter's;
+    # simulated ones get a channel of their machine's own at run time, so nothing to lock
+    g = _machine_file(tmp_path, "mill-g", "canon_local", modbus_simulated=True)
+    h = _machine_file(tmp_path, "mill-h", "canon_local", modbus_simulated=True)
+    refused_while_held(g, h, "CAN bus canon_local can0")
+    i = _machine_file(tmp_path, "mill-i", "canon_local", modbus_simulated=True, drives_simulated=True)
+    j = _machine_file(tmp_path, "mill-j", "canon_local", modbus_simulated=True, drives_simulated=True)
+    both = [lock_machine(i, load_machine(i), state), lock_machine(j, load_machine(j), state)]
     for lock in both:
         lock.release()

@@ -99,13 +99,93 @@ def test_an_unknown_process_mode_is_refused(tmp_path: Path) -> None:
     assert "motion.process" in text and "thread, own" in text, text
 
 
-def test_thread_mode_is_the_default_and_accepted_on_virtual(tmp_path: Path) -> None:
+def test_thread_mode_is_accepted_on_virtual(tmp_path: Path) -> None:
     from motiond.config import load_machine
     from motiond.config_motion import motion_process
 
-    assert motion_process(load_machine(None)) == "thread"
     path = write(tmp_path, machine_text("virtual", "canon", simulate=True, process="thread"))
     assert motion_process(load_machine(str(path))) == "thread"
+
+
+def test_auto_is_the_default_own_where_the_bus_crosses_processes_else_thread_saying_why(
+        tmp_path: Path) -> None:
+    """"auto": "own" on canon_local, udp_multicast and socketcan; "thread" on virtual, and where the
+    machine has what is not carried across yet (Modbus, [io], a drive's touch probe), which an explicit
+    "own" refuses (test_own_process_with_modbus_io_is_refused)."""
+    from motiond.config import load_machine
+    from motiond.config_check import describe, validate_machine
+    from motiond.config_motion import motion_choice
+
+    def choice(interface: str, channel: str, *, extra: str = "", z: str = "") -> tuple[str, str]:
+        text = machine_text(interface, channel, simulate=True, process="auto", extra=extra)
+        if z:
+            text = text.replace("[canopen.axes.z]\nnode_id = 3\n", f"[canopen.axes.z]\nnode_id = 3\n{z}")
+        path = write(tmp_path, text)
+        c = motion_choice(load_machine(str(path)))
+        return c.mode, c.reason
+
+    assert choice("canon_local", "auto-test") == ("own", "the canon_local bus crosses processes")
+    assert choice("udp_multicast", "239.74.165.1")[0] == "own"
+    assert choice("socketcan", "vcan0")[0] == "own"
+    assert choice("virtual", "canon") == ("thread", "the virtual bus does not cross processes")
+    modbus = '\n[[modbus.devices]]\nname = "io"\nhost = "127.0.0.1"\nport = 1502\nsimulate = true\n'
+    mode, why = choice("canon_local", "auto-test", extra=modbus)
+    assert mode == "thread" and "[modbus]" in why and "not carried across" in why, why
+    mode, why = choice("canon_local", "auto-test", z="touch_probe = 1\n")
+    assert mode == "thread" and "touch probe (axis z)" in why, why
+    # no [motion] table: "auto"; the built-in demo machine is on canon_local but has its simulated
+    # Modbus module: "thread" until the Modbus I/O crosses too
+    path = write(tmp_path, machine_text("canon_local", "auto-test", simulate=True).split("[motion]")[0])
+    assert motion_choice(load_machine(str(path))).mode == "own"
+    demo = motion_choice(load_machine(None))
+    assert (demo.mode, demo.asked) == ("thread", "auto") and "Modbus" in demo.reason, demo
+    lines = " ".join(str(x) for x in describe(validate_machine(str(path))))
+    assert 'motion side in its own process (process = "auto": the canon_local bus crosses processes)' in lines
+
+
+def test_simulated_drives_out_of_the_motion_process_keep_the_configured_limits(tmp_path: Path) -> None:
+    """The loosened limits for simulated drives (machine.SIM_*) only where the drives share the motion
+    side's process ("thread"); with "own" they run in a third process and the master gets the
+    configured heartbeat consumer, the 0.1 s TPDO limit and the late-cycle limit of real drives."""
+    from fieldbus.canopen.config import CanopenConfig
+    from motiond.config import load_machine
+    from motiond.runtime import SIM_FEEDBACK_TIMEOUT_S, SIM_HEARTBEAT_CONSUMER_MS, SIM_LATE_FAULT_S, Machine
+
+    own = Machine(load_machine(str(write(tmp_path, machine_text("canon_local", "limits", simulate=True,
+                                                                   process="auto")))))
+    assert own.motion_mode == "own" and not own.sim_shares_motion
+    sent = own.motion.canopen  # what the motion process's master is made with
+    assert sent.feedback_timeout_s == CanopenConfig.feedback_timeout_s == 0.1
+    assert sent.heartbeat_consumer_ms == 1000  # the file's
+    assert own.motion.late_fault_s == own.late_fault_s == 0.050  # ten 2 ms cycles, at least 50 ms
+    assert sent.bus.channel.startswith("limits-") and sent.bus.channel != "limits"  # the machine's own
+    thread = Machine(load_machine(str(write(tmp_path, machine_text("canon_local", "limits", simulate=True,
+                                                                      process="thread")))))
+    assert thread.motion_mode == "thread" and thread.sim_shares_motion
+    assert thread.canopen.feedback_timeout_s == SIM_FEEDBACK_TIMEOUT_S
+    assert thread.canopen.heartbeat_consumer_ms == SIM_HEARTBEAT_CONSUMER_MS
+    assert thread.late_fault_s == SIM_LATE_FAULT_S
+    # and there master and drives share the process: python-can's virtual bus, no sockets; canon_local
+    # where the drives are in another process
+    assert thread.canopen.bus.interface == "virtual" and sent.bus.interface == "canon_local"
+
+
+@pytest.mark.timeout(180)
+def test_a_program_runs_with_the_motion_and_the_drives_in_processes_of_their_own_on_the_local_bus(
+        tmp_path: Path) -> None:
+    """canon_local, anywhere (no network): "auto" puts the motion side in a child process and the
+    simulated drives in another; a program runs through both."""
+    path = write(tmp_path, machine_text("canon_local", f"run-{os.getpid()}", simulate=True, process="auto"))
+    prog = tmp_path / "short.ngc"
+    prog.write_text(SHORT)
+    with own_machine(path) as m:
+        pids = {os.getpid(), m.motion.pid, m.sim_bus.proc.pid}
+        assert m.motion_mode == "own" and len(pids) == 3, pids
+        m.bring_up()
+        result = m.wait_job(m.run(str(prog)), 60.0)
+        assert result is not None and result.ok, result.error if result is not None else "no result"
+        wait_for(lambda: all(abs(a - c) < 0.01 for a, c in zip(m.motion.actual, (5.0, 4.0, 2.0),
+                                                                  strict=True)), 5.0, "drives at the end")
 
 
 def test_the_liveness_timeouts_default_and_are_checked_with_their_key(tmp_path: Path) -> None:
@@ -454,7 +534,9 @@ def test_the_daemon_with_the_motion_process_answers_as_with_the_thread(tmp_path:
     from motiond.config import load_machine
 
     path = write(tmp_path, machine_text("udp_multicast", group(), simulate=True))
-    d = Daemon(tmp_path, config=load_machine(str(path)))
+    # the drives out of the motion process keep the real 0.1 s TPDO limit by default; this test is about
+    # the verbs, on a shared loaded PC: as own_machine
+    d = Daemon(tmp_path, config=load_machine(str(path)), feedback_timeout_s=0.4)
     try:
         assert d.machine.motion_mode == "own" and d.machine.motion.pid != os.getpid()
         d.ready()
@@ -530,7 +612,7 @@ def test_estop_during_a_flood_reaches_the_drives_within_a_cycle_of_its_arrival(t
                               f"{random.randint(20000, 60000)}?ttl=0")
     lc = lcm.LCM(url)
     machine, server = start(load_machine(str(path)), lc, TelemetryConfig(url=url), key=TEST_KEY,
-                            var_file=tmp_path / "p.var", late_fault_s=2.0)
+                            var_file=tmp_path / "p.var", late_fault_s=2.0, feedback_timeout_s=0.4)
     flood = None
     try:
         machine.bring_up()

@@ -9,6 +9,9 @@ next target several periods ahead and faults with EMCY 0x8400, as a real drive w
 So the socket's buffer is widened to :data:`UDP_RECEIVE_BUFFER` (over ``net.core.rmem_max`` where the
 process may, as root can; otherwise up to it, and a warning says so when that is below
 :data:`UDP_RECEIVE_BUFFER_LOW`). A CAN adapter (socketcan) has its own queue and is left as it is.
+canon's local bus (``canon_local``, :mod:`fieldbus.canopen.localbus`) sizes its own buffers; it is
+opened here directly, so that it works where python-can's entry points were not installed (a
+checkout whose ``pip install -e .`` predates it).
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from typing import Any
 
 import can
 
-from fieldbus.canopen.config import CanBusConfig
+from fieldbus.canopen.config import LOCAL_INTERFACE, CanBusConfig
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +36,11 @@ _SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
 def open_bus(config: CanBusConfig, **extra: Any) -> can.BusABC:
     """``can.Bus`` for ``config`` (``extra`` keyword arguments added), its receive buffer widened
     where it is a UDP socket."""
+    if config.interface == LOCAL_INTERFACE:  # also where python-can's entry points are not installed
+        from fieldbus.canopen.localbus import LocalBus
+
+        kw = {k: v for k, v in config.bus_kwargs().items() if k != "interface"}
+        return LocalBus(**kw, **extra)
     bus = can.Bus(**config.bus_kwargs(), **extra)
     if config.interface == "udp_multicast":
         widen_receive_buffer(bus)

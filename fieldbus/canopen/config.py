@@ -17,7 +17,8 @@ from fieldbus.canopen.pdo import PdoLayout, make_layout
 
 @dataclass(frozen=True)
 class CanBusConfig:
-    """Which python-can bus: ``interface`` (virtual, udp_multicast, socketcan ...), channel, bitrate."""
+    """Which python-can bus: ``interface`` (virtual, canon_local, udp_multicast, socketcan ...), channel,
+    bitrate."""
 
     interface: str = "virtual"
     channel: str = "canon"
@@ -29,7 +30,7 @@ class CanBusConfig:
         kw: dict[str, Any] = {"interface": self.interface, "channel": self.channel}
         if self.interface == "udp_multicast":
             kw["hop_limit"] = 0
-        elif self.interface not in ("virtual",):
+        elif self.interface not in ("virtual", LOCAL_INTERFACE):  # neither has bit timing
             kw["bitrate"] = self.bitrate
         if self.interface == "virtual":
             kw["receive_own_messages"] = False
@@ -242,6 +243,12 @@ class CanopenConfig:
 
 #: ``[canopen] sync`` values
 SYNC_MODES = ("auto", "kernel", "master")
+#: canon's own bus between the processes of one computer (fieldbus.canopen.localbus): simulated drives
+#: in another process, no network
+LOCAL_INTERFACE = "canon_local"
+#: python-can interfaces whose bus reaches the other processes of this computer: the motion process
+#: and simulated drives (or a bench) in another can share it (``[motion] process = "auto"``)
+CROSS_PROCESS_INTERFACES = (LOCAL_INTERFACE, "socketcan", "udp_multicast")
 #: python-can interfaces whose periodic send the kernel times (SocketCAN: the broadcast manager, BCM)
 KERNEL_SYNC_INTERFACES = ("socketcan",)
 

@@ -16,8 +16,8 @@ import can
 import canopen
 
 from fieldbus.canopen.busopen import open_bus
-from fieldbus.canopen.config import CanBusConfig
-from fieldbus.canopen.drive_sim import SimDrive
+from fieldbus.canopen.config import CanBusConfig, CanopenConfig
+from fieldbus.canopen.drive_sim import SimDrive, motor_for
 
 log = logging.getLogger(__name__)
 
@@ -67,3 +67,17 @@ class SimBus:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def machine_sim_drives(canopen: CanopenConfig, lag_s: float) -> list[SimDrive]:
+    """The simulated drives of a machine's ``[canopen]``: one per axis (with its motor, and its touch
+    probe where configured), and the spindle's (``[canopen.spindle]``)."""
+    from fieldbus.canopen.drive_sim_probe import sim_probe
+
+    drives = [SimDrive(d.node_id, d.eds_path, lag_s=lag_s, parameters=motor_for(d, d.eds_path),
+                       **sim_probe(d)) for d in canopen.drives]
+    if canopen.spindle is not None:
+        from fieldbus.canopen.drive_sim_velocity import sim_spindle
+
+        drives.append(sim_spindle(canopen.spindle))
+    return drives

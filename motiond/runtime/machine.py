@@ -12,8 +12,9 @@ rest of the code and the tests use. It owns
   operations and their ``canon-service`` thread (:mod:`motiond.runtime.service`), the status and its
   ``canon-status`` thread (:mod:`motiond.runtime.status`); here: bring-up and shutdown, the command
   verbs (:meth:`Machine.handle_command`), faults as the task side handles them, events;
-* with ``[canopen] simulate = true``, the simulated drives (their own bus object and reader thread;
-  outside the motion side, as they will be outside the motion process), the
+* with ``[canopen] simulate = true``, the simulated drives: in "thread" mode here (their own bus
+  object and reader thread, outside the motion side), in "own" mode in a process of their own
+  (:class:`~motiond.runtime.sim_drives_proc.SimDrivesProcess`); the
   :class:`~fieldbus.modbus.executor.IoExecutor` (and simulated I/O modules on loopback), the
   :class:`~gcode_canon.interpreter.Interpreter`, the :class:`~motiond.states.MachineStates` (the
   transition rules, used as they are), the event publisher.
@@ -43,6 +44,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from fieldbus.canopen.config import LOCAL_INTERFACE
 from gcode_canon import commands as C
 from gcode_canon.errors import GCodeError
 from motiond.programs import resolve_program
@@ -57,11 +59,17 @@ from motiond.states import CommandRefused, MachineStates, State
 log = logging.getLogger(__name__)
 
 SIM_LATE_FAULT_S = 1.0
-"""Default late-cycle fault limit with simulated drives (nothing physical to protect; a loaded PC)."""
+"""Default late-cycle fault limit with simulated drives in the motion side's process ("thread" mode:
+nothing physical to protect; a loaded PC stalls the drives with the cycle)."""
 SIM_FEEDBACK_TIMEOUT_S = 0.5
-"""With drives simulated in this process, a TPDO may be this late before it is a fault (real: 0.1 s)."""
+"""With drives simulated in the motion side's process, a TPDO may be this late before it is a fault
+(real: 0.1 s)."""
 SIM_HEARTBEAT_CONSUMER_MS = 1500
-"""And a heartbeat this late (both ways): on a loaded PC the process can stall for a few 100 ms."""
+"""And a heartbeat this late (both ways): on a loaded PC the process can stall for a few 100 ms. In
+"own" mode the simulated drives run in a process of their own and none of the three applies."""
+PRIVATE_SIM_BUSES = ("virtual", LOCAL_INTERFACE)
+"""Buses on which a machine's simulated drives get a channel of the machine's own (``<channel>-<pid>-<n>``):
+no other machine reaches them there."""
 
 STOP_TIMEOUT_S = 10.0
 """Ctrl-C (``canon run``) or SIGTERM (the daemon): the jerk-limited stop on the path
@@ -172,10 +180,11 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
     machine file's ``[interpreter]`` with ``var_file`` / ``tool_table`` (the parameter file and tool
     table) taking precedence. ``late_fault_s``: a cycle that
     starts later than this after its deadline is a fault (default: ten cycles, at least 50 ms;
-    1 s with simulated drives).
+    1 s with simulated drives in this process, "thread" mode).
     ``modbus_port``: put the simulated I/O module on this port instead of the configured one (0: a
     free port; the demo machine uses a free port so that runs do not collide). ``feedback_timeout_s``:
-    how long a drive may send no TPDO before it is a fault (CanopenConfig's 0.1 s; 0.5 s simulated).
+    how long a drive may send no TPDO before it is a fault (CanopenConfig's 0.1 s; 0.5 s with simulated
+    drives in this process).
     """
 
     def __init__(self, config: Any, *, lc: Any = None, telemetry: Any = None,
@@ -197,13 +206,24 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
         self.T = self.limits.cycle_s
         self.telemetry = telemetry if telemetry is not None else TelemetryConfig.from_table(config.telemetry)
         canopen: CanopenConfig = canopen_for_machine(config)
-        if canopen.simulate and canopen.bus.interface == "virtual":
-            # python-can's virtual channels are global to the process: one of our own per machine
+        from motiond.config_motion import motion_settings
+
+        self.motion_mode, watch = motion_settings(config, canopen)  # [motion] process: "thread" or "own"
+        if canopen.simulate and canopen.bus.interface in PRIVATE_SIM_BUSES:
+            # the drives simulated for this machine are its own: a channel of their own per machine
+            # (python-can's virtual channels are global to the process; canon_local's to the user)
             canopen = dataclasses.replace(canopen, bus=dataclasses.replace(
                 canopen.bus, channel=f"{canopen.bus.channel}-{os.getpid()}-{next(_instance)}"))
-        if canopen.simulate:
-            # the simulated drives share this process (and its interpreter lock) with the master: a stall
-            # of the process delays their answers as much as the cycle, so allow for it
+        self.sim_shares_motion = canopen.simulate and self.motion_mode == "thread"
+        """The simulated drives run in the motion side's process (and on its interpreter lock)."""
+        if self.sim_shares_motion and canopen.bus.interface == LOCAL_INTERFACE:
+            # master and drives in this one process: python-can's virtual bus carries their frames
+            # without sockets (the demo's pocket.ngc on canon_local here had 2,451-4,078 late cycles
+            # against 621-866 on virtual, same load); canon_local is for drives in another process
+            canopen = dataclasses.replace(canopen, bus=dataclasses.replace(canopen.bus, interface="virtual"))
+        if self.sim_shares_motion:
+            # a stall of the process delays the drives' answers as much as the cycle, so allow for it;
+            # in "own" mode they are in a process of their own and the configured limits hold
             canopen = dataclasses.replace(
                 canopen, feedback_timeout_s=max(canopen.feedback_timeout_s, SIM_FEEDBACK_TIMEOUT_S),
                 heartbeat_consumer_ms=max(canopen.heartbeat_consumer_ms, SIM_HEARTBEAT_CONSUMER_MS)
@@ -224,7 +244,7 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
         self.simulated = canopen.simulate
         self.sim_lag_s = sim_lag_s
         if late_fault_s is None:
-            late_fault_s = SIM_LATE_FAULT_S if canopen.simulate else max(10 * self.T, 0.050)
+            late_fault_s = SIM_LATE_FAULT_S if self.sim_shares_motion else max(10 * self.T, 0.050)
         self.late_fault_s = late_fault_s
         if interp_settings is None:  # [interpreter] of the machine file, var_file / tool_table winning
             from motiond.interp_settings import build_settings
@@ -247,9 +267,6 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
 
         from gcode_canon.interpreter import Interpreter
         self.interp = Interpreter(interp_settings, Callbacks(self))
-        from motiond.config_motion import motion_settings
-
-        self.motion_mode, watch = motion_settings(config, canopen)  # [motion] process: "thread" or "own"
         if self.motion_mode == "own":
             from motiond.runtime.motion_proxy import MotionProxy
 
@@ -312,17 +329,9 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
 
                 self.sim_bus = SimDrivesProcess(self.canopen, self.sim_lag_s)
             elif self.simulated:
-                from fieldbus.canopen.drive_sim import SimDrive, motor_for
-                from fieldbus.canopen.drive_sim_probe import sim_probe
-                from fieldbus.canopen.sim_process import SimBus
+                from fieldbus.canopen.sim_process import SimBus, machine_sim_drives
 
-                self.sim_drives = [SimDrive(d.node_id, d.eds_path, lag_s=self.sim_lag_s,
-                                            parameters=motor_for(d, d.eds_path), **sim_probe(d))
-                                   for d in self.canopen.drives]
-                if self.canopen.spindle is not None:
-                    from fieldbus.canopen.drive_sim_velocity import sim_spindle
-
-                    self.sim_drives.append(sim_spindle(self.canopen.spindle))
+                self.sim_drives = machine_sim_drives(self.canopen, self.sim_lag_s)
                 self.sim_bus = SimBus(self.sim_drives, self.canopen.bus)
             try:
                 self.motion.open()
@@ -353,9 +362,10 @@ class Machine(JobsMixin, RunFromLineMixin, ServiceMixin, StatusMixin):
             self.shutdown()
             raise
         self.started = True
+        bus = f"{self.canopen.bus.interface} bus {self.canopen.bus.channel}"
         self.event("INFO", f"machine {self.limits.name!r} up: {self.n} drives, cycle {self.T * 1e3:g} ms, "
-                           f"{'simulated' if self.simulated else self.canopen.bus.interface} bus",
-                   kind="startup", source="motiond")
+                           f"{'simulated drives on ' if self.simulated else ''}{bus}, motion side "
+                           f"{self.motion_mode}", kind="startup", source="motiond")
         return self
 
     def _start_io(self) -> None:

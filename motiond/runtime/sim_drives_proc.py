@@ -3,8 +3,8 @@
 With the motion side in its own process the drives it streams to must be reachable from there and must
 not share an interpreter lock with it; nor with the task side, whose interpreter would stall their
 answers (a drive that misses a SYNC sees a setpoint jump: EMCY 0x8400). So the task process starts
-them here, as ``canon sim drives`` would, on the same bus (udp_multicast or socketcan), and stops them
-when it shuts down; they end too when the task process dies (their pipe closes).
+them here, as ``canon sim drives`` would, on the same bus (canon_local, udp_multicast or socketcan), and
+stops them when it shuts down; they end too when the task process dies (their pipe closes).
 """
 
 from __future__ import annotations
@@ -21,13 +21,9 @@ READY_TIMEOUT_S = 60.0
 def _main(conn: Any, canopen: Any, lag_s: float, log_level: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the task's
     logging.basicConfig(level=log_level, format="sim-drives[%(process)d] %(levelname)s %(name)s: %(message)s")
-    from fieldbus.canopen.drive_sim import SimDrive, motor_for
-    from fieldbus.canopen.drive_sim_probe import sim_probe
-    from fieldbus.canopen.sim_process import SimBus
+    from fieldbus.canopen.sim_process import SimBus, machine_sim_drives
 
-    drives = [SimDrive(d.node_id, d.eds_path, lag_s=lag_s, parameters=motor_for(d, d.eds_path),
-                       **sim_probe(d)) for d in canopen.drives]
-    bus = SimBus(drives, canopen.bus)
+    bus = SimBus(machine_sim_drives(canopen, lag_s), canopen.bus)
     conn.send("ready")
     with contextlib.suppress(EOFError, OSError):
         conn.recv()  # "stop", or EOF when the task process is gone
