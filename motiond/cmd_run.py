@@ -1,9 +1,9 @@
 """``canon run FILE.ngc``: boot the machine, run one program on it, print a summary, exit.
 
 With no ``--config`` it runs on the built-in demo machine: three simulated drives on canon's local
-CAN bus (``canon_local``, a channel of the run's own; while the Modbus I/O is not carried across
-processes the motion side is a thread of this process, ``[motion] process = "auto"``, and master and
-drives then share python-can's virtual bus), the simulated Modbus
+CAN bus (``canon_local``, a channel of the run's own; with the Modbus I/O on the machine
+``[motion] process = "auto"`` keeps the motion side a thread of this process, and master and drives
+then share python-can's virtual bus), the simulated Modbus
 I/O module on loopback (a free port), LCM on the default
 URL (a host with no multicast route gets one warning line and telemetry inside this process only).
 It is the daemon's core (:class:`motiond.runtime.Machine`) doing what an operator would: leave

@@ -110,8 +110,8 @@ def test_thread_mode_is_accepted_on_virtual(tmp_path: Path) -> None:
 def test_auto_is_the_default_own_where_the_bus_crosses_processes_else_thread_saying_why(
         tmp_path: Path) -> None:
     """"auto": "own" on canon_local, udp_multicast and socketcan; "thread" on virtual, and where the
-    machine has what is not carried across yet (Modbus, [io], a drive's touch probe), which an explicit
-    "own" refuses (test_own_process_with_modbus_io_is_refused)."""
+    machine has the Modbus I/O or a drive's touch probe (carried across when "own" is asked for
+    explicitly: test_machine_io_e2e, test_touch_probe)."""
     from motiond.config import load_machine
     from motiond.config_check import describe, validate_machine
     from motiond.config_motion import motion_choice
@@ -130,11 +130,11 @@ def test_auto_is_the_default_own_where_the_bus_crosses_processes_else_thread_say
     assert choice("virtual", "canon") == ("thread", "the virtual bus does not cross processes")
     modbus = '\n[[modbus.devices]]\nname = "io"\nhost = "127.0.0.1"\nport = 1502\nsimulate = true\n'
     mode, why = choice("canon_local", "auto-test", extra=modbus)
-    assert mode == "thread" and "[modbus]" in why and "not carried across" in why, why
+    assert mode == "thread" and "[modbus]" in why and '"own" takes it when asked' in why, why
     mode, why = choice("canon_local", "auto-test", z="touch_probe = 1\n")
     assert mode == "thread" and "touch probe (axis z)" in why, why
     # no [motion] table: "auto"; the built-in demo machine is on canon_local but has its simulated
-    # Modbus module: "thread" until the Modbus I/O crosses too
+    # Modbus module: "thread" ("auto" keeps the I/O map beside the motion)
     path = write(tmp_path, machine_text("canon_local", "auto-test", simulate=True).split("[motion]")[0])
     assert motion_choice(load_machine(str(path))).mode == "own"
     demo = motion_choice(load_machine(None))
