@@ -394,6 +394,54 @@ def test_an_abort_mid_tap_holds_the_axes_in_the_work_and_is_a_fault(tmp_path) ->
     assert z_sim.emcys == []
 
 
+def test_a_stalled_cycle_mid_tap_is_a_fault_naming_it_not_a_jump_of_the_axis(tmp_path) -> None:
+    """The spindle turned on while no setpoint went out (a cycle stalled: here, 3 revolutions that
+    appear at once in the spindle's position mid-tap). Following it would jump the axis 4.5 mm in one
+    cycle, which a drive faults on (EMCY 0x8400) mid-thread: the tap stops instead, held where it is,
+    the spindle stopped, and the fault names the cause."""
+    import itertools
+    import time
+
+    from motiond.states import State
+
+    machine = start_lathe(tmp_path)
+    z_sim = machine.sim_drives[1]
+    z_sim.record_targets = True
+    sd = machine.motion.spindle_drive
+    predict = sd._predicted
+    jumped: list[int] = []
+
+    def stalled():
+        revs, fb = predict()
+        if machine.motion.commanded[1] <= -3.0 or jumped:
+            jumped.append(1)
+            revs += 3.0 * (1 if fb.rpm >= 0 else -1)  # the turns of the stall, not followed by the axis
+        return revs, fb
+
+    sd._predicted = stalled
+    prog = tmp_path / "p.ngc"
+    prog.write_text("G21 G18 G90\nM3 S300\nG0 X0 Z2\nG33.1 Z-10 K1.5\nM2\n")
+    try:
+        job = machine.run(prog)
+        deadline = time.monotonic() + 30.0
+        while machine.states.snapshot().state is not State.FAULTED and time.monotonic() < deadline:
+            time.sleep(0.01)
+        state = machine.states.snapshot()
+        result = machine.wait_job(job, 30.0)
+        time.sleep(0.3)
+    finally:
+        machine.shutdown()
+    assert jumped, "the tap never got in"
+    assert state.state is State.FAULTED, state
+    assert "rigid tap: the axis would jump" in machine.last_error and ":4:" in machine.last_error
+    assert result is not None and not result.ok
+    z = [t / 10000.0 for _n, t in z_sim.latched]
+    step = 2.0 * machine.T * machine.limits.axes[1].max_velocity
+    assert max(abs(b - a) for a, b in itertools.pairwise(z)) <= step  # no jump went out
+    assert min(z) > -10.0 + 1e-3 and max(z[-20:]) < -2.5  # held in the work, short of the depth
+    assert z_sim.emcys == []
+
+
 def test_canon_sim_drives_serves_the_spindle_drive_of_the_file(tmp_path) -> None:
     import subprocess
     import sys

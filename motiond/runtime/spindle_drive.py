@@ -42,6 +42,9 @@ from planner.spindle_sync import FollowedTap
 ORIENT_GAIN = 4.0
 #: the spindle counts as stopped below this speed (rpm)
 STILL_RPM = 0.5
+TAP_STEP_MARGIN = 2.0
+"""A followed tap's axis moves at most this many cycles' travel at the axis's max_velocity in one cycle
+(one late cycle is ridden through); more is a stalled cycle the axis cannot follow (below)."""
 
 
 class SpindleDriveControl:
@@ -144,8 +147,28 @@ class SpindleDriveControl:
                 p.release()
             return tuple(w.start)
         d = max(0.0, d)
+        if abs(d - t.d_last) > self._tap_max_step(t):
+            # the spindle turned on while no setpoint went out (a stalled cycle): following it now is a
+            # jump no axis can make (a drive faults on it, 0x8400, mid-thread); stop here as on an
+            # interrupted tap, naming the cause
+            t.phase = "held"
+            self._command(0.0)
+            self._dir = 0
+            self.c.post_fault(f"{w.file}:{w.line}: rigid tap: the axis would jump {abs(d - t.d_last):.3f} mm "
+                              "in one cycle to follow the spindle (a stalled cycle): spindle stopped, axes "
+                              "held where they are (back it out by hand)", "spindle")
+            return t.last
+        t.d_last = d
         t.last = tuple(s + u * d for s, u in zip(w.start, t.unit, strict=True))
         return t.last
+
+    def _tap_max_step(self, t: _Tap) -> float:
+        """The most the tap may advance along its line in one cycle (:data:`TAP_STEP_MARGIN`)."""
+        if t.max_step is None:
+            steps = [lim.max_velocity / abs(u) for lim, u in zip(self.c.limits.axes, t.unit, strict=True)
+                     if abs(u) > 1e-12]
+            t.max_step = TAP_STEP_MARGIN * self.c.T * min(steps, default=math.inf)
+        return t.max_step
 
     # --- events -------------------------------------------------------------------------------------
     def _command(self, rpm: float) -> float:
@@ -311,4 +334,6 @@ class _Tap:
         self.sign = sign
         self.phase = "stop"
         self.r0 = 0.0
+        self.d_last = 0.0  # how far along its line the last setpoint put the axes
+        self.max_step: float | None = None
         self.deadline = math.inf
