@@ -80,7 +80,7 @@ from typing import Any, Protocol
 from gcode_canon import commands as C
 from motiond.runtime.cycle import END, FEED_PER_CYCLE, LATE_LOG, LOOKAHEAD, QUEUE_MAX, Cycle
 from motiond.runtime.probing import Probed
-from motiond.runtime.records import ModalState, Stream
+from motiond.runtime.records import ModalState, Stream, deferred
 from motiond.states import CommandRefused
 
 log = logging.getLogger(__name__)
@@ -231,14 +231,7 @@ class MotionCore(Cycle):
         # the cycle thread itself (the I/O map's E-stop, door, buttons): inline (join would raise)
         if runner is None or threading.get_ident() == self._cycle_ident or runner.join(0):
             return fn()
-        fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
-
-        def call() -> None:
-            try:
-                fut.set_result(fn())
-            except BaseException as exc:
-                fut.set_exception(exc)
-
+        call, fut = deferred(fn)
         self._calls.put(call)
         if not wait:
             return None

@@ -60,7 +60,7 @@ from motiond.config_motion import Watch
 from motiond.runtime.cycle import END, LATE_LOG, QUEUE_MAX
 from motiond.runtime.motion import MotionHooks, MotionSnapshot
 from motiond.runtime.motion_proc import END_MARK, SYNC_TYPES
-from motiond.runtime.records import Stream
+from motiond.runtime.records import Stream, deferred
 from motiond.states import CommandRefused
 
 log = logging.getLogger(__name__)
@@ -579,14 +579,7 @@ class MotionProxy:
         """Run ``fn`` on the ``canon-hooks`` thread, ordered with the hooks (inline there)."""
         if threading.get_ident() == self._dispatch_ident:
             return fn()
-        fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
-
-        def call() -> None:
-            try:
-                fut.set_result(fn())
-            except BaseException as exc:
-                fut.set_exception(exc)
-
+        call, fut = deferred(fn)
         self._dispatch.put(call)
         return fut.result(timeout) if wait else None
 

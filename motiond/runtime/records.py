@@ -9,10 +9,26 @@ the outputs switched), read back by the task side when the job ends and turned i
 
 from __future__ import annotations
 
+import concurrent.futures
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from gcode_canon import commands as C
+
+
+def deferred(fn: Callable[[], Any]) -> tuple[Callable[[], None], concurrent.futures.Future[Any]]:
+    """``fn`` as a call for another thread to run (the cycle thread, the hooks thread), and the future
+    that gets its result or its exception."""
+    fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
+
+    def call() -> None:
+        try:
+            fut.set_result(fn())
+        except BaseException as exc:
+            fut.set_exception(exc)
+
+    return call, fut
 
 
 class MachineError(Exception):
