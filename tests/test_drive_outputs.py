@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 from canopen_helpers import Rig, make_config
-from test_motion_process import Bench, group, own_mode
+from test_motion_process import group, own_mode
 from test_run_from_line import wait_for
 
 from fieldbus.canopen.drive_sim import SimDrive
@@ -117,8 +117,13 @@ def test_a_drive_output_is_written_from_the_task_with_the_motion_in_its_own_proc
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """With the motion in a process of its own the task's I/O side asks the motion process, whose master
     writes 0x60FE; the answer comes when the drive confirmed the SDO write, and the caller never waits
-    for it (``MotionProxy.drive_output``). Checked on the drive by the test's own SDO client, once the
-    master's write is answered (two SDO clients at once on one node would answer each other's frames)."""
+    for it (``MotionProxy.drive_output``). Checked on the bus by a listener that sends nothing: the
+    master's SDO download of 0x60FE:01 with the word, and the drive's confirmation (a second SDO client
+    on the node would take the master's answers: a reading bench made the master's write time out)."""
+    import can
+
+    from fieldbus.canopen.config import CanBusConfig
+
     text = EXAMPLE.read_text().replace('coolant_mist = { device = "io", coil = 12 }',
                                        f'coolant_mist = {{ drive = "z", bit = {MIST} }}')
     f = tmp_path / "own.toml"
@@ -126,33 +131,40 @@ def test_a_drive_output_is_written_from_the_task_with_the_motion_in_its_own_proc
     with started(f, tmp_path) as m:
         assert m.motion_mode == "own" and not m.sim_drives
         z = m.names.index("z")
-        bench = Bench(group())
+        node = 3
+        tap = can.Bus(**CanBusConfig("udp_multicast", group()).bus_kwargs())
+        frames: list[tuple[int, bytes]] = []
+        notifier = can.Notifier(tap, [lambda msg: frames.append((msg.arbitration_id, bytes(msg.data)))])
 
-        def read() -> int:  # by SDO, retried: a write of the master's at the same time answers it once
-            for _ in range(5):
-                with contextlib.suppress(Exception):
-                    return int(bench.nodes[2].sdo[0x60FE][1].raw)
-                time.sleep(0.2)
-            return int(bench.nodes[2].sdo[0x60FE][1].raw)
+        def written(word: int, since: int) -> bool:
+            """The master wrote ``word`` to 0x60FE:01 and the drive confirmed it, after frame ``since``."""
+            seen = frames[since:]
+            want = b"\x23\xfe\x60\x01" + word.to_bytes(4, "little")  # expedited download, 4 bytes
+            asked = [i for i, (cob, data) in enumerate(seen) if cob == 0x600 + node and data == want]
+            return bool(asked) and any(cob == 0x580 + node and data[:4] == b"\x60\xfe\x60\x01"
+                                       for cob, data in seen[asked[0]:])
 
         try:
-            time.sleep(1.0)  # the I/O map's start-up writes (every function off) are done
             t0 = time.monotonic()
+            n0 = len(frames)
             fut = m.motion.drive_output(z, MIST, True)
             assert fut.result(10.0) >= t0 - 1.0  # the master's time of the write (its clock: monotonic)
-            assert read() == 1 << MIST
+            wait_for(lambda: written(1 << MIST, n0), "the write of bit 17 and its confirmation on the bus")
+            n0 = len(frames)
             m.motion.drive_output(z, MIST, False).result(10.0)
-            assert read() == 0
+            wait_for(lambda: written(0, n0), "the write of 0 and its confirmation on the bus")
             with pytest.raises(ValueError, match="0x60FE bit 40"):  # refused by the motion process
                 m.motion.drive_output(z, 40, True).result(10.0)
             # and from a program: M7 / M9 switch it with nothing left unwritten
             prog = tmp_path / "p.ngc"
             prog.write_text("%\nG21 G90 G94\nM7\nG4 P0.5\nM9\nG4 P0.5\nM2\n%\n")
+            n0 = len(frames)
             result = m.wait_job(m.run(prog), 60.0)
             assert result is not None and result.ok, result.error if result else "timeout"
             names = [(o.name, o.value, o.line) for o in result.outputs if o.kind == "function"]
             assert names == [("coolant_mist", 1.0, 3), ("coolant_mist", 0.0, 5)]
             assert not [r for r in caplog.records if "not written" in r.getMessage()]
-            assert read() == 0
+            wait_for(lambda: written(1 << MIST, n0), "M7's write on the bus")
         finally:
-            bench.close()
+            notifier.stop()
+            tap.shutdown()
