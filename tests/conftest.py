@@ -26,6 +26,22 @@ def pytest_configure(config: pytest.Config) -> None:
 
     os.environ.pop("STATE_DIRECTORY", None)
     os.environ["XDG_STATE_HOME"] = tempfile.mkdtemp(prefix="canon-test-state-")
+    _take_ctrl_c_as_a_terminal_would()
+
+
+def _take_ctrl_c_as_a_terminal_would() -> None:
+    """Give this process (and so every ``canon`` it starts) SIGINT as a terminal's foreground job has it.
+
+    A shell without job control starts background commands with SIGINT ignored (POSIX), and Python
+    then keeps it ignored instead of raising KeyboardInterrupt; its children inherit that. The suite
+    run that way (``tests/run ... &`` in a script) saw every Ctrl-C test fail: ``canon run`` ran its
+    program to the end, as it should when SIGINT is ignored. The tests check what Ctrl-C does, so
+    they set it up as Ctrl-C comes: handled here, and so at its default in every child (exec resets a
+    handled signal to its default)."""
+    import signal
+
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
