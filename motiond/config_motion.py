@@ -88,39 +88,53 @@ def motion_choice(config: MachineConfig, canopen: Any = None) -> MotionChoice:
         from motiond.config_canopen import canopen_for_machine
 
         canopen = canopen_for_machine(config)
-    problem = _own_problem(config, canopen)
-    if asked == "own" and problem is not None and problem[1]:
-        raise t.error("process", f'"own" {problem[1]}')
-    if asked == "own" or problem is None:
-        reason = "" if asked == "own" else f"the {canopen.bus.interface} bus crosses processes"
-        return MotionChoice("own", asked, reason, watch)
-    log.debug("[motion] process = \"auto\": thread, as %s", problem[0])
-    return MotionChoice("thread", asked, problem[0], watch)
+    bus = _bus_refusal(canopen)
+    if bus is not None:
+        if asked == "own":
+            raise t.error("process", f'"own" {bus[1]}')
+        log.debug("[motion] process = \"auto\": thread, as %s", bus[0])
+        return MotionChoice("thread", asked, bus[0], watch)
+    if asked == "own":
+        return MotionChoice("own", asked, "", watch)
+    beside = _kept_beside(config, canopen)
+    if beside is not None:
+        log.debug("[motion] process = \"auto\": thread, as %s", beside)
+        return MotionChoice("thread", asked, beside, watch)
+    return MotionChoice("own", asked, f"the {canopen.bus.interface} bus crosses processes", watch)
 
 
-def _own_problem(config: MachineConfig, canopen: Any) -> tuple[str, str] | None:
-    """Why this machine does not run "own": (the reason in a phrase, the refusal of an explicit "own",
-    "" when an explicit "own" is taken: only "auto" keeps "thread" then); None: it does."""
+def _bus_refusal(canopen: Any) -> tuple[str, str] | None:
+    """Why this bus cannot carry an own motion process: (the reason in a phrase, the refusal of an
+    explicit "own"); None: it can."""
     from fieldbus.canopen.config import CROSS_PROCESS_INTERFACES
 
     interface = canopen.bus.interface
-    if interface not in CROSS_PROCESS_INTERFACES:
-        return (f"the {interface} bus does not cross processes",
-                'needs a bus that crosses processes ([canopen] interface = "canon_local" or '
-                '"udp_multicast" for simulated drives, "socketcan"): python-can\'s virtual bus exists '
-                'inside one process only' if interface == "virtual" else
-                f'needs a bus that crosses processes ([canopen] interface = "canon_local", '
-                f'"udp_multicast" or "socketcan"), not {interface!r}')
+    if interface in CROSS_PROCESS_INTERFACES:
+        return None
+    if interface == "virtual":
+        refusal = ('needs a bus that crosses processes ([canopen] interface = "canon_local" or '
+                   '"udp_multicast" for simulated drives, "socketcan"): python-can\'s virtual bus exists '
+                   'inside one process only')
+    else:
+        refusal = (f'needs a bus that crosses processes ([canopen] interface = "canon_local", '
+                   f'"udp_multicast" or "socketcan"), not {interface!r}')
+    return f"the {interface} bus does not cross processes", refusal
+
+
+def _kept_beside(config: MachineConfig, canopen: Any) -> str | None:
+    """Why "auto" keeps the motion a thread on a bus that would allow "own" (an explicit "own"
+    takes these along): the Modbus I/O or a drive's touch probe, whose stops are quickest beside
+    the motion (docs/daemon.md). None: nothing keeps it."""
     data = config.root.data if config.root is not None else {}
     from motiond.config_modbus import modbus_for
 
     for key in ("modbus", "io"):
         if key in data or (key == "modbus" and modbus_for(config) is not None):
-            return (f"the Modbus I/O ([{key}]) runs beside the motion (\"own\" takes it when asked)", "")
+            return f"the Modbus I/O ([{key}]) runs beside the motion (\"own\" takes it when asked)"
     probes = [d.axis for d in canopen.drives if getattr(d, "touch_probe", 0)]
     if probes:
-        return (f"a drive's touch probe (axis {probes[0]}) runs beside the motion (\"own\" takes it when "
-                "asked)", "")
+        return (f"a drive's touch probe (axis {probes[0]}) runs beside the motion (\"own\" takes it "
+                "when asked)")
     return None
 
 

@@ -525,13 +525,18 @@ class MotionServer:
         """The task silent :data:`ORPHAN_HOLD_S` past its timeout: the held drives are disabled, as
         for a dead task (the cycle and the heartbeat go on: the task may run again)."""
         log.error("task process silent for %.0f s: drives disabled", silent)
+        self._disable_drives("the task's silence")
+
+    def _disable_drives(self, why: str) -> None:
+        """Hold the stream and disable every drive; a failing disable is logged, never raised (the
+        watch and the orphan's close must outlive it)."""
         core = self.core
         core.hold_stream = True
         try:
             if core.master is not None:
                 core.master.disable()
-        except Exception:  # the watch must outlive a failing disable
-            log.exception("disabling the drives for the task's silence")
+        except Exception:
+            log.exception("disabling the drives for %s", why)
 
     def run(self) -> None:
         for name, target in (("motion-cmd", self._commands), ("motion-urgent", self._urgent),
@@ -546,15 +551,9 @@ class MotionServer:
                 return
 
     def _disable_and_close(self) -> None:
-        core = self.core
-        core.hold_stream = True
-        try:
-            if core.master is not None:
-                core.master.disable()
-        except Exception:
-            log.exception("disabling the drives after the task process died")
-        core.stop_cycle()
-        core.close()
+        self._disable_drives("the task process's death")
+        self.core.stop_cycle()
+        self.core.close()
 
 
 def _call_on_cycle(core: MotionCore, method: Any, args: tuple[Any, ...]) -> None:
