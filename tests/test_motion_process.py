@@ -435,6 +435,28 @@ def test_every_thread_of_the_motion_process_runs_fifo_below_a_realtime_cycle(tmp
     assert all(p in ((fifo, 20), (fifo, 19)) for p in policies), policies
 
 
+def test_the_simulated_drives_process_runs_fifo_below_a_realtime_cycle(tmp_path: Path) -> None:
+    """With ``realtime_priority`` the simulated drives' process (own mode) runs every thread at
+    SCHED_FIFO one below the cycle: they stand in for hardware, and at ordinary priority two CPU hogs
+    stalled them past their heartbeat watch (EMCY 0x8130 at enable)."""
+    if not fifo_allowed():
+        pytest.skip("SCHED_FIFO needs root or CAP_SYS_NICE")
+    from motiond.config import load_machine
+    from motiond.config_canopen import canopen_for_machine
+    from motiond.runtime.sim_drives_proc import SimDrivesProcess
+
+    text = machine_text("canon_local", f"fifo-{os.getpid()}", simulate=True).replace(
+        "simulate = true\n", "simulate = true\nrealtime_priority = 20\ncpu_latency_us = -1\n")
+    canopen = canopen_for_machine(load_machine(str(write(tmp_path, text))))
+    sim = SimDrivesProcess(canopen, 0.0)
+    try:
+        policies = thread_policies(sim.proc.pid)
+    finally:
+        sim.close()
+    assert len(policies) >= 2, policies  # the main thread and the bus's reader at least
+    assert all(p == (os.SCHED_FIFO, 19) for p in policies), policies
+
+
 TASK = """
 import sys, time
 from motiond.config import load_machine

@@ -23,11 +23,28 @@ def _main(conn: Any, canopen: Any, lag_s: float, log_level: int) -> None:
     logging.basicConfig(level=log_level, format="sim-drives[%(process)d] %(levelname)s %(name)s: %(message)s")
     from fieldbus.canopen.sim_process import SimBus, machine_sim_drives
 
+    _rank_like_hardware(canopen.realtime_priority)
     bus = SimBus(machine_sim_drives(canopen, lag_s), canopen.bus)
     conn.send("ready")
     with contextlib.suppress(EOFError, OSError):
         conn.recv()  # "stop", or EOF when the task process is gone
     bus.close()
+
+
+def _rank_like_hardware(cycle_priority: int) -> None:
+    """With a SCHED_FIFO cycle (``[canopen] realtime_priority``), this process and every thread it
+    starts run at SCHED_FIFO just below the cycle: the drives stand in for hardware, which answers
+    every SYNC whatever else the PC runs. At ordinary priority a busy PC stalled them past their own
+    heartbeat watch (EMCY 0x8130 at enable with the demo in "own" mode and two CPU hogs beside it),
+    a fault real drives would not have. Refused (not root): logged, they run as they are."""
+    if cycle_priority <= 0:
+        return
+    from fieldbus.canopen.clock import helper_priority, set_fifo
+
+    refused = set_fifo(helper_priority(cycle_priority))
+    if refused:
+        logging.getLogger(__name__).warning("simulated drives at ordinary priority (SCHED_FIFO %d refused: "
+                                            "%s)", helper_priority(cycle_priority), refused)
 
 
 class SimDrivesProcess:
