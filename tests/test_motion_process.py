@@ -457,6 +457,22 @@ def test_the_simulated_drives_process_runs_fifo_below_a_realtime_cycle(tmp_path:
     assert all(p == (os.SCHED_FIFO, 19) for p in policies), policies
 
 
+def test_the_motion_process_leaves_even_with_a_worker_thread_stuck() -> None:
+    """The motion process's end does not wait for its non-daemon pool threads: a normal interpreter
+    exit joins them, and one stuck there kept an orphaned motion process alive after its drives were
+    off."""
+    script = (
+        "import concurrent.futures, threading\n"
+        "from motiond.runtime.motion_proc import leave\n"
+        "pool = concurrent.futures.ThreadPoolExecutor(1)\n"
+        "pool.submit(threading.Event().wait)\n"  # stuck for good
+        "print('leaving', flush=True)\n"
+        "leave(3)\n")
+    p = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True,
+                       timeout=60)
+    assert p.returncode == 3 and "leaving" in p.stdout, p.stderr
+
+
 TASK = """
 import sys, time
 from motiond.config import load_machine
