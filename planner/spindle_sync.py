@@ -30,16 +30,40 @@ synchronized moves follow them as LinuxCNC's do its spindle index and encoder:
 * G33.1 (``follow_taps``): the tap is not planned as moves but queued as a :class:`FollowedTap` sync
   point; the machine runs it, the axis position being the start plus the pitch times the revolutions
   since the spindle stood (``motiond.runtime.spindle_drive``).
+
+Both are guarded by :func:`follow_jump`: a spindle that turned on while no setpoint went out (a stalled
+cycle) would have the axes catch up in one step, a target jump the drive faults on (EMCY 0x8400)
+mid-thread. Following stops there instead: G33 / G76 run on at their planned pace (the machine's fault
+then stops them on their quick-stop ramp), the tap holds where it is; the fault names the line and the
+jump. A stop on the path (abort, quick stop) runs on the wall clock, never on the spindle's.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import gcode_canon.commands as C
+from planner.machine import AxisLimits
 from planner.segments import OVR_FEED, PlannerError
+
+FOLLOW_STEP_MARGIN = 2.0
+"""Following the spindle moves an axis at most this many cycles' travel at its max_velocity in one cycle
+(one late cycle is ridden through); more is a stalled cycle the axis cannot follow (:func:`follow_jump`)."""
+
+
+def follow_jump(axes: Sequence[AxisLimits], T: float, last: Sequence[float], pos: Sequence[float]) -> str:
+    """Why the axes cannot go from ``last`` to ``pos`` in one cycle while following the spindle ("" they
+    can): an axis would move more than :data:`FOLLOW_STEP_MARGIN` cycles' travel at its max_velocity."""
+    for lim, a, b in zip(axes, last, pos, strict=True):
+        most = FOLLOW_STEP_MARGIN * T * lim.max_velocity
+        if abs(b - a) > most:
+            return (f"axis {lim.name.upper()} would jump {abs(b - a):.3f} {lim.unit} in one cycle to follow "
+                    f"the spindle (at most {most:.3f}: the spindle turned while no setpoint went out, a "
+                    "stalled cycle)")
+    return ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -60,7 +84,8 @@ class FollowedTap(C.Canon):
 
 
 class SpindleSyncMixin:
-    """Planner state used: ``_sync_pitch``, ``_spindle_rpm``, ``_spindle_dir``, ``_ovr``, ``_pose``."""
+    """Planner state used: ``_sync_pitch``, ``_spindle_rpm``, ``_spindle_dir``, ``_ovr``, ``_pose``, the
+    running profile and the last setpoint."""
 
     _sync_pitch: float | None
     _spindle_rpm: float
@@ -71,6 +96,9 @@ class SpindleSyncMixin:
     _pending: list[C.Canon]
     _active: Any
     _k: int
+    _abort: bool
+    _last_pos: list[float]
+    machine: Any
     T: float
     #: G33.1 queued as a :class:`FollowedTap` for the machine to run (its spindle feedback)
     follow_taps: bool = False
@@ -82,6 +110,8 @@ class SpindleSyncMixin:
     _sp_tau = 0.0
     _sp_last = 0.0
     _sp_index: float | None = None
+    _sp_act: Any = None  # the running profile followed (a replan of the same move makes a new one)
+    _sp_broken = False  # a jump was refused: no following until the planner is made again
 
     def _spindle_sync(self, cmd: C.Canon) -> None:
         if isinstance(cmd, C.RigidTap):
@@ -119,16 +149,19 @@ class SpindleSyncMixin:
         sign = 1 if self._spindle_dir is C.SpindleDirection.CW else -1
         self._synced_cmds[id(cmd)] = (pitch, self._spindle_rpm, sign, locked)
 
-    def follow_spindle(self, revolutions: float) -> None:
+    def follow_spindle(self, revolutions: float) -> str:
         """Before :meth:`next_setpoint`, every cycle, on a machine with the spindle's position: its
         revolutions (M3 counting up) at the time the next setpoint takes effect. A synchronized move
-        runs on the spindle's clock (module docstring); other motion is not touched."""
+        runs on the spindle's clock (module docstring); other motion is not touched. Returns a fault
+        (``FILE:LINE: ...``) when following would jump the axes (:func:`follow_jump`): the move then
+        runs on at its planned pace, and nothing is followed any more."""
         act = self._active
         info = None if act is None else getattr(self, "_synced_cmds", {}).get(id(act.seg.cmd))
-        if info is None:
+        if info is None or self._sp_broken or self._abort:
+            # (a stop on the path runs on the wall clock: its ramp from where the axes are)
             self._sp_seg = None
             self._sp_last = revolutions
-            return
+            return ""
         _pitch, rpm, sign, locked = info
         t_next = (self._k + 1) * self.T
         if act.seg is not self._sp_seg:  # a synchronized move began with the last setpoint
@@ -139,6 +172,9 @@ class SpindleSyncMixin:
             if from_rest and locked:  # wait for the spindle's index: the next whole revolution
                 self._sp_tau = 0.0
                 self._sp_index = math.floor(revolutions) + 1.0 if sign > 0 else math.ceil(revolutions) - 1.0
+        elif act is not self._sp_act:  # the move re-planned from where it is (a hold): its new profile
+            self._sp_tau = max(0.0, t_next - self.T - act.t0)
+        self._sp_act = act
         turned = (revolutions - self._sp_last) * sign
         if self._sp_index is not None:  # still before the index: the move has not begun
             past = (revolutions - self._sp_index) * sign
@@ -147,9 +183,18 @@ class SpindleSyncMixin:
                 self._sp_index = None
         self._sp_last = revolutions
         step = max(0.0, turned) * 60.0 / rpm
-        self._sp_tau += step if locked else min(step, self.T)
+        tau = self._sp_tau + (step if locked else min(step, self.T))
+        if locked:
+            p = min(act.traj.at_time(min(tau, act.traj.duration))[0][0] + act.s_off, act.s_end)
+            why = follow_jump(self.machine.axes, self.T, self._last_pos, act.seg.piece.pos(p))
+            if why:
+                self._sp_broken = True  # on at the planned pace from here: act.t0 as it was
+                cmd = act.seg.cmd
+                return f"{cmd.file}:{cmd.line}: spindle-synchronized motion: {why}"
+        self._sp_tau = tau
         act.t0 = t_next - self._sp_tau
         act.t_end = act.t0 + act.traj.duration
+        return ""
 
     def _seg_ovr(self, rapid: bool) -> int:
         """The override switches a new move obeys: a spindle-synchronized feed ignores the feed

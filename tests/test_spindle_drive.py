@@ -394,12 +394,11 @@ def test_an_abort_mid_tap_holds_the_axes_in_the_work_and_is_a_fault(tmp_path) ->
     assert z_sim.emcys == []
 
 
-def test_a_stalled_cycle_mid_tap_is_a_fault_naming_it_not_a_jump_of_the_axis(tmp_path) -> None:
-    """The spindle turned on while no setpoint went out (a cycle stalled: here, 3 revolutions that
-    appear at once in the spindle's position mid-tap). Following it would jump the axis 4.5 mm in one
-    cycle, which a drive faults on (EMCY 0x8400) mid-thread: the tap stops instead, held where it is,
-    the spindle stopped, and the fault names the cause."""
-    import itertools
+def stalled_run(tmp_path, program: str, stall_when):
+    """Run ``program`` on the lathe; from the first cycle ``stall_when(machine)`` holds, the spindle's
+    position carries 3 revolutions more (they appear at once: the spindle turned on while no setpoint
+    went out, a stalled cycle). Returns the state at the fault, the job's result, the Z targets the
+    drive latched and the Z drive's EMCYs."""
     import time
 
     from motiond.states import State
@@ -413,14 +412,14 @@ def test_a_stalled_cycle_mid_tap_is_a_fault_naming_it_not_a_jump_of_the_axis(tmp
 
     def stalled():
         revs, fb = predict()
-        if machine.motion.commanded[1] <= -3.0 or jumped:
+        if jumped or stall_when(machine):
             jumped.append(1)
             revs += 3.0 * (1 if fb.rpm >= 0 else -1)  # the turns of the stall, not followed by the axis
         return revs, fb
 
     sd._predicted = stalled
     prog = tmp_path / "p.ngc"
-    prog.write_text("G21 G18 G90\nM3 S300\nG0 X0 Z2\nG33.1 Z-10 K1.5\nM2\n")
+    prog.write_text(program)
     try:
         job = machine.run(prog)
         deadline = time.monotonic() + 30.0
@@ -431,15 +430,54 @@ def test_a_stalled_cycle_mid_tap_is_a_fault_naming_it_not_a_jump_of_the_axis(tmp
         time.sleep(0.3)
     finally:
         machine.shutdown()
-    assert jumped, "the tap never got in"
+    assert jumped, "the stall never came"
     assert state.state is State.FAULTED, state
-    assert "rigid tap: the axis would jump" in machine.last_error and ":4:" in machine.last_error
     assert result is not None and not result.ok
-    z = [t / 10000.0 for _n, t in z_sim.latched]
+    stalled_run.error = machine.last_error  # type: ignore[attr-defined]
+    return [t / 10000.0 for _n, t in z_sim.latched], z_sim.emcys, machine
+
+
+def test_a_stalled_cycle_mid_tap_is_a_fault_naming_it_not_a_jump_of_the_axis(tmp_path) -> None:
+    """The spindle turned on while no setpoint went out (a cycle stalled: here, 3 revolutions that
+    appear at once in the spindle's position mid-tap). Following it would jump the axis 4.5 mm in one
+    cycle, which a drive faults on (EMCY 0x8400) mid-thread: the tap stops instead, held where it is,
+    the spindle stopped, and the fault names the cause."""
+    import itertools
+
+    z, emcys, machine = stalled_run(tmp_path, "G21 G18 G90\nM3 S300\nG0 X0 Z2\nG33.1 Z-10 K1.5\nM2\n",
+                                    lambda m: m.motion.commanded[1] <= -3.0)
+    error = stalled_run.error  # type: ignore[attr-defined]
+    assert "rigid tap: axis Z would jump" in error and ":4:" in error
     step = 2.0 * machine.T * machine.limits.axes[1].max_velocity
     assert max(abs(b - a) for a, b in itertools.pairwise(z)) <= step  # no jump went out
     assert min(z) > -10.0 + 1e-3 and max(z[-20:]) < -2.5  # held in the work, short of the depth
-    assert z_sim.emcys == []
+    assert emcys == []
+
+
+@pytest.mark.parametrize("program, stall_when", [
+    ("G21 G18 G90\nM3 S300\nG0 X5 Z2\nG33 Z-20 K1.5\nM2\n", lambda m: m.motion.commanded[1] <= -3.0),
+    ("G21 G18 G90 G8\nM3 S450\nG0 X12 Z5\nG76 P2 Z-25 I-2 J0.4 K1.2 R1.5 H1\nG0 X20 Z5\nM2\n",
+     lambda m: m.motion.commanded[1] <= -8.0 and m.motion.commanded[0] < 12.0),  # in a pass's cut
+], ids=["G33", "G76"])
+def test_a_stalled_cycle_mid_thread_is_a_fault_naming_it_and_the_axes_ramp_down(tmp_path, program,
+                                                                                stall_when) -> None:
+    """G33 and G76's passes run on the spindle's clock: after a stalled cycle (3 revolutions appear at
+    once) they would catch up in one step, a target jump the drive faults on (EMCY 0x8400) mid-thread.
+    Instead the fault names the line and the jump, and the axes stop on their quick-stop ramp from
+    where they are."""
+    import itertools
+
+    z, emcys, machine = stalled_run(tmp_path, program, stall_when)
+    error = stalled_run.error  # type: ignore[attr-defined]
+    assert ":4: spindle-synchronized motion: axis Z would jump" in error, error
+    T, zlim = machine.T, machine.limits.axes[1]
+    v = [(b - a) / T for a, b in itertools.pairwise(z)]
+    acc = [(b - a) / T for a, b in itertools.pairwise(v)]
+    assert max(abs(x) for x in v) <= 2.0 * zlim.max_velocity  # no jump went out
+    # on the quick-stop ramp (the targets' 0.1 um resolution adds up to 50 mm/s² of noise)
+    assert max(abs(a) for a in acc) <= zlim.quick_stop * 1.01 + 100.0
+    assert z[-1] > -20.0 + 1e-3 and abs(v[-1]) < 0.1  # come to rest short of the thread's end
+    assert emcys == []
 
 
 def test_canon_sim_drives_serves_the_spindle_drive_of_the_file(tmp_path) -> None:

@@ -36,15 +36,12 @@ from typing import Any
 
 from gcode_canon import commands as C
 from planner.setpoints import Setpoint
-from planner.spindle_sync import FollowedTap
+from planner.spindle_sync import FollowedTap, follow_jump
 
 #: orientation's position loop: speed (rev/s) per revolution left, i.e. 1 / time constant (s)
 ORIENT_GAIN = 4.0
 #: the spindle counts as stopped below this speed (rpm)
 STILL_RPM = 0.5
-TAP_STEP_MARGIN = 2.0
-"""A followed tap's axis moves at most this many cycles' travel at the axis's max_velocity in one cycle
-(one late cycle is ridden through); more is a stalled cycle the axis cannot follow (below)."""
 
 
 class SpindleDriveControl:
@@ -83,7 +80,9 @@ class SpindleDriveControl:
         if self._tap is not None and p is not self._tap.planner:
             self._tap = None  # a new planner: it starts where the axes stand
         if self._tap is None:
-            p.follow_spindle(revs)
+            why = p.follow_spindle(revs)
+            if why:  # the axes run on at the planned pace until the fault's stop ramps them down
+                self.c.post_fault(f"{why}: the axes stop on their quick-stop ramp", "spindle")
             return p.next_setpoint()
         sp = p.next_setpoint()  # at rest at the tap's sync point (its clock goes on)
         pos = self._tap_step(revs)
@@ -147,28 +146,19 @@ class SpindleDriveControl:
                 p.release()
             return tuple(w.start)
         d = max(0.0, d)
-        if abs(d - t.d_last) > self._tap_max_step(t):
-            # the spindle turned on while no setpoint went out (a stalled cycle): following it now is a
-            # jump no axis can make (a drive faults on it, 0x8400, mid-thread); stop here as on an
-            # interrupted tap, naming the cause
+        pos = tuple(s + u * d for s, u in zip(w.start, t.unit, strict=True))
+        why = follow_jump(self.c.limits.axes, self.c.T, t.last, pos)
+        if why:
+            # following it now is a jump no axis can make (a drive faults on it, 0x8400, mid-thread):
+            # stop here as on an interrupted tap, naming the cause
             t.phase = "held"
             self._command(0.0)
             self._dir = 0
-            self.c.post_fault(f"{w.file}:{w.line}: rigid tap: the axis would jump {abs(d - t.d_last):.3f} mm "
-                              "in one cycle to follow the spindle (a stalled cycle): spindle stopped, axes "
-                              "held where they are (back it out by hand)", "spindle")
+            self.c.post_fault(f"{w.file}:{w.line}: rigid tap: {why}: spindle stopped, axes held where they "
+                              "are (back it out by hand)", "spindle")
             return t.last
-        t.d_last = d
-        t.last = tuple(s + u * d for s, u in zip(w.start, t.unit, strict=True))
+        t.last = pos
         return t.last
-
-    def _tap_max_step(self, t: _Tap) -> float:
-        """The most the tap may advance along its line in one cycle (:data:`TAP_STEP_MARGIN`)."""
-        if t.max_step is None:
-            steps = [lim.max_velocity / abs(u) for lim, u in zip(self.c.limits.axes, t.unit, strict=True)
-                     if abs(u) > 1e-12]
-            t.max_step = TAP_STEP_MARGIN * self.c.T * min(steps, default=math.inf)
-        return t.max_step
 
     # --- events -------------------------------------------------------------------------------------
     def _command(self, rpm: float) -> float:
@@ -334,6 +324,4 @@ class _Tap:
         self.sign = sign
         self.phase = "stop"
         self.r0 = 0.0
-        self.d_last = 0.0  # how far along its line the last setpoint put the axes
-        self.max_step: float | None = None
         self.deadline = math.inf
