@@ -35,7 +35,7 @@ Both are guarded by :func:`follow_jump`: a spindle that turned on while no setpo
 cycle) would have the axes catch up in one step, a target jump the drive faults on (EMCY 0x8400)
 mid-thread. Following stops there instead: G33 / G76 run on at their planned pace (the machine's fault
 then stops them on their quick-stop ramp), the tap holds where it is; the fault names the line and the
-jump. A stop on the path (abort, quick stop) runs on the wall clock, never on the spindle's.
+jump. A stop on the path (hold, abort, quick stop) runs on the wall clock, never on the spindle's.
 """
 
 from __future__ import annotations
@@ -96,7 +96,6 @@ class SpindleSyncMixin:
     _pending: list[C.Canon]
     _active: Any
     _k: int
-    _abort: bool
     _last_pos: list[float]
     machine: Any
     T: float
@@ -157,8 +156,8 @@ class SpindleSyncMixin:
         runs on at its planned pace, and nothing is followed any more."""
         act = self._active
         info = None if act is None else getattr(self, "_synced_cmds", {}).get(id(act.seg.cmd))
-        if info is None or self._sp_broken or self._abort:
-            # (a stop on the path runs on the wall clock: its ramp from where the axes are)
+        if info is None or self._sp_broken or self._stops(act.seg.ovr):  # type: ignore[attr-defined, union-attr]
+            # (a stop on the path, hold or abort, runs on the wall clock: its ramp from where the axes are)
             self._sp_seg = None
             self._sp_last = revolutions
             return ""
@@ -172,7 +171,7 @@ class SpindleSyncMixin:
             if from_rest and locked:  # wait for the spindle's index: the next whole revolution
                 self._sp_tau = 0.0
                 self._sp_index = math.floor(revolutions) + 1.0 if sign > 0 else math.ceil(revolutions) - 1.0
-        elif act is not self._sp_act:  # the move re-planned from where it is (a hold): its new profile
+        elif act is not self._sp_act:  # the move re-planned from where it is (an override): its new profile
             self._sp_tau = max(0.0, t_next - self.T - act.t0)
         self._sp_act = act
         turned = (revolutions - self._sp_last) * sign

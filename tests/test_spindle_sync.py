@@ -234,3 +234,60 @@ def test_g76_in_diameter_mode_halves_i_j_k() -> None:
     g7 = cuts("G18 G7\nM3 S300\nG0 X20 Z2\nG76 P1.5 Z-10 I-2 J0.4 K2.4 H1\n")
     g8 = cuts("G18 G8\nM3 S300\nG0 X10 Z2\nG76 P1.5 Z-10 I-1 J0.2 K1.2 H1\n")
     assert g7 == pytest.approx(g8) and len(g7) > 6
+
+
+def _follow(p, revs_per_cycle: float, at_z: float, act) -> tuple[list, int | None]:
+    """Run planner ``p`` on a spindle turning ``revs_per_cycle``; ``act(p)`` once line 4 passes Z ``at_z``."""
+    revs, out, when = 0.0, [], None
+    for k in range(20_000):
+        revs += revs_per_cycle
+        p.follow_spindle(revs)
+        sp = p.next_setpoint()
+        if sp is None:
+            break
+        out.append(sp.positions)
+        if when is None and sp.line == 4 and sp.positions[2] < at_z:
+            when = k
+            act(p)
+    return out, when
+
+
+@pytest.mark.parametrize("stop", ["hold", "abort", "quick_stop"])
+def test_a_stop_on_the_path_of_a_followed_thread_ramps_from_where_the_axes_are(stop: str) -> None:
+    """A hold, an abort or a quick stop re-plans a synchronized move from its last setpoint: the ramp
+    starts there, never at the spindle clock's time of the profile before (a jump the drive faults on)."""
+    from planner import Planner
+    from planner.spindle_sync import follow_jump
+
+    p = Planner()
+    p.feed_many(commands("G18 G21\nM3 S300\nG0 X0 Z0\nG33 Z-40 K2\nG0 X5\nM5\n"))
+    p.flush()
+    # the spindle 20 % faster than commanded: its clock runs ahead of the wall clock
+    out, stopped_at = _follow(p, 300 / 60 * p.T * 1.2, -10.0, lambda p: getattr(p, stop)())
+    assert stopped_at is not None
+    for a, b in itertools.pairwise(out):
+        assert follow_jump(p.machine.axes, p.T, a, b) == ""
+    z = [pos[2] for pos in out[stopped_at - 2:]]
+    v = [(b - a) / p.T for a, b in itertools.pairwise(z)]
+    acc = [(b - a) / p.T for a, b in itertools.pairwise(v)]
+    assert -40.0 < min(z) < -10.0 and abs(v[-1]) < 0.1  # stopped on the path, short of the end
+    assert all(b >= a - 1e-9 for a, b in itertools.pairwise(v[1:]))  # slowing down all the way
+    assert max(abs(a) for a in acc) <= p.machine.axes[2].quick_stop * 1.01  # on a ramp, no jump
+
+
+def test_a_feed_override_change_mid_thread_leaves_the_followed_thread_alone() -> None:
+    """The override re-plans the running move (a new profile from where it is): the thread goes on on
+    the spindle's clock from there, at the pitch, without a jump."""
+    from planner import Planner
+    from planner.spindle_sync import follow_jump
+
+    p = Planner()
+    p.feed_many(commands("G18 G21\nM3 S300\nG0 X0 Z0\nG33 Z-40 K2\nG0 X5\nM5\n"))
+    p.flush()
+    per_cycle = 300 / 60 * p.T * 1.2
+    out, when = _follow(p, per_cycle, -10.0, lambda p: p.set_feed_override(0.5))
+    assert when is not None
+    for a, b in itertools.pairwise(out):
+        assert follow_jump(p.machine.axes, p.T, a, b) == ""
+    z = [pos[2] for pos in out[when - 2:] if pos[2] < -10.5 and pos[2] > -39.0]
+    assert z and all(b - a == pytest.approx(-2.0 * per_cycle, abs=1e-9) for a, b in itertools.pairwise(z))
