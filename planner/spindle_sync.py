@@ -195,6 +195,22 @@ class SpindleSyncMixin:
         act.t_end = act.t0 + act.traj.duration
         return ""
 
+    @property
+    def follows_spindle(self) -> bool:
+        """A move runs on the spindle's clock now (or waits for its index)."""
+        act = self._active
+        synced = getattr(self, "_synced_cmds", {})
+        return (act is not None and not self._sp_broken and id(act.seg.cmd) in synced
+                and not self._stops(act.seg.ovr))  # type: ignore[attr-defined]
+
+    def stop_following(self) -> str:
+        """The spindle's position cannot be had: the running move goes on at its planned pace (the
+        machine's fault stops it on its ramp) and nothing is followed any more. Returns where the
+        move is (``FILE:LINE``)."""
+        self._sp_broken = True
+        act = self._active
+        return "" if act is None else f"{act.seg.cmd.file}:{act.seg.cmd.line}"
+
     def _seg_ovr(self, rapid: bool) -> int:
         """The override switches a new move obeys: a spindle-synchronized feed ignores the feed
         override (its pace is the spindle's; LinuxCNC does the same)."""

@@ -11,7 +11,9 @@ nothing waits on the network: the speed goes to the master, which sends it with 
 * M5: speed 0 (no wait: the next move may start while the spindle runs down, as with LinuxCNC).
 * G33, G76 (:meth:`next_setpoint`): before every setpoint the planner gets the spindle's revolutions
   predicted for the SYNC the setpoint is latched at (measured at the last SYNC, plus its measured speed
-  times one cycle), and runs its synchronized moves on them (``planner.spindle_sync``).
+  times one cycle), and runs its synchronized moves on them (``planner.spindle_sync``). A position
+  missing for more than ``max_missed_positions`` SYNCs in a row (bridged from the speed until then)
+  stops the following with a fault naming the spindle drive's node.
 * G33.1 (a :class:`~planner.spindle_sync.FollowedTap` sync point): the spindle stops; the tap starts
   with it standing, and the axes' setpoint is the tap's start plus the pitch times the revolutions
   turned (predicted as above) along the tap, every cycle: in with the spindle at S in its direction;
@@ -76,9 +78,12 @@ class SpindleDriveControl:
     def next_setpoint(self, p: Any) -> Any:
         """The planner's next setpoint, its synchronized moves run on the spindle's revolutions; during
         a rigid tap, the tap's position instead."""
-        revs, _fb = self._predicted()
+        revs, fb = self._predicted()
         if self._tap is not None and p is not self._tap.planner:
             self._tap = None  # a new planner: it starts where the axes stand
+        missed = self.c.master.cycles - fb.sync  # SYNCs since, whose position did not come
+        if missed > self.cfg.max_missed_positions:
+            self._feedback_lost(p, missed)
         if self._tap is None:
             why = p.follow_spindle(revs)
             if why:  # the axes run on at the planned pace until the fault's stop ramps them down
@@ -91,6 +96,27 @@ class SpindleDriveControl:
         if sp is None:
             return Setpoint(p._k * self.c.T, pos, self._tap.cmd.file, self._tap.cmd.line)
         return dataclasses.replace(sp, positions=pos)
+
+    def _feedback_lost(self, p: Any, missed: int) -> None:
+        """No spindle position for ``missed`` SYNCs: motion following it stops (a fault)."""
+        why = (f"node {self.cfg.node_id} (spindle): no position for {missed} SYNCs while motion follows "
+               f"it (at most {self.cfg.max_missed_positions} are bridged from its speed, "
+               "canopen.spindle.max_missed_positions; TPDOs lost?)")
+        t = self._tap
+        if t is not None and t.phase in ("in", "out"):
+            self._hold_tap(t, f"rigid tap: {why}")
+        elif p.follows_spindle:
+            where = p.stop_following()
+            self.c.post_fault(f"{where}: {why}: the axes stop on their quick-stop ramp", "spindle")
+
+    def _hold_tap(self, t: _Tap, why: str) -> None:
+        """Stop a tap in the work as an interrupted one: the spindle stopped, the axes held where they
+        are, a fault naming the line and ``why``."""
+        t.phase = "held"
+        self._command(0.0)
+        self._dir = 0
+        self.c.post_fault(f"{t.cmd.file}:{t.cmd.line}: {why}: spindle stopped, axes held where they are "
+                          "(back it out by hand)", "spindle")
 
     # --- G33.1 --------------------------------------------------------------------------------------
     def _tap_begin(self, w: FollowedTap) -> str:
@@ -151,11 +177,7 @@ class SpindleDriveControl:
         if why:
             # following it now is a jump no axis can make (a drive faults on it, 0x8400, mid-thread):
             # stop here as on an interrupted tap, naming the cause
-            t.phase = "held"
-            self._command(0.0)
-            self._dir = 0
-            self.c.post_fault(f"{w.file}:{w.line}: rigid tap: {why}: spindle stopped, axes held where they "
-                              "are (back it out by hand)", "spindle")
+            self._hold_tap(t, f"rigid tap: {why}")
             return t.last
         t.last = pos
         return t.last
@@ -231,11 +253,7 @@ class SpindleDriveControl:
         self._orient = None
         t = self._tap
         if t is not None and t.phase in ("in", "out"):
-            t.phase = "held"
-            self._command(0.0)
-            self._dir = 0
-            self.c.post_fault(f"{t.cmd.file}:{t.cmd.line}: rigid tap interrupted with the tap in the work: "
-                              "spindle stopped, axes held where they are (back it out by hand)", "spindle")
+            self._hold_tap(t, "rigid tap interrupted with the tap in the work")
         else:
             self._tap = None
 
@@ -247,10 +265,7 @@ class SpindleDriveControl:
             self._orient_step(fb)
         t = self._tap
         if t is not None and t.phase != "held" and time.monotonic() > t.deadline:
-            t.phase = "held"  # the axes stay where the tap is
-            self._command(0.0)
-            self.c.post_fault(f"{t.cmd.file}:{t.cmd.line}: rigid tap not done in time (spindle at "
-                              f"{fb.rpm:.1f} rpm); axes held where they are", "spindle")
+            self._hold_tap(t, f"rigid tap not done in time (spindle at {fb.rpm:.1f} rpm)")
         w = self._wait
         if w is None:
             return
