@@ -40,6 +40,8 @@ jump. A stop on the path (hold, abort, quick stop) runs on the wall clock, never
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -97,6 +99,11 @@ class SpindleSyncMixin:
     _active: Any
     _k: int
     _last_pos: list[float]
+    _css: Any  # planner.css.SurfaceSpeed
+    _css_rpm: float | None = None  # G95 under G96: the rpm the line's piece being queued is planned at
+    _end: list[float]
+    _feed_mode: C.FeedMode
+    _mode: C.MotionControlMode
     machine: Any
     T: float
     #: G33.1 queued as a :class:`FollowedTap` for the machine to run (its spindle feedback)
@@ -134,19 +141,74 @@ class SpindleSyncMixin:
         if self._spindle_rpm <= 0:
             raise PlannerError("spindle-synchronized motion (G33, G33.1, G76) needs a turning spindle",
                                cmd.file, cmd.line)
-        self._note_synced(cmd, self._sync_pitch, locked=True)
-        return self._sync_pitch * self._spindle_rpm / 60.0
+        rpm = self._css_sync_rpm(cmd) if self._css.in_css else self._spindle_rpm
+        self._note_synced(cmd, self._sync_pitch, locked=True, rpm=rpm)
+        return self._sync_pitch * rpm / 60.0
 
-    def _per_rev_speed(self, cmd: C.Canon, rate: float) -> float:
-        """Path speed of a G95 move (units/s): F per revolution at the commanded speed."""
-        self._note_synced(cmd, rate, locked=False)
-        return rate * self._spindle_rpm / 60.0
+    def _css_sync_rpm(self, cmd: C.Canon) -> float:
+        """G33 / G76 under G96 (LinuxCNC runs them: its spindle turns at the G96 rpm of the commanded X,
+        the axes follow its position). Followed on the spindle's measured position (``follow_taps``),
+        a move is planned at D: on the spindle's clock the pitch holds at whatever rpm G96 gives, and
+        every pass has the same lead-in (the same groove). Otherwise at the G96 rpm along the move
+        (the lowest: a straight pass has one), as the spindle is commanded to turn."""
+        mode = self._css.intake_mode
+        if self.follow_taps:
+            if mode.css_max >= 1e29:
+                raise PlannerError("spindle-synchronized motion under constant surface speed (G96) needs "
+                                   "its D word (the highest rpm): a thread followed on the spindle is "
+                                   "planned at it", cmd.file, cmd.line)
+            return float(mode.css_max)
+        x = self._css.x_index
+        end_x = self._pose[self._pose_index[x]]  # type: ignore[attr-defined]  # _target set it
+        return min(self._css.rpm_at(self._end[x]), self._css.rpm_at(end_x))
 
-    def _note_synced(self, cmd: C.Canon, pitch: float, locked: bool) -> None:
+    def _per_rev_speed(self, cmd: C.Canon, rate: float, piece: Any = None) -> float:
+        """Path speed of a G95 move (units/s): F per revolution at the commanded speed; under G96 at the
+        lowest G96 rpm along it (a line's piece: :meth:`_per_rev_css_line`; an arc ``piece``: sampled)."""
+        rpm = self._spindle_rpm
+        if self._css.in_css:
+            if self._css_rpm is not None:
+                rpm = self._css_rpm
+            else:
+                x = self._css.x_index
+                n = 64
+                rpm = min(self._css.rpm_at(piece.pos(piece.length * k / n)[x]) for k in range(n + 1))
+        self._note_synced(cmd, rate, locked=False, rpm=rpm)
+        return rate * rpm / 60.0
+
+    def _per_rev_css_line(self, cmd: C.Canon) -> bool:
+        """G95 under G96 (planner.css): a feed line is queued as pieces within which the G96 rpm changes
+        by at most ``CSS_PIECE_RATIO``, each planned at F times its lowest rpm (at an end: the radius
+        along a line is largest at one of them). False: not such a move (planned as it is)."""
+        if (not self._css.in_css or self._feed_mode is not C.FeedMode.UNITS_PER_REV
+                or self._css_rpm is not None or self._sync_pitch is not None
+                or not isinstance(cmd, C.StraightFeed)):
+            return False
+        x = self._css.x_index
+        assert x is not None
+        start_pose, start = list(self._pose), list(self._end)
+        end = self._target(cmd, cmd.end)  # type: ignore[attr-defined]  # the soft limits, once
+        self._pose = start_pose
+        stops = self._mode in (C.MotionControlMode.EXACT_STOP_MODAL, C.MotionControlMode.EXACT_STOP)
+        cuts = [] if stops else self._css.split_line(start[x], end[x])  # (each piece would stop)
+        exact = self._exact_next
+        bounds = [0.0, *cuts, 1.0]
+        try:
+            for i, (u0, u1) in enumerate(itertools.pairwise(bounds)):
+                last = i == len(bounds) - 2
+                self._css_rpm = min(self._css.rpm_at(start[x] + u * (end[x] - start[x])) for u in (u0, u1))
+                self._exact_next = exact and last
+                self._motion(cmd if last else dataclasses.replace(  # type: ignore[attr-defined]
+                    cmd, end=C.Pose(*[a + u1 * (b - a) for a, b in zip(start_pose, cmd.end, strict=True)])))
+        finally:
+            self._css_rpm = None
+        return True
+
+    def _note_synced(self, cmd: C.Canon, pitch: float, locked: bool, rpm: float | None = None) -> None:
         if not hasattr(self, "_synced_cmds") or len(self._synced_cmds) > 4096:
             self._synced_cmds = {}  # ids of moves long run (bounded: a move is followed while it runs)
         sign = 1 if self._spindle_dir is C.SpindleDirection.CW else -1
-        self._synced_cmds[id(cmd)] = (pitch, self._spindle_rpm, sign, locked)
+        self._synced_cmds[id(cmd)] = (pitch, self._spindle_rpm if rpm is None else rpm, sign, locked)
 
     def follow_spindle(self, revolutions: float) -> str:
         """Before :meth:`next_setpoint`, every cycle, on a machine with the spindle's position: its
