@@ -148,19 +148,29 @@ class SpindleSyncMixin:
     def _css_sync_rpm(self, cmd: C.Canon) -> float:
         """G33 / G76 under G96 (LinuxCNC runs them: its spindle turns at the G96 rpm of the commanded X,
         the axes follow its position). Followed on the spindle's measured position (``follow_taps``),
-        a move is planned at D: on the spindle's clock the pitch holds at whatever rpm G96 gives, and
-        every pass has the same lead-in (the same groove). Otherwise at the G96 rpm along the move
-        (the lowest: a straight pass has one), as the spindle is commanded to turn."""
+        a move is planned at D (at most the rpm at which its axes keep their max_velocity): on the
+        spindle's clock the pitch holds at whatever rpm G96 gives, and every pass has the same lead-in
+        (the same groove). Otherwise at the G96 rpm along the move (the lowest: a straight pass has
+        one), as the spindle is commanded to turn."""
         mode = self._css.intake_mode
+        end = [self._pose[i] for i in self._pose_index]  # type: ignore[attr-defined]  # _target set it
         if self.follow_taps:
             if mode.css_max >= 1e29:
                 raise PlannerError("spindle-synchronized motion under constant surface speed (G96) needs "
                                    "its D word (the highest rpm): a thread followed on the spindle is "
                                    "planned at it", cmd.file, cmd.line)
-            return float(mode.css_max)
+            # (at most the rpm at which the pitch keeps every axis within its max_velocity: planned
+            # faster, the axes' cap would shorten the pitch on the spindle's clock)
+            delta = [b - a for a, b in zip(self._end, end, strict=True)]
+            length = math.hypot(*delta)
+            axes = zip(self.machine.axes, delta, strict=True)
+            tiny = 1e-12 * (1.0 + length)
+            top = min((lim.max_velocity * length / abs(d) for lim, d in axes if abs(d) > tiny),
+                      default=math.inf)
+            assert self._sync_pitch is not None
+            return min(float(mode.css_max), top * 60.0 / self._sync_pitch)
         x = self._css.x_index
-        end_x = self._pose[self._pose_index[x]]  # type: ignore[attr-defined]  # _target set it
-        return min(self._css.rpm_at(self._end[x]), self._css.rpm_at(end_x))
+        return min(self._css.rpm_at(self._end[x]), self._css.rpm_at(end[x]))
 
     def _per_rev_speed(self, cmd: C.Canon, rate: float, piece: Any = None) -> float:
         """Path speed of a G95 move (units/s): F per revolution at the commanded speed; under G96 at the

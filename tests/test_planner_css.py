@@ -110,3 +110,32 @@ def test_g95_arc_under_g96_is_planned_at_its_lowest_rpm() -> None:
     got = per_rev(text, 4, 100_000.0, 1500.0)
     assert len(got) > 100
     assert max(got) <= 0.1 * (1 + 1e-6) and statistics.median(got) > 0.05
+
+
+def test_a_followed_thread_under_g96_keeps_its_pitch_when_d_is_beyond_the_axes() -> None:
+    """Planned at D where D times the pitch is beyond Z's max_velocity, the axis's cap would shorten the
+    pitch on the spindle's clock: it is planned at the rpm the axis allows instead, and each revolution
+    still advances the pitch."""
+    from planner import Planner
+
+    p = Planner(DEMO_MACHINE)
+    p.follow_taps = True
+    pitch = 4.0
+    assert pitch * 5000 / 60 > DEMO_MACHINE.axes[2].max_velocity
+    p.feed_many(interpret(f"G21 G90 G18\nG0 X20 Z1\nG96 D5000 S60 M3\nG33 Z-60 K{pitch}\nM5\n"))
+    p.flush()
+    revs, steps = 0.0, []
+    for _ in range(200_000):
+        revs += 300 / 60 * p.T
+        p.follow_spindle(revs)
+        before = p.position
+        sp = p.next_setpoint()
+        if p.waiting_for is not None:
+            p.release()
+        if sp is None:
+            break
+        if sp.line == 4:
+            steps.append(before[2] - sp.positions[2])
+    cruise = [s for s in steps if s > 0.99 * max(steps)]
+    assert len(cruise) > 100
+    assert statistics.median(cruise) == pytest.approx(pitch * 300 / 60 * p.T, rel=1e-6)
