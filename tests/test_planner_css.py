@@ -139,3 +139,40 @@ def test_a_followed_thread_under_g96_keeps_its_pitch_when_d_is_beyond_the_axes()
     cruise = [s for s in steps if s > 0.99 * max(steps)]
     assert len(cruise) > 100
     assert statistics.median(cruise) == pytest.approx(pitch * 300 / 60 * p.T, rel=1e-6)
+
+
+def test_followed_g76_under_g96_cuts_every_pass_in_the_same_groove_at_its_own_rpm() -> None:
+    """G76 under G96 followed on a spindle that turns at the G96 rpm of the commanded X (lagging it at
+    1500 rpm/s): each pass has its own rpm, and all are cut in the same groove (Z + pitch x revolutions
+    the same in every pass's cruise)."""
+    from planner import Planner
+
+    p = Planner(DEMO_MACHINE)
+    p.follow_taps = True
+    pitch, T = 2.0, DEMO_MACHINE.cycle_s
+    p.feed_many(interpret(f"G21 G18 G90 G8\nG0 X12 Z5\nG96 D1500 S30 M3\nG76 P{pitch} Z-25 I-2 J0.4 K1.2 "
+                          "R1.5 H1\nG0 X20 Z5\nM5\n"))
+    p.flush()
+    revs, rpm, x = 0.0, 0.0, 12.0
+    samples = []  # (Z step, revolutions turned, Z + pitch x revolutions, rpm)
+    for _ in range(400_000):
+        want = css_rpm(30_000.0, x, 1500.0)
+        rpm += max(-1500 * T, min(1500 * T, want - rpm))
+        turned = rpm / 60 * T
+        revs += turned
+        p.follow_spindle(revs)
+        before = p.position
+        sp = p.next_setpoint()
+        if p.waiting_for is not None:
+            p.release()
+        if sp is None:
+            break
+        x = sp.positions[0]
+        if sp.line == 4 and -20.0 < sp.positions[2] < 0.0:
+            samples.append((sp.positions[2] - before[2], turned, sp.positions[2] + pitch * revs, rpm))
+    cruise = [(lock, r) for dz, turned, lock, r in samples if abs(dz + pitch * turned) < 1e-6]
+    rpms = sorted({round(r) for _lock, r in cruise})
+    assert rpms[-1] > 1.05 * rpms[0]  # the passes turn at different rpm (their X)
+    phases = [lock % pitch for lock, _r in cruise]
+    off = [min(abs(q - phases[0]), pitch - abs(q - phases[0])) for q in phases]
+    assert len(cruise) > 1000 and max(off) < 1e-6  # one groove
