@@ -10,8 +10,9 @@ nothing waits on the network: the speed goes to the master, which sends it with 
   naming the line after ``at_speed_timeout_s``. S alone changes the speed of a turning spindle.
 * M5: speed 0 (no wait: the next move may start while the spindle runs down, as with LinuxCNC).
 * G33, G76 (:meth:`next_setpoint`): before every setpoint the planner gets the spindle's revolutions
-  predicted for the SYNC the setpoint is latched at (measured at the last SYNC, plus its measured speed
-  times one cycle), and runs its synchronized moves on them (``planner.spindle_sync``). A position
+  predicted for the SYNC the setpoint is latched at (measured at the last SYNC, smoothed by
+  :class:`PositionSmoother`, plus its measured speed times one cycle), and runs its synchronized moves
+  on them (``planner.spindle_sync``). A position
   missing for more than ``max_missed_positions`` SYNCs in a row (bridged from the speed until then)
   stops the following with a fault naming the spindle drive's node.
 * G33.1 (a :class:`~planner.spindle_sync.FollowedTap` sync point): the spindle stops; the tap starts
@@ -64,6 +65,7 @@ class SpindleDriveControl:
         self._settled = 0  # M19: positions in a row found oriented
         self._settled_sync = -1
         self._tap: _Tap | None = None  # G33.1 in progress
+        self.smoother = PositionSmoother()  # the encoder's counts smoothed for following
 
     # --- setpoints ----------------------------------------------------------------------------------
     def _predicted(self) -> Any:
@@ -73,7 +75,8 @@ class SpindleDriveControl:
         master = self.c.master
         fb = master.spindle_feedback()
         tau = self.c.T * max(1, master.cycles + 1 - fb.sync)
-        return fb.revolutions + (fb.rpm + 0.5 * fb.acceleration * tau) / 60.0 * tau, fb
+        revs = self.smoother.update(fb.sync, fb.revolutions, fb.rpm, self.c.T)
+        return revs + (fb.rpm + 0.5 * fb.acceleration * tau) / 60.0 * tau, fb
 
     def next_setpoint(self, p: Any) -> Any:
         """The planner's next setpoint, its synchronized moves run on the spindle's revolutions; during
@@ -324,6 +327,43 @@ class SpindleDriveControl:
         self._command(rpm)
         if self._oriented(fb):
             self._command(0.0)
+
+
+class PositionSmoother:
+    """The spindle's position as motion follows it: the encoder's counts smoothed without lag.
+
+    Each SYNC's position is predicted from the last one by the measured speed (the mean of the two
+    SYNCs' speeds over the SYNCs between: exact for a constant acceleration), then corrected by
+    :attr:`GAIN` of the difference to the measured position. The measured counts step by whole counts
+    (a pitch / counts_per_revolution of axis travel each), which a third difference over a cycle turns
+    into jerk peaks of the followed axis; the drive's speed does not step so. While that speed is right
+    the estimate does not lag; a speed off by a fraction e leaves it e x one SYNC's turn / GAIN behind.
+    A difference of more than :attr:`RESET_REVS` (a restart, a jump of the count) starts it afresh."""
+
+    #: the share of the measured position taken each SYNC
+    GAIN = 0.2
+    RESET_REVS = 0.05
+    #: SYNCs without a position beyond which the estimate starts afresh
+    RESET_SYNCS = 20
+
+    def __init__(self) -> None:
+        self._sync: int | None = None
+        self._revs = 0.0
+        self._rpm = 0.0
+
+    def update(self, sync: int, revolutions: float, rpm: float, T: float) -> float:
+        """The smoothed revolutions at SYNC ``sync``, measured ``revolutions`` at ``rpm`` then."""
+        last = self._sync
+        if last is not None and sync == last:
+            return self._revs
+        if last is None or not 0 < sync - last <= self.RESET_SYNCS:
+            self._sync, self._revs, self._rpm = sync, revolutions, rpm
+            return revolutions
+        guess = self._revs + (self._rpm + rpm) / 120.0 * T * (sync - last)
+        error = revolutions - guess
+        self._revs = revolutions if abs(error) > self.RESET_REVS else guess + self.GAIN * error
+        self._sync, self._rpm = sync, rpm
+        return self._revs
 
 
 class _Tap:
