@@ -167,7 +167,7 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
         drives.append(drive)
         a.check_unknown()
     axes.check_unknown()
-    spindle = _spindle(t.table("spindle"), base, master_id, used) if "spindle" in t.data else None
+    spindle = _spindle(t.table("spindle"), base, master_id, used, simulate) if "spindle" in t.data else None
     t.check_unknown()
     return CanopenConfig(
         CanBusConfig(interface, channel, bitrate, options), tuple(drives), cycle_s=cycle_s,
@@ -197,7 +197,12 @@ def _node_and_eds(t: Table, base: Path, master_id: int, used: dict[int, str]) ->
     return node_id, eds
 
 
-def _spindle(s: Table, base: Path, master_id: int, used: dict[int, str]) -> SpindleDriveConfig:
+#: ``[canopen.spindle] max_missed_positions`` on a simulated bus (``simulate = true``)
+SIM_MAX_MISSED = 250
+
+
+def _spindle(s: Table, base: Path, master_id: int, used: dict[int, str],
+             simulate: bool) -> SpindleDriveConfig:
     """``[canopen.spindle]``: the spindle as a CiA 402 drive in a velocity mode (docs/canopen.md)."""
     node_id, eds = _node_and_eds(s, base, master_id, used)
     acceleration = s.get("acceleration", float, 1000.0, check=positive)
@@ -216,6 +221,10 @@ def _spindle(s: Table, base: Path, master_id: int, used: dict[int, str]) -> Spin
         vendor_id=s.get("vendor_id", int, None, check=in_range(0, U32)),
         product_code=s.get("product_code", int, None, check=in_range(0, U32)),
         sim_acceleration=s.get("sim_acceleration", float, None, check=positive),
+        # simulated drives share the PC with the motion: its load delays their frames by tens of ms; the
+        # master's own TPDO timeout (0.1 s) bounds them there
+        max_missed_positions=s.get("max_missed_positions", int, SIM_MAX_MISSED if simulate else 10,
+                                   check=in_range(1, 250)),
     )
     top = cfg.counts_per_s(cfg.max_rpm)
     if abs(top) > I32[1]:

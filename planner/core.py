@@ -350,7 +350,7 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
                 return length
         return 0.0
 
-    def _feed_speed(self, cmd: C.Canon, length: float) -> float:
+    def _feed_speed(self, cmd: C.Canon, length: float, piece: Piece | None = None) -> float:
         if isinstance(cmd, C.StraightTraverse):
             return math.inf
         if self._sync_pitch is not None:  # G33, G33.1, G76: the spindle sets the pace, not F
@@ -361,16 +361,17 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
                 raise PlannerError("inverse-time feed (G93) needs F > 0 on this move", cmd.file, cmd.line)
             return length * rate / 60.0
         if mode is C.FeedMode.UNITS_PER_REV:
-            self._css.check_per_rev(cmd)
             if rate <= 0 or self._spindle_rpm <= 0:
                 raise PlannerError(f"feed per revolution (G95) needs F > 0 and a turning spindle (F{rate:g}, "
                                    f"S{self._spindle_rpm:g})", cmd.file, cmd.line)
-            return self._per_rev_speed(cmd, rate)  # planner.spindle_sync: follows a measured spindle
+            return self._per_rev_speed(cmd, rate, piece)  # planner.spindle_sync: follows a measured spindle
         if rate <= 0:
             raise PlannerError("feed rate is 0: set F before a feed move", cmd.file, cmd.line)
         return rate / 60.0
 
     def _motion(self, cmd: C.Canon) -> None:
+        if self._per_rev_css_line(cmd):
+            return  # G95 under G96: queued in pieces (planner.spindle_sync)
         start = self._end
         end = self._target(cmd, cmd.end)  # type: ignore[attr-defined]
         exact = self._exact_next or isinstance(cmd, C.Probe) or self._mode in (
@@ -404,7 +405,8 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
         else:
             self._emit_run()
             self._last_chord = None
-            seg = Seg(piece, "arc", cmd, self._feed_speed(cmd, piece.length), rapid, self._seg_ovr(rapid))
+            speed = self._feed_speed(cmd, piece.length, piece)
+            seg = Seg(piece, "arc", cmd, speed, rapid, self._seg_ovr(rapid))
             seg.blend_tol = blend_tol
             self._limits(seg)
             self._exact_next = False

@@ -30,16 +30,42 @@ synchronized moves follow them as LinuxCNC's do its spindle index and encoder:
 * G33.1 (``follow_taps``): the tap is not planned as moves but queued as a :class:`FollowedTap` sync
   point; the machine runs it, the axis position being the start plus the pitch times the revolutions
   since the spindle stood (``motiond.runtime.spindle_drive``).
+
+Both are guarded by :func:`follow_jump`: a spindle that turned on while no setpoint went out (a stalled
+cycle) would have the axes catch up in one step, a target jump the drive faults on (EMCY 0x8400)
+mid-thread. Following stops there instead: G33 / G76 run on at their planned pace (the machine's fault
+then stops them on their quick-stop ramp), the tap holds where it is; the fault names the line and the
+jump. A stop on the path (hold, abort, quick stop) runs on the wall clock, never on the spindle's.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import gcode_canon.commands as C
+from planner.machine import AxisLimits
 from planner.segments import OVR_FEED, PlannerError
+
+FOLLOW_STEP_MARGIN = 2.0
+"""Following the spindle moves an axis at most this many cycles' travel at its max_velocity in one cycle
+(one late cycle is ridden through); more is a stalled cycle the axis cannot follow (:func:`follow_jump`)."""
+
+
+def follow_jump(axes: Sequence[AxisLimits], T: float, last: Sequence[float], pos: Sequence[float]) -> str:
+    """Why the axes cannot go from ``last`` to ``pos`` in one cycle while following the spindle ("" they
+    can): an axis would move more than :data:`FOLLOW_STEP_MARGIN` cycles' travel at its max_velocity."""
+    for lim, a, b in zip(axes, last, pos, strict=True):
+        most = FOLLOW_STEP_MARGIN * T * lim.max_velocity
+        if abs(b - a) > most:
+            return (f"axis {lim.name.upper()} would jump {abs(b - a):.3f} {lim.unit} in one cycle to follow "
+                    f"the spindle (at most {most:.3f}: the spindle turned while no setpoint went out, a "
+                    "stalled cycle)")
+    return ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -60,7 +86,8 @@ class FollowedTap(C.Canon):
 
 
 class SpindleSyncMixin:
-    """Planner state used: ``_sync_pitch``, ``_spindle_rpm``, ``_spindle_dir``, ``_ovr``, ``_pose``."""
+    """Planner state used: ``_sync_pitch``, ``_spindle_rpm``, ``_spindle_dir``, ``_ovr``, ``_pose``, the
+    running profile and the last setpoint."""
 
     _sync_pitch: float | None
     _spindle_rpm: float
@@ -71,6 +98,13 @@ class SpindleSyncMixin:
     _pending: list[C.Canon]
     _active: Any
     _k: int
+    _last_pos: list[float]
+    _css: Any  # planner.css.SurfaceSpeed
+    _css_rpm: float | None = None  # G95 under G96: the rpm the line's piece being queued is planned at
+    _end: list[float]
+    _feed_mode: C.FeedMode
+    _mode: C.MotionControlMode
+    machine: Any
     T: float
     #: G33.1 queued as a :class:`FollowedTap` for the machine to run (its spindle feedback)
     follow_taps: bool = False
@@ -82,6 +116,8 @@ class SpindleSyncMixin:
     _sp_tau = 0.0
     _sp_last = 0.0
     _sp_index: float | None = None
+    _sp_act: Any = None  # the running profile followed (a replan of the same move makes a new one)
+    _sp_broken = False  # a jump was refused: no following until the planner is made again
 
     def _spindle_sync(self, cmd: C.Canon) -> None:
         if isinstance(cmd, C.RigidTap):
@@ -105,30 +141,98 @@ class SpindleSyncMixin:
         if self._spindle_rpm <= 0:
             raise PlannerError("spindle-synchronized motion (G33, G33.1, G76) needs a turning spindle",
                                cmd.file, cmd.line)
-        self._note_synced(cmd, self._sync_pitch, locked=True)
-        return self._sync_pitch * self._spindle_rpm / 60.0
+        rpm = self._css_sync_rpm(cmd) if self._css.in_css else self._spindle_rpm
+        self._note_synced(cmd, self._sync_pitch, locked=True, rpm=rpm)
+        return self._sync_pitch * rpm / 60.0
 
-    def _per_rev_speed(self, cmd: C.Canon, rate: float) -> float:
-        """Path speed of a G95 move (units/s): F per revolution at the commanded speed."""
-        self._note_synced(cmd, rate, locked=False)
-        return rate * self._spindle_rpm / 60.0
+    def _css_sync_rpm(self, cmd: C.Canon) -> float:
+        """G33 / G76 under G96 (LinuxCNC runs them: its spindle turns at the G96 rpm of the commanded X,
+        the axes follow its position). Followed on the spindle's measured position (``follow_taps``),
+        a move is planned at D (at most the rpm at which its axes keep their max_velocity): on the
+        spindle's clock the pitch holds at whatever rpm G96 gives, and every pass has the same lead-in
+        (the same groove). Otherwise at the G96 rpm along the move (the lowest: a straight pass has
+        one), as the spindle is commanded to turn."""
+        mode = self._css.intake_mode
+        end = [self._pose[i] for i in self._pose_index]  # type: ignore[attr-defined]  # _target set it
+        if self.follow_taps:
+            if mode.css_max >= 1e29:
+                raise PlannerError("spindle-synchronized motion under constant surface speed (G96) needs "
+                                   "its D word (the highest rpm): a thread followed on the spindle is "
+                                   "planned at it", cmd.file, cmd.line)
+            # (at most the rpm at which the pitch keeps every axis within its max_velocity: planned
+            # faster, the axes' cap would shorten the pitch on the spindle's clock)
+            delta = [b - a for a, b in zip(self._end, end, strict=True)]
+            length = math.hypot(*delta)
+            axes = zip(self.machine.axes, delta, strict=True)
+            tiny = 1e-12 * (1.0 + length)
+            top = min((lim.max_velocity * length / abs(d) for lim, d in axes if abs(d) > tiny),
+                      default=math.inf)
+            assert self._sync_pitch is not None
+            return min(float(mode.css_max), top * 60.0 / self._sync_pitch)
+        x = self._css.x_index
+        return min(self._css.rpm_at(self._end[x]), self._css.rpm_at(end[x]))
 
-    def _note_synced(self, cmd: C.Canon, pitch: float, locked: bool) -> None:
+    def _per_rev_speed(self, cmd: C.Canon, rate: float, piece: Any = None) -> float:
+        """Path speed of a G95 move (units/s): F per revolution at the commanded speed; under G96 at the
+        lowest G96 rpm along it (a line's piece: :meth:`_per_rev_css_line`; an arc ``piece``: sampled)."""
+        rpm = self._spindle_rpm
+        if self._css.in_css:
+            if self._css_rpm is not None:
+                rpm = self._css_rpm
+            else:
+                x = self._css.x_index
+                n = 64
+                rpm = min(self._css.rpm_at(piece.pos(piece.length * k / n)[x]) for k in range(n + 1))
+        self._note_synced(cmd, rate, locked=False, rpm=rpm)
+        return rate * rpm / 60.0
+
+    def _per_rev_css_line(self, cmd: C.Canon) -> bool:
+        """G95 under G96 (planner.css): a feed line is queued as pieces within which the G96 rpm changes
+        by at most ``CSS_PIECE_RATIO``, each planned at F times its lowest rpm (at an end: the radius
+        along a line is largest at one of them). False: not such a move (planned as it is)."""
+        if (not self._css.in_css or self._feed_mode is not C.FeedMode.UNITS_PER_REV
+                or self._css_rpm is not None or self._sync_pitch is not None
+                or not isinstance(cmd, C.StraightFeed)):
+            return False
+        x = self._css.x_index
+        assert x is not None
+        start_pose, start = list(self._pose), list(self._end)
+        end = self._target(cmd, cmd.end)  # type: ignore[attr-defined]  # the soft limits, once
+        self._pose = start_pose
+        stops = self._mode in (C.MotionControlMode.EXACT_STOP_MODAL, C.MotionControlMode.EXACT_STOP)
+        cuts = [] if stops else self._css.split_line(start[x], end[x])  # (each piece would stop)
+        exact = self._exact_next
+        bounds = [0.0, *cuts, 1.0]
+        try:
+            for i, (u0, u1) in enumerate(itertools.pairwise(bounds)):
+                last = i == len(bounds) - 2
+                self._css_rpm = min(self._css.rpm_at(start[x] + u * (end[x] - start[x])) for u in (u0, u1))
+                self._exact_next = exact and last
+                self._motion(cmd if last else dataclasses.replace(  # type: ignore[attr-defined]
+                    cmd, end=C.Pose(*[a + u1 * (b - a) for a, b in zip(start_pose, cmd.end, strict=True)])))
+        finally:
+            self._css_rpm = None
+        return True
+
+    def _note_synced(self, cmd: C.Canon, pitch: float, locked: bool, rpm: float | None = None) -> None:
         if not hasattr(self, "_synced_cmds") or len(self._synced_cmds) > 4096:
             self._synced_cmds = {}  # ids of moves long run (bounded: a move is followed while it runs)
         sign = 1 if self._spindle_dir is C.SpindleDirection.CW else -1
-        self._synced_cmds[id(cmd)] = (pitch, self._spindle_rpm, sign, locked)
+        self._synced_cmds[id(cmd)] = (pitch, self._spindle_rpm if rpm is None else rpm, sign, locked)
 
-    def follow_spindle(self, revolutions: float) -> None:
+    def follow_spindle(self, revolutions: float) -> str:
         """Before :meth:`next_setpoint`, every cycle, on a machine with the spindle's position: its
         revolutions (M3 counting up) at the time the next setpoint takes effect. A synchronized move
-        runs on the spindle's clock (module docstring); other motion is not touched."""
+        runs on the spindle's clock (module docstring); other motion is not touched. Returns a fault
+        (``FILE:LINE: ...``) when following would jump the axes (:func:`follow_jump`): the move then
+        runs on at its planned pace, and nothing is followed any more."""
         act = self._active
         info = None if act is None else getattr(self, "_synced_cmds", {}).get(id(act.seg.cmd))
-        if info is None:
+        if info is None or self._sp_broken or self._stops(act.seg.ovr):  # type: ignore[attr-defined, union-attr]
+            # (a stop on the path, hold or abort, runs on the wall clock: its ramp from where the axes are)
             self._sp_seg = None
             self._sp_last = revolutions
-            return
+            return ""
         _pitch, rpm, sign, locked = info
         t_next = (self._k + 1) * self.T
         if act.seg is not self._sp_seg:  # a synchronized move began with the last setpoint
@@ -139,6 +243,9 @@ class SpindleSyncMixin:
             if from_rest and locked:  # wait for the spindle's index: the next whole revolution
                 self._sp_tau = 0.0
                 self._sp_index = math.floor(revolutions) + 1.0 if sign > 0 else math.ceil(revolutions) - 1.0
+        elif act is not self._sp_act:  # the move re-planned from where it is (an override): its new profile
+            self._sp_tau = max(0.0, t_next - self.T - act.t0)
+        self._sp_act = act
         turned = (revolutions - self._sp_last) * sign
         if self._sp_index is not None:  # still before the index: the move has not begun
             past = (revolutions - self._sp_index) * sign
@@ -147,9 +254,34 @@ class SpindleSyncMixin:
                 self._sp_index = None
         self._sp_last = revolutions
         step = max(0.0, turned) * 60.0 / rpm
-        self._sp_tau += step if locked else min(step, self.T)
+        tau = self._sp_tau + (step if locked else min(step, self.T))
+        if locked:
+            p = min(act.traj.at_time(min(tau, act.traj.duration))[0][0] + act.s_off, act.s_end)
+            why = follow_jump(self.machine.axes, self.T, self._last_pos, act.seg.piece.pos(p))
+            if why:
+                self._sp_broken = True  # on at the planned pace from here: act.t0 as it was
+                cmd = act.seg.cmd
+                return f"{cmd.file}:{cmd.line}: spindle-synchronized motion: {why}"
+        self._sp_tau = tau
         act.t0 = t_next - self._sp_tau
         act.t_end = act.t0 + act.traj.duration
+        return ""
+
+    @property
+    def follows_spindle(self) -> bool:
+        """A move runs on the spindle's clock now (or waits for its index)."""
+        act = self._active
+        synced = getattr(self, "_synced_cmds", {})
+        return (act is not None and not self._sp_broken and id(act.seg.cmd) in synced
+                and not self._stops(act.seg.ovr))  # type: ignore[attr-defined]
+
+    def stop_following(self) -> str:
+        """The spindle's position cannot be had: the running move goes on at its planned pace (the
+        machine's fault stops it on its ramp) and nothing is followed any more. Returns where the
+        move is (``FILE:LINE``)."""
+        self._sp_broken = True
+        act = self._active
+        return "" if act is None else f"{act.seg.cmd.file}:{act.seg.cmd.line}"
 
     def _seg_ovr(self, rapid: bool) -> int:
         """The override switches a new move obeys: a spindle-synchronized feed ignores the feed

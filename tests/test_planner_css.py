@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import statistics
 
 import pytest
 
@@ -52,11 +53,126 @@ def test_facing_in_g96_speeds_the_spindle_up_as_the_radius_shrinks_then_g97_give
     assert got[-1][2] == 600.0  # G97 S600: rpm again
 
 
-@pytest.mark.parametrize("text", [
-    "G21 G18\nG0 X20\nG96 S100 M3\nG95 G1 X10 F0.2\n",
-    "G21 G18\nG0 X20\nG96 S100 M3\nG33 Z-5 K1\n",
-])
-def test_per_revolution_feed_and_spindle_sync_under_g96_are_refused_naming_the_line(text: str) -> None:
+def test_a_rigid_tap_under_g96_is_refused_naming_the_line() -> None:
     with pytest.raises(PlannerError) as err:
-        list(plan_all(interpret(text), DEMO_MACHINE, max_cycles=200_000))
-    assert err.value.line == 4 and "G96" in str(err.value)
+        list(plan_all(interpret("G21 G18\nG0 X0\nG96 D1000 S100 M3\nG33.1 Z-5 K1\n"), DEMO_MACHINE,
+                      max_cycles=200_000))
+    assert err.value.line == 4 and "G96" in str(err.value) and "G33.1" in str(err.value)
+
+
+def test_g33_under_g96_cuts_at_the_pitch_times_the_g96_rpm_where_it_cuts() -> None:
+    """As LinuxCNC: under G96 the spindle turns at the rpm of the commanded X and the thread follows it
+    (without the spindle's position: at the rpm it is commanded to, S60 m/min at X20: 477 rpm)."""
+    sps = list(plan_all(interpret("G21 G90 G18\nG0 X20 Z1\nG96 D1500 S60 M3\nG33 Z-20 K1.5\nM5\n"),
+                        DEMO_MACHINE, max_cycles=2_000_000))
+    T = DEMO_MACHINE.cycle_s
+    vz = [abs(b.positions[2] - a.positions[2]) / T for a, b in itertools.pairwise(sps) if b.line == 4]
+    assert max(vz) == pytest.approx(1.5 * css_rpm(60_000.0, 20.0, 1500.0) / 60.0, rel=1e-6)
+
+
+def test_a_followed_thread_under_g96_without_d_is_refused_naming_the_line() -> None:
+    """Followed on the spindle's position a thread under G96 is planned at D: without D it cannot be."""
+    from planner import Planner
+
+    p = Planner(DEMO_MACHINE)
+    p.follow_taps = True
+    with pytest.raises(PlannerError) as err:
+        p.feed_many(interpret("G21 G90 G18\nG0 X20 Z1\nG96 S60 M3\nG33 Z-20 K1.5\nM5\n"))
+        p.flush()
+    assert err.value.line == 4 and "D word" in str(err.value)
+
+
+def per_rev(text: str, line: int, surface: float, d: float) -> list[float]:
+    """Feed per revolution (mm) of every cycle of ``line``: the path's travel over the G96 rpm of where
+    the axes are (what a spindle turning at the speed G96 commands turns in that cycle)."""
+    sps = list(plan_all(interpret(text), DEMO_MACHINE, max_cycles=2_000_000))
+    T = DEMO_MACHINE.cycle_s
+    return [math.dist(a.positions, b.positions) / (css_rpm(surface, b.positions[0], d) / 60.0 * T)
+            for a, b in itertools.pairwise(sps) if a.line == line and b.line == line]
+
+
+def test_g95_under_g96_feeds_f_per_revolution_as_the_rpm_rises_toward_the_centre() -> None:
+    """Facing from X40 to X5 under G96 S100 D1500 with G95 F0.2 (the usual lathe pairing, as LinuxCNC
+    runs it): the feed rises with the rpm toward the centre, every revolution advancing 0.2 mm (never
+    more; a little less where the line's pieces change speed), up to D's 1500 rpm (5 mm/s)."""
+    text = "G21 G90 G18\nG0 X40 Z1\nG96 D1500 S100 M3\nG95 G1 X5 Z0 F0.2\nM5\n"
+    got = per_rev(text, 4, 100_000.0, 1500.0)
+    assert len(got) > 1000
+    assert max(got) <= 0.2 * (1 + 1e-6)
+    assert sum(f >= 0.2 * 0.96 for f in got) / len(got) >= 0.95
+    assert statistics.median(got) == pytest.approx(0.2, rel=0.02)
+
+
+def test_g95_arc_under_g96_is_planned_at_its_lowest_rpm() -> None:
+    """An arc under G96 with G95 runs at F times the lowest rpm along it: never more than F per
+    revolution."""
+    text = "G21 G90 G18\nG0 X20 Z0\nG96 D1500 S100 M3\nG95 G3 X10 Z-5 R8 F0.1\nM5\n"
+    got = per_rev(text, 4, 100_000.0, 1500.0)
+    assert len(got) > 100
+    assert max(got) <= 0.1 * (1 + 1e-6) and statistics.median(got) > 0.05
+
+
+def test_a_followed_thread_under_g96_keeps_its_pitch_when_d_is_beyond_the_axes() -> None:
+    """Planned at D where D times the pitch is beyond Z's max_velocity, the axis's cap would shorten the
+    pitch on the spindle's clock: it is planned at the rpm the axis allows instead, and each revolution
+    still advances the pitch."""
+    from planner import Planner
+
+    p = Planner(DEMO_MACHINE)
+    p.follow_taps = True
+    pitch = 4.0
+    assert pitch * 5000 / 60 > DEMO_MACHINE.axes[2].max_velocity
+    p.feed_many(interpret(f"G21 G90 G18\nG0 X20 Z1\nG96 D5000 S60 M3\nG33 Z-60 K{pitch}\nM5\n"))
+    p.flush()
+    revs, steps = 0.0, []
+    for _ in range(200_000):
+        revs += 300 / 60 * p.T
+        p.follow_spindle(revs)
+        before = p.position
+        sp = p.next_setpoint()
+        if p.waiting_for is not None:
+            p.release()
+        if sp is None:
+            break
+        if sp.line == 4:
+            steps.append(before[2] - sp.positions[2])
+    cruise = [s for s in steps if s > 0.99 * max(steps)]
+    assert len(cruise) > 100
+    assert statistics.median(cruise) == pytest.approx(pitch * 300 / 60 * p.T, rel=1e-6)
+
+
+def test_followed_g76_under_g96_cuts_every_pass_in_the_same_groove_at_its_own_rpm() -> None:
+    """G76 under G96 followed on a spindle that turns at the G96 rpm of the commanded X (lagging it at
+    1500 rpm/s): each pass has its own rpm, and all are cut in the same groove (Z + pitch x revolutions
+    the same in every pass's cruise)."""
+    from planner import Planner
+
+    p = Planner(DEMO_MACHINE)
+    p.follow_taps = True
+    pitch, T = 2.0, DEMO_MACHINE.cycle_s
+    p.feed_many(interpret(f"G21 G18 G90 G8\nG0 X12 Z5\nG96 D1500 S30 M3\nG76 P{pitch} Z-25 I-2 J0.4 K1.2 "
+                          "R1.5 H1\nG0 X20 Z5\nM5\n"))
+    p.flush()
+    revs, rpm, x = 0.0, 0.0, 12.0
+    samples = []  # (Z step, revolutions turned, Z + pitch x revolutions, rpm)
+    for _ in range(400_000):
+        want = css_rpm(30_000.0, x, 1500.0)
+        rpm += max(-1500 * T, min(1500 * T, want - rpm))
+        turned = rpm / 60 * T
+        revs += turned
+        p.follow_spindle(revs)
+        before = p.position
+        sp = p.next_setpoint()
+        if p.waiting_for is not None:
+            p.release()
+        if sp is None:
+            break
+        x = sp.positions[0]
+        if sp.line == 4 and -20.0 < sp.positions[2] < 0.0:
+            samples.append((sp.positions[2] - before[2], turned, sp.positions[2] + pitch * revs, rpm))
+    cruise = [(lock, r) for dz, turned, lock, r in samples if abs(dz + pitch * turned) < 1e-6]
+    rpms = sorted({round(r) for _lock, r in cruise})
+    assert rpms[-1] > 1.05 * rpms[0]  # the passes turn at different rpm (their X)
+    phases = [lock % pitch for lock, _r in cruise]
+    off = [min(abs(q - phases[0]), pitch - abs(q - phases[0])) for q in phases]
+    assert len(cruise) > 1000 and max(off) < 1e-6  # one groove

@@ -234,3 +234,116 @@ def test_g76_in_diameter_mode_halves_i_j_k() -> None:
     g7 = cuts("G18 G7\nM3 S300\nG0 X20 Z2\nG76 P1.5 Z-10 I-2 J0.4 K2.4 H1\n")
     g8 = cuts("G18 G8\nM3 S300\nG0 X10 Z2\nG76 P1.5 Z-10 I-1 J0.2 K1.2 H1\n")
     assert g7 == pytest.approx(g8) and len(g7) > 6
+
+
+def _follow(p, revs_per_cycle: float, at_z: float, act) -> tuple[list, int | None]:
+    """Run planner ``p`` on a spindle turning ``revs_per_cycle``; ``act(p)`` once line 4 passes Z ``at_z``."""
+    revs, out, when = 0.0, [], None
+    for k in range(20_000):
+        revs += revs_per_cycle
+        p.follow_spindle(revs)
+        sp = p.next_setpoint()
+        if sp is None:
+            break
+        out.append(sp.positions)
+        if when is None and sp.line == 4 and sp.positions[2] < at_z:
+            when = k
+            act(p)
+    return out, when
+
+
+@pytest.mark.parametrize("stop", ["hold", "abort", "quick_stop"])
+def test_a_stop_on_the_path_of_a_followed_thread_ramps_from_where_the_axes_are(stop: str) -> None:
+    """A hold, an abort or a quick stop re-plans a synchronized move from its last setpoint: the ramp
+    starts there, never at the spindle clock's time of the profile before (a jump the drive faults on)."""
+    from planner import Planner
+    from planner.spindle_sync import follow_jump
+
+    p = Planner()
+    p.feed_many(commands("G18 G21\nM3 S300\nG0 X0 Z0\nG33 Z-40 K2\nG0 X5\nM5\n"))
+    p.flush()
+    # the spindle 20 % faster than commanded: its clock runs ahead of the wall clock
+    out, stopped_at = _follow(p, 300 / 60 * p.T * 1.2, -10.0, lambda p: getattr(p, stop)())
+    assert stopped_at is not None
+    for a, b in itertools.pairwise(out):
+        assert follow_jump(p.machine.axes, p.T, a, b) == ""
+    z = [pos[2] for pos in out[stopped_at - 2:]]
+    v = [(b - a) / p.T for a, b in itertools.pairwise(z)]
+    acc = [(b - a) / p.T for a, b in itertools.pairwise(v)]
+    assert -40.0 < min(z) < -10.0 and abs(v[-1]) < 0.1  # stopped on the path, short of the end
+    assert all(b >= a - 1e-9 for a, b in itertools.pairwise(v[1:]))  # slowing down all the way
+    assert max(abs(a) for a in acc) <= p.machine.axes[2].quick_stop * 1.01  # on a ramp, no jump
+
+
+def test_a_feed_override_change_mid_thread_leaves_the_followed_thread_alone() -> None:
+    """The override re-plans the running move (a new profile from where it is): the thread goes on on
+    the spindle's clock from there, at the pitch, without a jump."""
+    from planner import Planner
+    from planner.spindle_sync import follow_jump
+
+    p = Planner()
+    p.feed_many(commands("G18 G21\nM3 S300\nG0 X0 Z0\nG33 Z-40 K2\nG0 X5\nM5\n"))
+    p.flush()
+    per_cycle = 300 / 60 * p.T * 1.2
+    out, when = _follow(p, per_cycle, -10.0, lambda p: p.set_feed_override(0.5))
+    assert when is not None
+    for a, b in itertools.pairwise(out):
+        assert follow_jump(p.machine.axes, p.T, a, b) == ""
+    z = [pos[2] for pos in out[when - 2:] if pos[2] < -10.5 and pos[2] > -39.0]
+    assert z and all(b - a == pytest.approx(-2.0 * per_cycle, abs=1e-9) for a, b in itertools.pairwise(z))
+
+
+def _followed_z_jerk(smooth: bool, cpr: int = 4096, rpm: float = 450.0) -> list[float]:
+    """Z's jerk (mm/s³) through the cruise of a G33 K2.5 followed on a spindle at ``rpm`` whose encoder
+    counts ``cpr`` a revolution (its speed measured exactly), its position smoothed or not."""
+    from motiond.runtime.spindle_drive import PositionSmoother
+    from planner import Planner
+
+    p = Planner()
+    p.feed_many(commands(f"G18 G21\nM3 S{rpm:g}\nG0 X0 Z0\nG33 Z-60 K2.5\nG0 X5\nM5\n"))
+    p.flush()
+    T, sm, z = p.T, PositionSmoother(), []
+    for k in range(100_000):
+        true = rpm / 60 * T * k + 0.37 / cpr
+        measured = math.floor(true * cpr) / cpr
+        base = sm.update(k, measured, rpm, T) if smooth else measured
+        p.follow_spindle(base + rpm / 60 * T)  # predicted for the next SYNC, as the machine does
+        sp = p.next_setpoint()
+        if sp is None:
+            break
+        if sp.line == 4 and -50.0 < sp.positions[2] < -10.0:
+            z.append(sp.positions[2])
+    v = [(b - a) / T for a, b in itertools.pairwise(z)]
+    a = [(b - a) / T for a, b in itertools.pairwise(v)]
+    return [abs(b - a) / T for a, b in itertools.pairwise(a)]
+
+
+def test_the_smoothed_spindle_position_takes_the_encoder_counts_out_of_the_followed_axis_jerk() -> None:
+    """Each count of the spindle's encoder is pitch / counts_per_revolution of Z (2.5 / 4096 mm): followed
+    as measured, the third difference over a cycle makes jerk peaks beyond Z's max_jerk (40 000 mm/s³)
+    on a cruise that has none; the smoothed position keeps them well within."""
+    from planner import DEMO_MACHINE
+
+    limit = DEMO_MACHINE.axes[2].max_jerk
+    raw = _followed_z_jerk(smooth=False)
+    smoothed = _followed_z_jerk(smooth=True)
+    assert len(smoothed) > 1000
+    assert max(raw) > limit  # the problem
+    assert max(smoothed) < 0.5 * limit
+
+
+def test_the_smoothed_spindle_position_does_not_lag_the_spindle() -> None:
+    """Through a speed ramp (1500 rpm/s, speed measured exactly) the smoothed position stays within a
+    count of the true one: no lag (the issue's bound is one cycle's turn)."""
+    from motiond.runtime.spindle_drive import PositionSmoother
+
+    sm, T, cpr = PositionSmoother(), 0.002, 4096
+    revs, worst, last = 0.0, 0.0, 100.0
+    for k in range(1500):
+        rpm = min(1000.0, 100.0 + 1500.0 * k * T) if k < 1000 else max(0.0, 1000.0 - 1500.0 * (k - 1000) * T)
+        revs += (last + rpm) / 120 * T
+        last = rpm
+        est = sm.update(k, math.floor(revs * cpr) / cpr, rpm, T)
+        if k > 20:
+            worst = max(worst, abs(est - revs))
+    assert worst < 1.5 / cpr

@@ -125,6 +125,9 @@ class SpindleDriveConfig:
     orient_timeout_s: float = 10.0
     vendor_id: int | None = None
     product_code: int | None = None
+    #: while motion follows the spindle, its position may be missing (lost or late TPDOs) for at most
+    #: this many SYNCs in a row, bridged from its last speed; more is a fault naming the node
+    max_missed_positions: int = 10
     #: simulated drives only: the acceleration the spindle's inertia allows (rpm/s; None:
     #: ``acceleration``); below ``acceleration`` the simulated spindle lags the commanded ramp
     sim_acceleration: float | None = None

@@ -48,6 +48,11 @@ log = logging.getLogger(__name__)
 SPINDLE_LAYOUT = PdoLayout("spindle", (Pdo(False, 1, (CONTROLWORD, TARGET_VELOCITY)),),
                            (Pdo(True, 1, (STATUSWORD, VELOCITY_ACTUAL)), Pdo(True, 2, (POSITION_ACTUAL,))),
                            1, 0)
+#: a lost position TPDO is told from the position's advance only when the spindle turns at least this
+#: many counts per SYNC (below, a count of quantization is too large a part of the advance)
+LOSS_MIN_COUNTS = 4.0
+#: at most this many SYNCs are counted between two position TPDOs (lost frames told by the advance)
+LOSS_MAX_SYNCS = 50
 #: quick stop option of the spindle drive: ramp down, then Switch on disabled (the cyclic controlword
 #: 0x0F cannot re-enable it, as for the axes in the standard layout)
 SPINDLE_QUICK_STOP_OPTION = 2
@@ -61,9 +66,10 @@ class SpindleFeedback:
 
     The SYNC: the drive sends one position TPDO per SYNC from NMT start on, so the n-th one after the
     NMT start answers the n-th SYNC the master sent after it: a TPDO the bus reader hands on late (a
-    loaded PC) is still dated right. A TPDO lost on the bus would date the later ones a SYNC early
-    until the next boot (the follow one cycle late): CAN retransmits a frame that was not acknowledged,
-    so only a bus-off or an overrun controller loses one, and either is a fault of its own."""
+    loaded PC) is still dated right. A TPDO lost on the bus (CAN retransmits a frame that was not
+    acknowledged: an overrun controller or a bus error loses one) is told by the position's advance
+    against the measured speed (:meth:`SpindleBook.syncs_between`), so the later ones keep their
+    SYNC; at a speed too low to tell, a lost one dates the later ones a SYNC early until one is told."""
 
     rpm: float
     revolutions: float
@@ -97,6 +103,7 @@ class SpindleBook:
         self.statusword = 0
         self.position: int | None = None  # counts, 0x6064 as last received
         self._pos = (0, 0, 0.0)  # counts since boot (unwrapped), the SYNC they answer, when they came
+        self._restarted = False
         self.feedback_at = 0.0
         self.heartbeat_at = 0.0
         self.nmt_state = -1
@@ -135,12 +142,27 @@ class SpindleBook:
         elif base == 0x280 and len(data) >= 4:
             (pos,) = SPINDLE_LAYOUT.tpdos[1].struct.unpack_from(data)
             counts, sync, _at = self._pos
-            counts = pos if self.position is None else counts + (pos - self.position + 2**31) % 2**32 - 2**31
+            step = 0 if self.position is None else (pos - self.position + 2**31) % 2**32 - 2**31
+            counts = pos if self.position is None else counts + step
+            first, self._restarted = self.position is None or self._restarted, False
             self.position = pos
-            sync = self.syncs() if self.sync_base is None else max(sync, self.sync_base) + 1
+            if self.sync_base is None:
+                sync = self.syncs()
+            else:  # never a SYNC not sent yet (the kernel's SYNC may be one ahead of the count)
+                sync = min(max(sync, self.sync_base) + (1 if first else self.syncs_between(step)),
+                           self.syncs() + 1)
             now = time.monotonic()
             self._pos = (counts, sync, now)
             self.feedback_at = now
+
+    def syncs_between(self, step: int) -> int:
+        """SYNCs between the last position TPDO and this one, whose position advanced ``step`` counts:
+        one, or more when TPDOs were lost between (the advance a multiple of the measured speed's per
+        SYNC; told when that is :data:`LOSS_MIN_COUNTS` or more)."""
+        per_sync = self._vel[0] * self.cycle_s
+        if abs(per_sync) < LOSS_MIN_COUNTS:
+            return 1
+        return max(1, min(LOSS_MAX_SYNCS, round(step / per_sync)))
 
     @property
     def velocity(self) -> int:
@@ -158,6 +180,7 @@ class SpindleBook:
         """The SYNCs its TPDOs answer count from ``base`` (its NMT start; None: not started)."""
         self.sync_base = base
         self._pos = (self._pos[0], 0, self._pos[2])
+        self._restarted = True  # its next position answers the first SYNC after base
 
     def feedback(self) -> SpindleFeedback:
         cfg = self.cfg

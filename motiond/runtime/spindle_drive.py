@@ -10,8 +10,11 @@ nothing waits on the network: the speed goes to the master, which sends it with 
   naming the line after ``at_speed_timeout_s``. S alone changes the speed of a turning spindle.
 * M5: speed 0 (no wait: the next move may start while the spindle runs down, as with LinuxCNC).
 * G33, G76 (:meth:`next_setpoint`): before every setpoint the planner gets the spindle's revolutions
-  predicted for the SYNC the setpoint is latched at (measured at the last SYNC, plus its measured speed
-  times one cycle), and runs its synchronized moves on them (``planner.spindle_sync``).
+  predicted for the SYNC the setpoint is latched at (measured at the last SYNC, smoothed by
+  :class:`PositionSmoother`, plus its measured speed times one cycle), and runs its synchronized moves
+  on them (``planner.spindle_sync``). A position
+  missing for more than ``max_missed_positions`` SYNCs in a row (bridged from the speed until then)
+  stops the following with a fault naming the spindle drive's node.
 * G33.1 (a :class:`~planner.spindle_sync.FollowedTap` sync point): the spindle stops; the tap starts
   with it standing, and the axes' setpoint is the tap's start plus the pitch times the revolutions
   turned (predicted as above) along the tap, every cycle: in with the spindle at S in its direction;
@@ -36,15 +39,12 @@ from typing import Any
 
 from gcode_canon import commands as C
 from planner.setpoints import Setpoint
-from planner.spindle_sync import FollowedTap
+from planner.spindle_sync import FollowedTap, follow_jump
 
 #: orientation's position loop: speed (rev/s) per revolution left, i.e. 1 / time constant (s)
 ORIENT_GAIN = 4.0
 #: the spindle counts as stopped below this speed (rpm)
 STILL_RPM = 0.5
-TAP_STEP_MARGIN = 2.0
-"""A followed tap's axis moves at most this many cycles' travel at the axis's max_velocity in one cycle
-(one late cycle is ridden through); more is a stalled cycle the axis cannot follow (below)."""
 
 
 class SpindleDriveControl:
@@ -65,6 +65,7 @@ class SpindleDriveControl:
         self._settled = 0  # M19: positions in a row found oriented
         self._settled_sync = -1
         self._tap: _Tap | None = None  # G33.1 in progress
+        self.smoother = PositionSmoother()  # the encoder's counts smoothed for following
 
     # --- setpoints ----------------------------------------------------------------------------------
     def _predicted(self) -> Any:
@@ -74,16 +75,22 @@ class SpindleDriveControl:
         master = self.c.master
         fb = master.spindle_feedback()
         tau = self.c.T * max(1, master.cycles + 1 - fb.sync)
-        return fb.revolutions + (fb.rpm + 0.5 * fb.acceleration * tau) / 60.0 * tau, fb
+        revs = self.smoother.update(fb.sync, fb.revolutions, fb.rpm, self.c.T)
+        return revs + (fb.rpm + 0.5 * fb.acceleration * tau) / 60.0 * tau, fb
 
     def next_setpoint(self, p: Any) -> Any:
         """The planner's next setpoint, its synchronized moves run on the spindle's revolutions; during
         a rigid tap, the tap's position instead."""
-        revs, _fb = self._predicted()
+        revs, fb = self._predicted()
         if self._tap is not None and p is not self._tap.planner:
             self._tap = None  # a new planner: it starts where the axes stand
+        missed = self.c.master.cycles - fb.sync  # SYNCs since, whose position did not come
+        if missed > self.cfg.max_missed_positions:
+            self._feedback_lost(p, missed)
         if self._tap is None:
-            p.follow_spindle(revs)
+            why = p.follow_spindle(revs)
+            if why:  # the axes run on at the planned pace until the fault's stop ramps them down
+                self.c.post_fault(f"{why}: the axes stop on their quick-stop ramp", "spindle")
             return p.next_setpoint()
         sp = p.next_setpoint()  # at rest at the tap's sync point (its clock goes on)
         pos = self._tap_step(revs)
@@ -92,6 +99,27 @@ class SpindleDriveControl:
         if sp is None:
             return Setpoint(p._k * self.c.T, pos, self._tap.cmd.file, self._tap.cmd.line)
         return dataclasses.replace(sp, positions=pos)
+
+    def _feedback_lost(self, p: Any, missed: int) -> None:
+        """No spindle position for ``missed`` SYNCs: motion following it stops (a fault)."""
+        why = (f"node {self.cfg.node_id} (spindle): no position for {missed} SYNCs while motion follows "
+               f"it (at most {self.cfg.max_missed_positions} are bridged from its speed, "
+               "canopen.spindle.max_missed_positions; TPDOs lost?)")
+        t = self._tap
+        if t is not None and t.phase in ("in", "out"):
+            self._hold_tap(t, f"rigid tap: {why}")
+        elif p.follows_spindle:
+            where = p.stop_following()
+            self.c.post_fault(f"{where}: {why}: the axes stop on their quick-stop ramp", "spindle")
+
+    def _hold_tap(self, t: _Tap, why: str) -> None:
+        """Stop a tap in the work as an interrupted one: the spindle stopped, the axes held where they
+        are, a fault naming the line and ``why``."""
+        t.phase = "held"
+        self._command(0.0)
+        self._dir = 0
+        self.c.post_fault(f"{t.cmd.file}:{t.cmd.line}: {why}: spindle stopped, axes held where they are "
+                          "(back it out by hand)", "spindle")
 
     # --- G33.1 --------------------------------------------------------------------------------------
     def _tap_begin(self, w: FollowedTap) -> str:
@@ -147,28 +175,15 @@ class SpindleDriveControl:
                 p.release()
             return tuple(w.start)
         d = max(0.0, d)
-        if abs(d - t.d_last) > self._tap_max_step(t):
-            # the spindle turned on while no setpoint went out (a stalled cycle): following it now is a
-            # jump no axis can make (a drive faults on it, 0x8400, mid-thread); stop here as on an
-            # interrupted tap, naming the cause
-            t.phase = "held"
-            self._command(0.0)
-            self._dir = 0
-            self.c.post_fault(f"{w.file}:{w.line}: rigid tap: the axis would jump {abs(d - t.d_last):.3f} mm "
-                              "in one cycle to follow the spindle (a stalled cycle): spindle stopped, axes "
-                              "held where they are (back it out by hand)", "spindle")
+        pos = tuple(s + u * d for s, u in zip(w.start, t.unit, strict=True))
+        why = follow_jump(self.c.limits.axes, self.c.T, t.last, pos)
+        if why:
+            # following it now is a jump no axis can make (a drive faults on it, 0x8400, mid-thread):
+            # stop here as on an interrupted tap, naming the cause
+            self._hold_tap(t, f"rigid tap: {why}")
             return t.last
-        t.d_last = d
-        t.last = tuple(s + u * d for s, u in zip(w.start, t.unit, strict=True))
+        t.last = pos
         return t.last
-
-    def _tap_max_step(self, t: _Tap) -> float:
-        """The most the tap may advance along its line in one cycle (:data:`TAP_STEP_MARGIN`)."""
-        if t.max_step is None:
-            steps = [lim.max_velocity / abs(u) for lim, u in zip(self.c.limits.axes, t.unit, strict=True)
-                     if abs(u) > 1e-12]
-            t.max_step = TAP_STEP_MARGIN * self.c.T * min(steps, default=math.inf)
-        return t.max_step
 
     # --- events -------------------------------------------------------------------------------------
     def _command(self, rpm: float) -> float:
@@ -241,11 +256,7 @@ class SpindleDriveControl:
         self._orient = None
         t = self._tap
         if t is not None and t.phase in ("in", "out"):
-            t.phase = "held"
-            self._command(0.0)
-            self._dir = 0
-            self.c.post_fault(f"{t.cmd.file}:{t.cmd.line}: rigid tap interrupted with the tap in the work: "
-                              "spindle stopped, axes held where they are (back it out by hand)", "spindle")
+            self._hold_tap(t, "rigid tap interrupted with the tap in the work")
         else:
             self._tap = None
 
@@ -257,10 +268,7 @@ class SpindleDriveControl:
             self._orient_step(fb)
         t = self._tap
         if t is not None and t.phase != "held" and time.monotonic() > t.deadline:
-            t.phase = "held"  # the axes stay where the tap is
-            self._command(0.0)
-            self.c.post_fault(f"{t.cmd.file}:{t.cmd.line}: rigid tap not done in time (spindle at "
-                              f"{fb.rpm:.1f} rpm); axes held where they are", "spindle")
+            self._hold_tap(t, f"rigid tap not done in time (spindle at {fb.rpm:.1f} rpm)")
         w = self._wait
         if w is None:
             return
@@ -321,6 +329,43 @@ class SpindleDriveControl:
             self._command(0.0)
 
 
+class PositionSmoother:
+    """The spindle's position as motion follows it: the encoder's counts smoothed without lag.
+
+    Each SYNC's position is predicted from the last one by the measured speed (the mean of the two
+    SYNCs' speeds over the SYNCs between: exact for a constant acceleration), then corrected by
+    :attr:`GAIN` of the difference to the measured position. The measured counts step by whole counts
+    (a pitch / counts_per_revolution of axis travel each), which a third difference over a cycle turns
+    into jerk peaks of the followed axis; the drive's speed does not step so. While that speed is right
+    the estimate does not lag; a speed off by a fraction e leaves it e x one SYNC's turn / GAIN behind.
+    A difference of more than :attr:`RESET_REVS` (a restart, a jump of the count) starts it afresh."""
+
+    #: the share of the measured position taken each SYNC
+    GAIN = 0.2
+    RESET_REVS = 0.05
+    #: SYNCs without a position beyond which the estimate starts afresh
+    RESET_SYNCS = 20
+
+    def __init__(self) -> None:
+        self._sync: int | None = None
+        self._revs = 0.0
+        self._rpm = 0.0
+
+    def update(self, sync: int, revolutions: float, rpm: float, T: float) -> float:
+        """The smoothed revolutions at SYNC ``sync``, measured ``revolutions`` at ``rpm`` then."""
+        last = self._sync
+        if last is not None and sync == last:
+            return self._revs
+        if last is None or not 0 < sync - last <= self.RESET_SYNCS:
+            self._sync, self._revs, self._rpm = sync, revolutions, rpm
+            return revolutions
+        guess = self._revs + (self._rpm + rpm) / 120.0 * T * (sync - last)
+        error = revolutions - guess
+        self._revs = revolutions if abs(error) > self.RESET_REVS else guess + self.GAIN * error
+        self._sync, self._rpm = sync, rpm
+        return self._revs
+
+
 class _Tap:
     """A followed rigid tap in progress: ``phase`` "stop" (the spindle comes to a stand), "in", "out",
     "held" (interrupted: the axes stay at ``last``)."""
@@ -334,6 +379,4 @@ class _Tap:
         self.sign = sign
         self.phase = "stop"
         self.r0 = 0.0
-        self.d_last = 0.0  # how far along its line the last setpoint put the axes
-        self.max_step: float | None = None
         self.deadline = math.inf
