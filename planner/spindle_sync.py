@@ -141,9 +141,31 @@ class SpindleSyncMixin:
         if self._spindle_rpm <= 0:
             raise PlannerError("spindle-synchronized motion (G33, G33.1, G76) needs a turning spindle",
                                cmd.file, cmd.line)
-        rpm = self._css_sync_rpm(cmd) if self._css.in_css else self._spindle_rpm
+        if self._css.in_css:
+            rpm = self._css_sync_rpm(cmd)
+        else:
+            rpm = self._spindle_rpm
+            top = self._pitch_rpm_cap()
+            if rpm > top * (1.0 + 1e-9):
+                raise PlannerError(
+                    f"spindle-synchronized motion at S{rpm:g} with a pitch of {self._sync_pitch:g} needs "
+                    f"the axes faster than their max_velocity allows (at most S{math.floor(top):g} for this "
+                    "move): the thread's pitch would not hold; lower S", cmd.file, cmd.line)
         self._note_synced(cmd, self._sync_pitch, locked=True, rpm=rpm)
         return self._sync_pitch * rpm / 60.0
+
+    def _pitch_rpm_cap(self) -> float:
+        """The highest rpm at which this synchronized move's axes keep their max_velocity at the pitch
+        (``inf`` for a move of no length). Beyond it the axes' cap would shorten the pitch: on the
+        spindle's clock the axes lag the turns, in a thread cut at the wrong pitch."""
+        end = [self._pose[i] for i in self._pose_index]  # type: ignore[attr-defined]  # _target set it
+        delta = [b - a for a, b in zip(self._end, end, strict=True)]
+        length = math.hypot(*delta)
+        tiny = 1e-12 * (1.0 + length)
+        top = min((lim.max_velocity * length / abs(d) for lim, d in zip(self.machine.axes, delta, strict=True)
+                   if abs(d) > tiny), default=math.inf)
+        assert self._sync_pitch is not None
+        return top * 60.0 / self._sync_pitch
 
     def _css_sync_rpm(self, cmd: C.Canon) -> float:
         """G33 / G76 under G96 (LinuxCNC runs them: its spindle turns at the G96 rpm of the commanded X,
@@ -159,16 +181,7 @@ class SpindleSyncMixin:
                 raise PlannerError("spindle-synchronized motion under constant surface speed (G96) needs "
                                    "its D word (the highest rpm): a thread followed on the spindle is "
                                    "planned at it", cmd.file, cmd.line)
-            # (at most the rpm at which the pitch keeps every axis within its max_velocity: planned
-            # faster, the axes' cap would shorten the pitch on the spindle's clock)
-            delta = [b - a for a, b in zip(self._end, end, strict=True)]
-            length = math.hypot(*delta)
-            axes = zip(self.machine.axes, delta, strict=True)
-            tiny = 1e-12 * (1.0 + length)
-            top = min((lim.max_velocity * length / abs(d) for lim, d in axes if abs(d) > tiny),
-                      default=math.inf)
-            assert self._sync_pitch is not None
-            return min(float(mode.css_max), top * 60.0 / self._sync_pitch)
+            return min(float(mode.css_max), self._pitch_rpm_cap())
         x = self._css.x_index
         return min(self._css.rpm_at(self._end[x]), self._css.rpm_at(end[x]))
 

@@ -176,3 +176,22 @@ def test_followed_g76_under_g96_cuts_every_pass_in_the_same_groove_at_its_own_rp
     phases = [lock % pitch for lock, _r in cruise]
     off = [min(abs(q - phases[0]), pitch - abs(q - phases[0])) for q in phases]
     assert len(cruise) > 1000 and max(off) < 1e-6  # one groove
+
+
+@pytest.mark.parametrize("code", ["G33 Z-20 K{pitch}", "G76 P{pitch} Z-20 I-0.5 J0.2 K1"])
+def test_a_thread_faster_than_its_axes_under_g97_is_refused_naming_the_line(code: str) -> None:
+    """G97: S times the pitch beyond an axis's max_velocity would have the axis lag the spindle, a
+    thread cut at the wrong pitch without a word. It is refused naming the line and the highest S;
+    at that S it is planned."""
+    pitch = 4.0
+    z_cap = DEMO_MACHINE.axes[2].max_velocity
+    top = z_cap * 60.0 / pitch  # Z alone moves at the pitch: 1500 rpm
+    prog = "G21 G90 G18\nG0 X20 Z1\nG97 S{s} M3\n" + code.format(pitch=pitch) + "\nM5\n"
+    with pytest.raises(PlannerError) as err:
+        list(plan_all(interpret(prog.format(s=top * 1.05)), DEMO_MACHINE, max_cycles=2_000_000))
+    text = str(err.value)
+    assert err.value.line == 4 and "max_velocity" in text and f"S{math.floor(top):g}" in text
+    sps = list(plan_all(interpret(prog.format(s=top)), DEMO_MACHINE, max_cycles=2_000_000))
+    T = DEMO_MACHINE.cycle_s
+    vz = [abs(b.positions[2] - a.positions[2]) / T for a, b in itertools.pairwise(sps) if b.line == 4]
+    assert max(vz) <= z_cap * (1 + 1e-6)
