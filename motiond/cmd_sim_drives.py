@@ -77,6 +77,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="servo dynamics: 1 first-order lag, 2 second-order (default 1)")
     parser.add_argument("--boot-delay-ms", type=float, default=0.0, help="delay of the boot-up message")
     parser.add_argument("--seconds", type=float, default=0.0, help="stop after this long (default: never)")
+    parser.add_argument("--tick-ms", type=float, default=2.0,
+                        help="the drives' own clock, between SYNCs: heartbeat, event TPDOs, homing, timed "
+                             "faults (default 2; slower costs less CPU, e.g. in an emulated machine)")
     parser.add_argument("--rpdo-timeout-syncs", type=int, default=0, metavar="N",
                         help="RPDO deadline monitoring: fault (EMCY 0x8250) after N SYNCs in Operation "
                              "enabled without a target (default 0: off)")
@@ -117,6 +120,10 @@ def run(args: argparse.Namespace) -> int:
         from motiond.cli import UserError
 
         raise UserError(f"--rpdo-timeout-syncs {args.rpdo_timeout_syncs}: must not be negative")
+    if not 0.5 <= args.tick_ms <= 100.0:
+        from motiond.cli import UserError
+
+        raise UserError(f"--tick-ms {args.tick_ms:g}: must be between 0.5 and 100")
     from fieldbus.canopen.config import AxisScale
 
     switches = {}
@@ -162,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     try:
-        sims = SimBus(drives, bus)
+        sims = SimBus(drives, bus, tick_s=args.tick_ms / 1000.0)
     except Exception as exc:  # python-can: no such interface or channel
         from motiond.cli import UserError
 

@@ -80,3 +80,23 @@ def test_sim_drives_rejects_a_bad_config_file(tmp_path, capsys):
     assert main(["sim", "drives", "--config", str(bad)]) == 1
     err = capsys.readouterr().err.strip()
     assert err == f"{bad}: canopen.axes.x.node_id: must be between 1 and 127, got 300"
+
+
+def test_sim_drives_runs_the_drives_clock_at_tick_ms(tmp_path, capsys, monkeypatch):
+    from fieldbus.canopen import sim_process
+
+    ticks: list[float] = []
+
+    class Counted(sim_process.SimBus):
+        def __init__(self, *args, **kw):
+            super().__init__(*args, **kw)
+            ticks.append(self.tick_s)
+
+    monkeypatch.setattr(sim_process, "SimBus", Counted)
+    path = tmp_path / "m.toml"
+    path.write_text('[machine]\ncycle_ms = 2.0\n[axes.x]\n[canopen]\ninterface = "virtual"\n'
+                    f'channel = "tick-{tmp_path.name}"\n[canopen.axes.x]\nnode_id = 1\n')
+    assert main(["sim", "drives", "--config", str(path), "--tick-ms", "20", "--seconds", "0.05"]) == 0
+    assert ticks == [0.02]
+    assert main(["sim", "drives", "--config", str(path), "--tick-ms", "0", "--seconds", "0.05"]) == 1
+    assert "--tick-ms 0: must be between 0.5 and 100" in capsys.readouterr().err

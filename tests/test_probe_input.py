@@ -127,13 +127,29 @@ def test_g38_4_stops_where_the_contact_is_lost(machine: Machine, tmp_path: Path)
     assert machine.motion.commanded[1] < -0.5, machine.motion.commanded
 
 
-def test_g38_2_with_the_probe_already_tripped_is_an_error_naming_the_line(machine: Machine,
-                                                                          tmp_path: Path) -> None:
-    result = run(machine, tmp_path, "G21 G90 G94\nG0 Z-2\nG38.2 Z-3 F300\nM2\n")
+@pytest.mark.parametrize("code, start, end, state", [("G38.2", -2.0, -3, "tripped (in contact)"),
+                                                     ("G38.4", 0.0, 1, "clear (out of contact)")])
+def test_g38_2_and_g38_4_with_the_probe_already_in_that_state_are_errors_naming_the_line(
+        machine: Machine, tmp_path: Path, code: str, start: float, end: float, state: str) -> None:
+    """As LinuxCNC ("Probe is already tripped when starting G38.2 or G38.3 move", "... already clear
+    when starting G38.4 or G38.5 move"): refused before anything moves."""
+    result = run(machine, tmp_path, f"G21 G90 G94\nG0 Z{start:g}\n{code} Z{end} F300\nM2\n")
     assert not result.ok
-    assert "p.ngc:4: G38.2: the probe (io.functions.probe" in result.error, result.error
-    assert "already tripped" in result.error, result.error
-    assert machine.motion.commanded[1] == pytest.approx(-2.0)  # nothing moved
+    assert f"p.ngc:4: {code}: the probe (io.functions.probe" in result.error, result.error
+    assert f"is already {state} at the start of the move; nothing moved" in result.error, result.error
+    assert machine.motion.commanded[1] == pytest.approx(start)  # nothing moved
+
+
+@pytest.mark.parametrize("code, start, end", [("G38.3", -2.0, -3), ("G38.5", 0.0, 1)])
+def test_g38_3_and_g38_5_with_the_probe_already_in_that_state_trip_where_the_machine_stands(
+        machine: Machine, tmp_path: Path, code: str, start: float, end: float) -> None:
+    """As LinuxCNC's motion (no error for these; the first cycle sees the sought state): nothing moves
+    and the probed point is where the machine stands."""
+    result = run(machine, tmp_path, f"G21 G90 G94\nG0 Z{start:g}\n{code} Z{end} F300\n#1 = #5063\n"
+                                    "#2 = #5070\nM2\n")
+    assert result.ok, result.error
+    assert (machine.interp.parameter(1), machine.interp.parameter(2)) == pytest.approx((start, 1.0))
+    assert machine.motion.commanded[1] == pytest.approx(start)  # nothing moved
 
 
 def test_g38_2_without_a_trip_is_the_usual_error(machine: Machine, tmp_path: Path) -> None:

@@ -178,7 +178,10 @@ def test_g38_2_stops_at_the_surface_and_stores_the_latched_height(machine: Any, 
     assert HEIGHT - 0.5 < lowest < HEIGHT  # stopped past the surface (a jerk-limited stop), not at Z-10
 
 
+@pytest.mark.parametrize("machine", [{}, {"probe": 2, "level_bit": 15}], indirect=True,
+                         ids=["touch probe 1", "touch probe 2"])
 def test_g38_4_latches_where_contact_is_lost(machine: Any, tmp_path: Path) -> None:
+    """The negative edge's latch: 0x60BB of touch probe 1, 0x60BD of touch probe 2."""
     result = run(machine, tmp_path, "G21 G90 G94\nG0 Z-4\nG38.4 Z0 F450\n#3 = [#5063]\nM2\n")
     assert result.ok, result.error
     assert abs(machine.interp.parameter(3) - HEIGHT) <= 1.0001e-4
