@@ -67,6 +67,11 @@ class SurfaceSpeed:
             raise PlannerError("feed per revolution (G95) under constant surface speed (G96) is not "
                                "supported: use G94, or G97 with an rpm", cmd.file, cmd.line)
 
+    @property
+    def active(self) -> bool:
+        """Whether setpoints without events need :meth:`emit` (G96 in force as they go out)."""
+        return self._mode is not None
+
     # ------------------------------------------------------------------ emission
     def emit(self, t: float, pos: tuple[float, ...], events: list[C.Canon]) -> list[C.Canon]:
         """The events of the setpoint at ``t`` with ``pos``: under G96 every speed in rpm."""

@@ -284,3 +284,30 @@ def test_arc_fit_refits_the_centre_where_rounding_spoils_three_points(radius: fl
             assert abs(math.dist(pts[-1][:2], c) - r) <= 1e-9  # the arc still ends on both end points
             assert max(abs(math.dist(p[:2], c) - r) for p in pts) <= refit.dev <= 1e-4
     assert found > plain  # the refit finds arcs the three points miss
+
+
+def test_each_cycle_reads_a_piece_as_its_position_and_line() -> None:
+    """The cycle loop reads the running piece once per cycle (``sample``: position and programmed move
+    together, one lookup of the part): the same values as ``pos`` and ``cmd_at`` on every kind of
+    piece CAM code becomes (smoothed chains over merged lines, merged lines, merged arcs, blends),
+    forwards, backwards and beyond both ends."""
+    from planner import Planner
+    from planner.segments import Seg
+
+    chords, _ = circle_chords(10.0, 0.05, 3.0, 3000, 0.01)
+    collinear = [StraightFeed(Pose(0.5 * k, 0, 0)) for k in range(1, 20)]  # on to (10, 0), the arc's start
+    prog = numbered([*chords[:2], *collinear, *chords[2:-1], *spiral(300, 0.2, 2000, 4)])
+    p = Planner(DEMO_MACHINE, auto_release=True)
+    p.feed_many(prog)
+    p.flush()
+    kinds = set()
+    for item in p._q[p._h:]:
+        if not isinstance(item, Seg):
+            continue
+        piece = item.piece
+        kinds.add(type(piece).__name__)
+        grid = [piece.length * k / 97 for k in range(-3, 101)]
+        for s in [*grid, *reversed(grid)]:
+            pos, cmd = piece.sample(s)
+            assert (pos, cmd) == (piece.pos(s), piece.cmd_at(s))
+    assert {"Chain", "MergedLine", "MergedArc"} <= kinds, kinds
