@@ -9,8 +9,9 @@ With no section named, all three run.
     feed/acceleration lower bound; for the square the deviation against v^2/a), planning CPU time
     over motion time, and the peak memory the planning took. Targets are printed beside them. Beside
     the issue's table: tiny moves under G61.1, where every move must stop, against
-    :func:`exact_stop_bound`, and chords of circles in G64 P0.01, G64 without P and G61 against one
-    G3 in the same mode.
+    :func:`exact_stop_bound`; chords of circles in G64 P0.01, G64 without P and G61 against one
+    G3 in the same mode; and chords in G61 that no arc holds within its 2e-4 mm, where the exact path
+    stops at every vertex (each turns by a corner), against :func:`exact_stop_bound`.
 ``--throughput``: a 0.05 mm-segment spiral of 10k, 50k and 150k moves (the same radii, more turns:
     the same geometry per move) and the surfacing raster: planning speed as a multiple of real time
     (CPU of one core), CPU per move and peak memory of each run (target: at least 50x, cost per move
@@ -458,13 +459,23 @@ def table(check: bool) -> None:
     g61 = SetMotionControlMode(MotionControlMode.EXACT_PATH)
     arcs = ((20.0, 20000, 0.001, G64P, "P0.01"), (10.0, 6000, 0.01, G64P, "P0.01"),
             (10.0, 600, 0.05, G64P, "P0.01"), (20.0, 300, 0.1, G64P, "P0.01"),
-            (20.0, 2000, 0.01, G64, "G64"), (20.0, 600, 0.05, G64, "G64"),
+            (20.0, 2000, 0.01, G64, "G64"), (20.0, 600, 0.05, G64, "G64"), (10.0, 300, 0.1, G64, "G64"),
             (20.0, 2000, 0.01, g61, "G61"), (10.0, 600, 0.05, g61, "G61"))
     for radius, pieces, step, mode, name in arcs:
         ref = _measure(lambda r=radius, n=pieces, h=step, m=mode: arc_chords(r, n, h, 6000, True, m), check)
         _row(f"R{radius:g} arc as {pieces:,} x {step:g} mm chords, F6000, {name}",
              _measure(lambda r=radius, n=pieces, h=step, m=mode: arc_chords(r, n, h, 6000, False, m), check),
              ref["cycles"] * T, f"one G3 in {name}", "<= 1.03")
+    # G61 on chords no arc holds within 2e-4 mm (0.2 mm on R 20 mm: sagitta 2.5e-4 mm): each vertex
+    # turns by h/R = 0.01, a corner, and an exact path stops there (as LinuxCNC's G61 does: its kink
+    # rule passes a turn at speed only where v/T times the turn fits in a tenth of the acceleration);
+    # the reference is then a stop at every vertex, not the G3. The bound uses the full jerk, the
+    # planner 90 % of it: a move this short is jerk-bound, its time ~ J^(-1/3), 0.9^(-1/3) = 1.036
+    for radius, pieces, step in ((20.0, 150, 0.2), (10.0, 150, 0.2)):
+        bound = exact_stop_bound(list(arc_chords(radius, pieces, step, 6000, False, g61)))
+        _row(f"R{radius:g} arc as {pieces:,} x {step:g} mm chords, F6000, G61",
+             _measure(lambda r=radius, n=pieces, h=step: arc_chords(r, n, h, 6000, False, g61), check),
+             bound, "exact-stop bound", "<= 1.04 (a stop at each, 0.9 J)")
     feeds = (2000, 2500, 3000, 4000)
     slower, worst = 0, 0.0
     for seed in range(8):

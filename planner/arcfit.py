@@ -42,10 +42,12 @@ class ArcFit:
 
 
 def fit_arc(start: Sequence[float], points: Sequence[Sequence[float]], end: Sequence[float], tol: float,
-            planes: Sequence[tuple[int, int]], refine: bool = False) -> ArcFit | None:
+            planes: Sequence[tuple[int, int]], refine: bool = False, point_tol: float | None = None,
+            ) -> ArcFit | None:
     """The arc through ``start``, the middle one of ``points`` (the interior programmed points, in
     order) and ``end``, in whichever of ``planes`` the three points span most, if it stays within
-    ``tol`` of the polyline ``start, *points, end`` (else None).
+    ``tol`` of the polyline ``start, *points, end`` and within ``point_tol`` (default ``tol``) of each
+    programmed point (else None).
 
     The bound: a programmed point at angle ``f`` (as a share of the sweep) lies ``d`` from the arc's
     point at that angle (the radial difference and the other axes' differences). Between two
@@ -76,22 +78,24 @@ def fit_arc(start: Sequence[float], points: Sequence[Sequence[float]], end: Sequ
     ux = (by * a2 - ay * b2) / (2.0 * cross)
     uy = (ax * b2 - bx * a2) / (2.0 * cross)
     sense = 1.0 if cross > 0.0 else -1.0
-    give_up = REFINE_WITHIN * tol if refine else tol
-    fit, worst = _about(start, points, end, tol, i0, i1, ux, uy, sense, give_up)
-    if fit is None and refine and tol < worst <= REFINE_WITHIN * tol:
+    point_tol = tol if point_tol is None else min(point_tol, tol)
+    give_up = REFINE_WITHIN if refine else 1.0
+    fit, miss = _about(start, points, end, tol, point_tol, i0, i1, ux, uy, sense, give_up)
+    if fit is None and refine and 1.0 < miss <= REFINE_WITHIN:
         # rounding noise on the middle point moved the circle: the centre that fits all points best
         ux, uy = _refined_centre(start, points, end, i0, i1, ux, uy)
-        fit, worst = _about(start, points, end, tol, i0, i1, ux, uy, sense, tol)
+        fit, miss = _about(start, points, end, tol, point_tol, i0, i1, ux, uy, sense, 1.0)
     return fit
 
 
 def _about(start: Sequence[float], points: Sequence[Sequence[float]], end: Sequence[float], tol: float,
-           i0: int, i1: int, ux: float, uy: float, sense: float, give_up: float,
+           point_tol: float, i0: int, i1: int, ux: float, uy: float, sense: float, give_up: float,
            ) -> tuple[ArcFit | None, float]:
     """The arc about ``start + (ux, uy)`` in the plane ``i0 i1`` turning in ``sense`` from ``start`` to
-    ``end``, checked against the points (:func:`fit_arc`'s bound), and the largest deviation seen
-    (infinite where the arc is refused for another reason: radius, sweep, a move going back); the
-    check stops at a deviation above ``give_up``."""
+    ``end``, checked against the points (:func:`fit_arc`'s bound within ``tol``, each point within
+    ``point_tol``), and by how much it misses at most, as a multiple of the tolerance (infinite where
+    the arc is refused for another reason: radius, sweep, a move going back); the check stops at a
+    miss above ``give_up``."""
     r = math.hypot(ux, uy)
     if not ARC_MIN_RADIUS <= r <= ARC_MAX_RADIUS:
         return None, math.inf
@@ -109,8 +113,7 @@ def _about(start: Sequence[float], points: Sequence[Sequence[float]], end: Seque
     curv = r * (sweep_abs / length) ** 2  # |q''| along s
     sag = 0.125 * curv * length * length  # h^2/8 |q''| = sag * (df)^2
     starts = [0.0]
-    prev_f = prev_d = dev = 0.0
-    failed = False
+    prev_f = prev_d = dev = miss = 0.0
     for p in points:
         dx, dy = p[i0] - c0, p[i1] - c1
         phi = (sense * (math.atan2(dy, dx) - th_s)) % two_pi
@@ -129,16 +132,19 @@ def _about(start: Sequence[float], points: Sequence[Sequence[float]], end: Seque
         worst = max(d, prev_d) + sag * df * df
         if worst > dev:
             dev = worst
-            if dev > give_up:
-                return None, dev
-        failed = failed or worst > tol
+        worst = max(worst / tol, d / point_tol)
+        if worst > miss:
+            miss = worst
+            if miss > give_up:
+                return None, miss
         starts.append(f * length)
         prev_f, prev_d = f, d
     df = 1.0 - prev_f
     dev = max(dev, prev_d + sag * df * df)
-    if failed or dev > tol:
-        return None, dev
-    return ArcFit(i0, i1, c0, c1, sense * sweep_abs, length, starts, dev), dev
+    miss = max(miss, dev / tol)
+    if miss > 1.0:
+        return None, miss
+    return ArcFit(i0, i1, c0, c1, sense * sweep_abs, length, starts, dev), miss
 
 
 def _refined_centre(start: Sequence[float], points: Sequence[Sequence[float]], end: Sequence[float], i0: int,

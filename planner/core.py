@@ -73,7 +73,7 @@ from planner.segments import (
     _Active,
     _finite,
 )
-from planner.setpoints import Setpoint
+from planner.setpoints import Setpoint, new_setpoint
 from planner.smoothing import SmoothingMixin
 from planner.spindle_sync import SpindleSyncMixin
 
@@ -682,12 +682,30 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
             self._h = 0
         return item
 
+    @staticmethod
+    def _sample(act: _Active, t: float) -> tuple[list[float], C.Canon]:
+        """Where the running profile puts the axes at ``t``, and the programmed move there."""
+        p = act.traj.at_time(t - act.t0)[0][0] + act.s_off
+        if p > act.s_end:
+            p = act.s_end
+        pos, src = act.seg.piece.sample(p)
+        return pos, (act.seg.cmd if src is None else src)
+
     def next_setpoint(self) -> Setpoint | None:
         """The setpoint for the next cycle, or None when idle at rest with nothing to say."""
         self._k += 1
         t = self._k * self.T
         if self._run is not None and len(self._q) - self._h <= 1:
             self._emit_run()  # the queue runs short: the lines merged so far go in now
+        act = self._active
+        if act is not None and not act.first and not self._immediate and t < act.t_end - 1e-12:
+            # the common cycle: inside a running profile, nothing to emit (the loop below, shortened)
+            pos, src = self._sample(act, t)
+            self._last_pos = pos
+            self._rest_emitted = False
+            pos = tuple(pos)
+            events = self._css.emit(t, pos, []) if self._css.active else ()
+            return new_setpoint(t, pos, src.file, src.line, tuple(events))
         events: list[C.Canon] = []
         if self._immediate:
             events += self._immediate
@@ -699,13 +717,7 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
             act = self._active
             if act is not None:
                 if t < act.t_end - 1e-12:
-                    p = act.traj.at_time(t - act.t0)[0][0] + act.s_off
-                    if p > act.s_end:
-                        p = act.s_end
-                    pos = act.seg.piece.pos(p)
-                    src = act.seg.piece.cmd_at(p)
-                    if src is None:
-                        src = act.seg.cmd
+                    pos, src = self._sample(act, t)
                     moving = True
                     if act.first:
                         act.first = False
@@ -760,10 +772,12 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
             raise PlannerError(f"planner loop passed {LOOP_CAP} items in one cycle at t={t:.6f} s")
         self._last_pos = pos
         self._rest_emitted = not moving
-        events = self._css.emit(t, tuple(pos), events)
+        pos = tuple(pos)
+        if events or self._css.active:
+            events = self._css.emit(t, pos, events)
         if src is None:
-            return Setpoint(t, tuple(pos), events=tuple(events))
-        return Setpoint(t, tuple(pos), src.file, src.line, tuple(events))
+            return new_setpoint(t, pos, "", 0, tuple(events))
+        return new_setpoint(t, pos, src.file, src.line, tuple(events))
 
 
 def plan_all(commands: Iterable[C.Canon], machine: MachineLimits = DEMO_MACHINE,
@@ -781,8 +795,10 @@ def plan_all(commands: Iterable[C.Canon], machine: MachineLimits = DEMO_MACHINE,
     exhausted = False
     cap = max_cycles if max_cycles is not None else 10**12
     for _ in range(cap):
-        while not exhausted and (planner.queue_length < 2 or (
-                planner.queue_length < window and planner.queued_moves < window_moves)):
+        while not exhausted:
+            queued = len(planner._q) - planner._h  # queue_length, read once per command
+            if queued >= 2 and (queued >= window or planner.queued_moves >= window_moves):
+                break
             try:
                 cmd = next(it)
             except StopIteration:

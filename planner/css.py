@@ -112,6 +112,11 @@ class SurfaceSpeed:
                     cuts.add(u)
         return sorted(cuts)
 
+    @property
+    def active(self) -> bool:
+        """Whether setpoints without events need :meth:`emit` (G96 in force as they go out)."""
+        return self._mode is not None
+
     # ------------------------------------------------------------------ emission
     def emit(self, t: float, pos: tuple[float, ...], events: list[C.Canon]) -> list[C.Canon]:
         """The events of the setpoint at ``t`` with ``pos``: under G96 every speed in rpm."""

@@ -62,6 +62,11 @@ class Piece:
         """The programmed move at ``s`` when the piece carries several (else None: the segment's)."""
         return None
 
+    def sample(self, s: float) -> tuple[list[float], Any]:
+        """``(pos(s), cmd_at(s))``, what each cycle reads (one lookup of the part where pieces have
+        parts)."""
+        return self.pos(s), self.cmd_at(s)
+
 
 def forward_index(starts: list[float], i: int, s: float) -> int:
     """The index of the part of a piece that holds ``s`` (``starts``: where each part begins), ``i``
@@ -521,11 +526,37 @@ class Chain(Piece):
 
     def cmd_at(self, s: float) -> Any:
         s = min(max(s, 0.0), self.length)
-        i = self._index(s)
+        return self._cmd(self._index(s), s)
+
+    def _cmd(self, i: int, s: float) -> Any:
         sub = self.subs[i]
         if sub is not None:  # a span of a merged line: the span's s maps to the line's in proportion
             return sub.cmd_at((s - self.starts[i]) * sub.length / self.spans[i].length)
         return self.cmds[i]
+
+    def sample(self, s: float) -> tuple[list[float], Any]:
+        if s >= self.length:
+            return list(self.end), self._cmd(self._index(self.length), self.length)
+        if s <= 0.0:
+            return list(self.start), self._cmd(self._index(0.0), 0.0)
+        # as pos() and cmd_at(), written out: this runs every cycle
+        starts, i = self.starts, self._i
+        if not (starts[i] <= s and (i + 1 == len(starts) or s < starts[i + 1])):
+            i = self._i = max(bisect_right(starts, s) - 1, 0)
+        span, off = self.spans[i], s - starts[i]
+        length = span.length
+        if off >= length:
+            pos = list(span.end)
+        elif off <= 0.0:
+            pos = list(span.start)
+        else:
+            u = off / length
+            pos = [c0 + u * (c1 + u * (c2 + u * (c3 + u * (c4 + u * c5))))
+                   for c0, c1, c2, c3, c4, c5 in span._c]
+        sub = self.subs[i]
+        if sub is None:
+            return pos, self.cmds[i]
+        return pos, sub.cmd_at(off * sub.length / length)
 
 
 def vertex_tangent_curvature4(w0: Vec, l0: float, w1: Vec, l1: float, w2: Vec, l2: float,

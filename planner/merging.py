@@ -35,6 +35,7 @@ from planner.segments import (
     MERGE_EXACT_ARC,
     MERGE_MAX_PIECES,
     MERGE_MAX_TIME,
+    MERGE_NOP_ARC,
     MERGE_SHARE,
     Seg,
 )
@@ -74,10 +75,21 @@ def _line_distance(p: Sequence[float], a: Sequence[float], u: Sequence[float]) -
     return math.sqrt(max(norm * norm - along * along, 0.0))
 
 
-def _arc_tol(run: _Run) -> float:
-    """How far the programmed points may lie from a merged arc: the run's tolerance, and in G64 without
-    P and G61 at least MERGE_EXACT_ARC (4-decimal rounding plus a chord's own sagitta)."""
-    return run.tol if run.tol_mode > 0.0 else max(run.tol, MERGE_EXACT_ARC)
+def _arc_fit(run: _Run, planes: list[tuple[int, int]], end: tuple[float, ...]) -> ArcFit | None:
+    """The arc the run's points to ``end`` lie on (``planner.arcfit``), within the run's tolerance.
+
+    In G64 P: the run's tolerance. In G61: MERGE_EXACT_ARC (4-decimal rounding plus a chord's own
+    sagitta), the centre refitted where the rounding spoils the three-point circle. In G64 without
+    P: each programmed point within MERGE_EXACT_ARC of the arc, as in G61, and the chords within
+    MERGE_NOP_ARC of it (their sagitta ``h^2/8R``: 0.1 mm chords on R 10 mm bulge 1.25e-4 mm from
+    the arc, which with the rounding left no margin in 2e-4 and split the arc where a point's
+    rounding was near its largest; the corner blends of the chords, which that mode otherwise
+    makes, cut each vertex by 0.08 h^2/R, of the same order)."""
+    if run.tol_mode > 0.0:
+        return fit_arc(run.start, run.points, end, run.tol, planes)
+    tol = max(run.tol, MERGE_EXACT_ARC)
+    return fit_arc(run.start, run.points, end, MERGE_NOP_ARC if run.tol_mode == 0.0 else tol, planes,
+                   refine=True, point_tol=tol)
 
 
 class MergingMixin:
@@ -180,7 +192,7 @@ class MergingMixin:
         n = len(run.cmds)
         run.points.append(run.end)
         if run.arc is None or n + 1 - run.arc_n >= max(1, n // 2):
-            fit = fit_arc(run.start, run.points, end, _arc_tol(run), self._arc_planes, run.tol_mode <= 0.0)
+            fit = _arc_fit(run, self._arc_planes, end)
             if fit is None:
                 run.points.pop()
                 return False
@@ -230,7 +242,7 @@ class MergingMixin:
         if run.arc is not None:
             fit, k = run.arc, n
             if run.arc_n < n:
-                full = fit_arc(s, run.points, run.end, _arc_tol(run), self._arc_planes, run.tol_mode <= 0.0)
+                full = _arc_fit(run, self._arc_planes, run.end)
                 if full is not None:
                     fit = full
                 else:

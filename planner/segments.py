@@ -42,6 +42,7 @@ SMOOTH_MERGE_ACC = 0.3  # path acceleration may fall further: it only matters wh
 MERGE_SHARE = 0.25  # lines within this share of G64 P (without Q) of one line are merged into it
 MERGE_EXACT = 1e-4  # ... within this (mm) in G64 without P and in G61: coordinate rounding only
 MERGE_EXACT_ARC = 2e-4  # ... and of one arc (rounding 7.1e-5 plus the chords' own sagitta; checker: 1e-3)
+MERGE_NOP_ARC = 1e-3  # G64 without P: the chords of an arc within this of it (its points within the above)
 MERGE_MAX_PIECES = 20_000  # programmed lines in one merged line at most
 MERGE_MAX_TIME = 2.0  # seconds of motion at its feed in one merged line at most
 ARC_TRY = 4  # an arc is tried once this many programmed lines in a row lie on one line (dense points)

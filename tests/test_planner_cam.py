@@ -176,13 +176,18 @@ G61 = SetMotionControlMode(MotionControlMode.EXACT_PATH)
 
 
 @pytest.mark.parametrize(("mode", "radius", "step"),
-                         [(g64(), 20.0, 0.01), (g64(), 20.0, 0.05), (G61, 20.0, 0.01), (G61, 10.0, 0.05)])
+                         [(g64(), 20.0, 0.01), (g64(), 20.0, 0.05), (g64(), 10.0, 0.1), (g64(), 5.0, 0.1),
+                          (G61, 20.0, 0.01), (G61, 10.0, 0.05)])
 def test_chords_of_a_circle_without_p_take_the_time_of_the_arc(mode, radius: float, step: float) -> None:
     """In G64 without P and in G61 the merge tolerance is about the rounding of 4 decimals: the
     rounding noise of the fit's middle point alone spoils the three-point circle, so the centre is
     refitted to all points, and an arc may hold the rounding plus the chords' own sagitta (2e-4 mm);
     the chords are then planned as the arc (they took 2.9-3.5 times the G3's time in G64 without P,
-    10-17 times in G61); ``run`` checks that the path in G61 stays within the exact path's 1 um."""
+    10-17 times in G61); ``run`` checks that the path in G61 stays within the exact path's 1 um. In
+    G64 without P the points must lie within the same 2e-4 mm and the chords within 1e-3 mm of the
+    arc: 0.1 mm chords on R 10 mm (sagitta 1.25e-4 mm) split into arcs where a point's rounding was
+    near its largest, and a short first arc made the corner into it slow (1.12-1.16 times the G3);
+    on R 5 mm (sagitta 2.5e-4 mm) none was merged (3 times the G3)."""
     chords, arc = circle_chords(radius, step, 2.0, 6000, 0.0)
     chords[0] = arc[0] = mode
     sps, _ = run(chords)
@@ -284,3 +289,62 @@ def test_arc_fit_refits_the_centre_where_rounding_spoils_three_points(radius: fl
             assert abs(math.dist(pts[-1][:2], c) - r) <= 1e-9  # the arc still ends on both end points
             assert max(abs(math.dist(p[:2], c) - r) for p in pts) <= refit.dev <= 1e-4
     assert found > plain  # the refit finds arcs the three points miss
+
+
+def test_each_cycle_reads_a_piece_as_its_position_and_line() -> None:
+    """The cycle loop reads the running piece once per cycle (``sample``: position and programmed move
+    together, one lookup of the part): the same values as ``pos`` and ``cmd_at`` on every kind of
+    piece CAM code becomes (smoothed chains over merged lines, merged lines, merged arcs, blends),
+    forwards, backwards and beyond both ends."""
+    from planner import Planner
+    from planner.segments import Seg
+
+    chords, _ = circle_chords(10.0, 0.05, 3.0, 3000, 0.01)
+    collinear = [StraightFeed(Pose(0.5 * k, 0, 0)) for k in range(1, 20)]  # on to (10, 0), the arc's start
+    prog = numbered([*chords[:2], *collinear, *chords[2:-1], *spiral(300, 0.2, 2000, 4)])
+    p = Planner(DEMO_MACHINE, auto_release=True)
+    p.feed_many(prog)
+    p.flush()
+    kinds = set()
+    for item in p._q[p._h:]:
+        if not isinstance(item, Seg):
+            continue
+        piece = item.piece
+        kinds.add(type(piece).__name__)
+        grid = [piece.length * k / 97 for k in range(-3, 101)]
+        for s in [*grid, *reversed(grid)]:
+            pos, cmd = piece.sample(s)
+            assert (pos, cmd) == (piece.pos(s), piece.cmd_at(s))
+    assert {"Chain", "MergedLine", "MergedArc"} <= kinds, kinds
+
+
+def test_arc_fit_holds_each_point_within_its_own_tolerance() -> None:
+    """G64 without P allows the chords' sagitta (1e-3 mm) but not the points: a point 5e-4 mm off the
+    circle fits within the chords' tolerance alone, and is refused with the points' 2e-4 mm."""
+    from planner.arcfit import fit_arc
+
+    pts = [(10.0 * math.cos(k * 0.005), 10.0 * math.sin(k * 0.005), 0.0) for k in range(41)]
+    pts[13] = (pts[13][0] * (1 + 5e-5), pts[13][1] * (1 + 5e-5), 0.0)  # 5e-4 mm outwards
+    planes = [(0, 1), (0, 2), (1, 2)]
+    loose = fit_arc(pts[0], pts[1:-1], pts[-1], 1e-3, planes, refine=True)
+    assert loose is not None and 5e-4 <= loose.dev <= 1e-3
+    assert fit_arc(pts[0], pts[1:-1], pts[-1], 1e-3, planes, refine=True, point_tol=2e-4) is None
+
+
+def test_g61_stops_at_every_vertex_no_arc_holds() -> None:
+    """G61 keeps the exact path: chords no arc holds within 2e-4 mm (0.2 mm on R 20 mm, sagitta
+    2.5e-4 mm) turn by a corner at every vertex, and the motion stops on each (a setpoint on every
+    programmed point, as LinuxCNC's G61 stops where its kink rule does not pass the turn); dense
+    chords of the same circle (0.05 mm) are merged into the arc and do not stop."""
+    sparse, _ = circle_chords(20.0, 0.2, 1.0, 6000, 0.0)
+    dense, _ = circle_chords(20.0, 0.05, 1.0, 6000, 0.0)
+    for prog, stops in ((sparse, True), (dense, False)):
+        prog[0] = G61
+        sps, _ = run(prog)
+        pts = np.array([sp.positions for sp in sps])
+        vertices = [(c.end.x, c.end.y, c.end.z) for c in prog[3:] if isinstance(c, StraightFeed)]
+        met = sum(np.min(np.linalg.norm(pts - np.array(v), axis=1)) <= 1e-9 for v in vertices)
+        if stops:
+            assert met == len(vertices)
+        else:
+            assert met <= 2  # the arc's end (and at most one other by chance)
