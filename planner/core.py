@@ -39,6 +39,7 @@ from ruckig import InputParameter, Ruckig
 
 from gcode_canon import commands as C
 from planner.blending import BlendingMixin
+from planner.controls import ControlsMixin
 from planner.css import SurfaceSpeed
 from planner.geometry import (
     Arc,
@@ -58,7 +59,6 @@ from planner.segments import (
     JERK_CONTINUOUS,
     JERK_CROSS,
     LOOP_CAP,
-    MAX_OVERRIDE,
     MIN_ARC_RADIUS,
     MIN_LENGTH,
     OVR_ADAPTIVE,
@@ -80,7 +80,8 @@ from planner.spindle_sync import SpindleSyncMixin
 log = logging.getLogger(__name__)
 
 
-class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, ProfilesMixin, SpindleSyncMixin):
+class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, ProfilesMixin, SpindleSyncMixin,
+              ControlsMixin):
     """Canonical commands in (:meth:`feed`), one :class:`Setpoint` per cycle out (:meth:`next_setpoint`).
 
     ``start`` is the position at rest when planning begins (machine zero by default), one value per
@@ -552,99 +553,6 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
             nxt, nxt_vb = item, item.vb
 
     # --- profiles -----------------------------------------------------------------------------------
-
-    # --- online control -----------------------------------------------------------------------------
-
-    def set_feed_override(self, factor: float) -> None:
-        """Feed override, 0 to 2 (0 stops on the path as a hold does); takes effect smoothly.
-
-        It scales the feed of G1/G2/G3 moves (rapids keep their speed, as in LinuxCNC, where they
-        follow a separate rapid override this planner does not have; 0 stops them too). Moves queued
-        while the override is switched off (M49, M50 P0) run at their programmed feed and do not
-        stop at 0; the switch is the one in force when the move was fed, as LinuxCNC queues it.
-        """
-        if not math.isfinite(factor):
-            raise PlannerError(f"feed override must be a number, got {factor!r}")
-        factor = min(max(factor, 0.0), MAX_OVERRIDE)
-        was_stopping = self._stopping
-        self._override = factor
-        if factor > 0.0:
-            self._recompute_all()
-        if self._stopping != was_stopping or factor > 0.0:
-            self._replan()
-
-    def set_adaptive_feed(self, factor: float) -> None:
-        """Adaptive feed input, 0 to 1 (LinuxCNC's ``motion.adaptive-feed``): scales every move, rapids
-        included, queued while M52 P1 is in force, on top of the feed override; 0 stops them on the
-        path. Each change re-plans the queue (O(queue length)): feed it at a modest rate."""
-        if not math.isfinite(factor):
-            raise PlannerError(f"adaptive feed must be a number, got {factor!r}")
-        factor = min(max(factor, 0.0), 1.0)
-        if factor == self._adaptive:
-            return
-        was_stopping = self._stopping
-        self._adaptive = factor
-        if factor > 0.0:
-            self._recompute_all()
-        if self._stopping != was_stopping or factor > 0.0:
-            self._replan()
-
-    def set_feed_stop(self, on: bool) -> None:
-        """Feed stop input (LinuxCNC's ``motion.feed-hold``): while on, moves queued with M53 P1 in
-        force (the default) stop on the path as in a hold; M53 P0 moves ignore it. :meth:`hold` is the
-        operator's pause and is not switched by M53."""
-        on = bool(on)
-        if on == self._feed_stop:
-            return
-        was_stopping = self._stopping
-        self._feed_stop = on
-        if self._stopping != was_stopping:
-            self._replan()
-
-    def hold(self) -> None:
-        """Feed hold: a jerk-limited stop on the path; :meth:`resume` continues from there."""
-        if not self._hold:
-            self._hold = True
-            self._replan()
-
-    def resume(self) -> None:
-        if self._hold:
-            self._hold = False
-            if not self._stopping:
-                self._replan()
-
-    def abort(self) -> None:
-        """Jerk-limited stop on the path, then the queue is dropped."""
-        self._abort = True
-        self._replan()
-        self._finish_abort_if_at_rest()
-
-    def quick_stop(self) -> None:
-        """Stop at each axis's quick-stop deceleration, then drop the queue as :meth:`abort` does."""
-        self._abort = True
-        self._quick = True
-        self._replan()
-        self._finish_abort_if_at_rest()
-
-    def release(self) -> None:
-        """Continue after the sync point in :attr:`waiting_for` (input read, tool changed, M0 ...)."""
-        self.waiting_for = None
-        self._free_t = max(self._free_t, self._k * self.T)
-
-    def _finish_abort_if_at_rest(self) -> None:
-        if self._active is None and self._abort:
-            self._q.clear()
-            self._h = 0
-            self._pending = []
-            self._abort = self._quick = self._hold = False
-            self.waiting_for = None
-            self._end = list(self._rest)
-            self._v_end = 0.0
-            self._last_chord = None  # the next line does not continue the dropped ones
-            self._run = None
-            self._started = self.stats["segments"]
-            for i, p in enumerate(self._pose_index):
-                self._pose[p] = self._rest[i]
 
     # --- the cycle ----------------------------------------------------------------------------------
 
