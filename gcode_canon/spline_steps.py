@@ -155,9 +155,6 @@ class SplineMixin:
 
     def _spline_out(self, cps: list[tuple[float, float, float]], order: int, target: list[float]) -> None:
         """The curve's arcs and lines from the current point; the position ends at ``target``."""
-        if self.frames.rotation != 0.0 and self.plane is not Plane.XY:  # type: ignore[attr-defined]
-            raise GCodeError("Splines out of the XY plane with a rotated coordinate system are not "
-                             "supported")
         first, second, _ = self.plane._value_  # type: ignore[attr-defined]
         self._after_comp = False
         self.splines_done += 1

@@ -33,6 +33,7 @@ from gcode_canon.commands import (
     StraightFeed,
     StraightTraverse,
     ToolChange,
+    rotate_about_z,
 )
 from gcode_canon.errors import GCodeError
 from gcode_canon.interpreter import Interpreter
@@ -306,7 +307,8 @@ def run_canon(work: Path, case: Case) -> Result:
                 result.moves.append(Move("tap", tuple(cmd.end[:3])))
             elif isinstance(cmd, ArcFeed):
                 first, second, _ = cmd.plane.value
-                result.moves.append(Move("arc", tuple(cmd.end[:6]), (cmd.center[first], cmd.center[second]),
+                centre = _centre_at_end(cmd)
+                result.moves.append(Move("arc", tuple(cmd.end[:6]), (centre[first], centre[second]),
                                          int(cmd.turns)))
             if len(result.moves) > MAX_MOVES:
                 result.error = "canon: too many moves"
@@ -315,6 +317,16 @@ def run_canon(work: Path, case: Case) -> Result:
         result.error = str(exc)
     result.prints = machine.prints
     return result
+
+
+def _centre_at_end(cmd: ArcFeed) -> Pose:
+    """The arc's centre moved along its axis to the end's height, as rs274 prints it (canon's is at
+    the start's): the same point when the arc is no helix or its plane is not turned (``rotation``)."""
+    normal = [0.0] * 9
+    normal[cmd.plane.value[2]] = 1.0
+    n = rotate_about_z(Pose(*normal), cmd.rotation)
+    along = sum((e - c) * k for e, c, k in zip(cmd.end, cmd.center, n, strict=True))
+    return Pose(*(c + along * k for c, k in zip(cmd.center, n, strict=True)))
 
 
 def _ini_flag(work: Path, case: Case, key: str) -> bool:
