@@ -23,6 +23,7 @@ end point unset there).
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 from gcode_canon import splines
@@ -118,7 +119,7 @@ class SplineMixin:
         if not has_a and weight is not None and weight > 0 and cps:
             raise GCodeError(f"Can specify P without {a.upper()} and {b.upper()} only for the first "
                              "control point")
-        if (weight is None or weight <= 0) and (cps or has_a):
+        if (weight is None or weight <= 0) and cps:
             raise GCodeError("Must specify positive weight P for every Control Point")
         if self.comp is not None:  # type: ignore[attr-defined]
             raise GCodeError("Cannot convert spline with cutter radius compensation")
@@ -133,8 +134,9 @@ class SplineMixin:
             self._nurbs_order = order
         if has_a:
             target = self._target(block)  # type: ignore[attr-defined]
-            assert weight is not None
-            cps.append((target[first], target[second], weight))
+            # LinuxCNC checks the weight of every point but the first line's: that one takes its P as
+            # it is, and without P the word's unset value, -1
+            cps.append((target[first], target[second], -1.0 if weight is None else weight))
 
     def _nurbs_end(self, ml: ModalLine) -> None:
         """G5.3: the NURBS block collected since G5.2 becomes moves."""
@@ -159,7 +161,11 @@ class SplineMixin:
         self._after_comp = False
         self.splines_done += 1
         f, n = self.file, self.line  # type: ignore[attr-defined]
-        for mv in splines.nurbs_moves(cps, order):
+        moves = splines.nurbs_moves(cps, order)
+        if not all(math.isfinite(v) for mv in moves for v in (*mv.end, *(mv.centre or ()))):
+            raise GCodeError("NURBS goes through infinity: a control point's weight P is not positive (a "
+                             "first G5.2 point without P has the weight -1, as in LinuxCNC)")
+        for mv in moves:
             start = self.prog  # type: ignore[attr-defined]
             end = list(start)
             end[first], end[second] = mv.end

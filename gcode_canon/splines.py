@@ -64,8 +64,8 @@ def point(u: float, k: int, cps: list[tuple[float, float, float]], kv: list[floa
         den += b * cp[2]
     x = y = 0.0
     for b, cp in zip(basis, cps, strict=True):
-        x += cp[0] * b * cp[2] / den
-        y += cp[1] * b * cp[2] / den
+        x += _div(cp[0] * b * cp[2], den)  # den 0 (weights not all positive): inf or NaN, as in C
+        y += _div(cp[1] * b * cp[2], den)
     return x, y
 
 
