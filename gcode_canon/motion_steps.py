@@ -147,7 +147,7 @@ class MotionMixin:
                 self._lathe_cycle(motion, block)
             return
         if motion in SPLINE_MOTIONS:
-            if has_axes or explicit == 52:
+            if has_axes or explicit in (52, 62):
                 self._spline(motion, block, previous)
             elif explicit is not None:
                 raise GCodeError(f"All axes missing with motion code {gname(motion)}")
