@@ -202,8 +202,9 @@ def run_rs274(binary: Path, work: Path, case: Case) -> Result:
 
 
 class OracleMachine:
-    """Answers as rs274's stand-alone canon does: inputs read their default (0); a probe trips at its
-    target and the machine then stands 0.254 mm back towards the start; after a tool change the
+    """Answers as rs274's stand-alone canon does: inputs read their default (0); a probe ends at its
+    target (tripped for G38.2/G38.4, not for G38.3/G38.5) and the machine then stands 0.254 mm back
+    towards the start; after a tool change the
     position read back is its program position (the last move's, shifted by G5x/G92 changes since,
     not by rotation or tool offset changes) in the offsets now in force. A real machine reports
     where it is, which canon then reads in the new offsets."""
@@ -234,7 +235,9 @@ class OracleMachine:
             back = 0.254  # mm: 0.01 in is the same distance
             self.after_probe = Pose(*(e + back * v / length for e, v in zip(end[:3], d, strict=True)),
                                     *end[3:])
-        return cmd.end, True
+        # its GET_EXTERNAL_PROBE_TRIPPED_VALUE is 0 (#5070 reads 0), and it never refuses a probe that
+        # did not trip: G38.3/G38.5 untripped, G38.2/G38.4 tripped (canon refuses them untripped)
+        return cmd.end, cmd.mode.error_on_miss
 
     def current_position(self) -> Pose | None:
         if self.after_probe is not None:
@@ -265,7 +268,13 @@ class OracleMachine:
         if cmd.MOVES:
             assert self.interp is not None
             f = self.interp.frames
-            self.p, self.p_g5x, self.p_g92 = list(self.interp.prog), list(f.g5x), list(f.g92)
+            # the move's end as the canon call had it (program frame): with cutter compensation the
+            # compensated point, not the programmed one the interpreter holds
+            if isinstance(cmd, (StraightTraverse, StraightFeed, ArcFeed)):
+                self.p = f.machine_to_program(cmd.end)
+            else:
+                self.p = list(self.interp.prog)
+            self.p_g5x, self.p_g92 = list(f.g5x), list(f.g92)
 
 
 def run_canon(work: Path, case: Case) -> Result:
