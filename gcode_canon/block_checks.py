@@ -87,11 +87,11 @@ class BlockChecksMixin:
         if motion in LATHE_WORDS and (has_axes or g1 == motion):  # G70-G72: their words used
             w = {k: v for k, v in w.items() if k not in LATHE_WORDS[motion]}
         spline = motion in SPLINE_MOTIONS and (has_axes or g1 == motion)
-        if spline:  # G5: I J P Q; G5.1: I J; G5.2: P L (LinuxCNC check_other_codes)
-            if "k" in w:
+        if spline:  # G5: I J P Q; G5.1: I J; G5.2: P L; G6.2: P Q R K L (LinuxCNC check_other_codes)
+            if "k" in w and motion != 62:
                 raise GCodeError(f"K word with no G2, G3, G6.2, G33, G33.1, G76, or G87 to use it "
                                  f"({gname(motion)})")
-            used = {50: "ijpq", 51: "ij", 52: "pl"}[motion]
+            used = {50: "ijpq", 51: "ij", 52: "pl", 62: "pqrkl"}[motion]
             w = {k: v for k, v in w.items() if k not in used}
         for letter in "ijk":
             if letter in w and not arc and motion != 870 and not takes_ijk:

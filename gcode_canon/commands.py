@@ -19,6 +19,7 @@ Conventions, fixed here because every layer below depends on them:
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, field
 from typing import ClassVar, NamedTuple
 
@@ -164,6 +165,12 @@ class ArcFeed(Canon):
     positive normal, negative clockwise; ``abs(turns) - 1`` full circles are added (the P word).
     The move along the normal axis (helix) and the other axes are interpolated linearly with the arc
     angle to ``end``.
+
+    ``rotation`` (degrees, counter-clockwise seen from +Z) turns the plane about the machine Z axis: a
+    G18/G19 arc in a coordinate system rotated by G10 L2 R lies in the XZ/YZ plane turned with the
+    system (LinuxCNC's ARC_FEED turns the plane's axes and normal with the XY rotation). The arc is
+    then the axis-plane arc that :meth:`unrotated` gives, turned about Z by ``rotation``. 0 for every
+    other arc (a G17 arc stays in the XY plane whatever the rotation).
     """
 
     NAME: ClassVar[str] = "ARC_FEED"
@@ -172,6 +179,21 @@ class ArcFeed(Canon):
     center: Pose
     plane: Plane
     turns: int
+    rotation: float = 0.0
+
+    def unrotated(self, start: Pose) -> tuple[Pose, Pose, Pose]:
+        """``start``, ``end`` and ``center`` turned about machine Z by ``-rotation``: there the arc
+        lies in its axis plane ``plane`` (as every arc with ``rotation`` 0)."""
+        return (rotate_about_z(start, -self.rotation), rotate_about_z(self.end, -self.rotation),
+                rotate_about_z(self.center, -self.rotation))
+
+
+def rotate_about_z(p: Pose, degrees: float) -> Pose:
+    """``p`` with X and Y turned about machine Z by ``degrees`` (counter-clockwise seen from +Z)."""
+    if degrees == 0.0:
+        return p
+    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+    return p._replace(x=p.x * c - p.y * s, y=p.x * s + p.y * c)
 
 
 @dataclass(frozen=True, slots=True)

@@ -116,7 +116,8 @@ class CutterCompMixin:
                     centre[normal] = self._comp_normal
                     centre_pose = self.frames.to_machine(centre)
                     turns = item.turns if item.ccw else -item.turns
-                    self._out.append(ArcFeed(end, centre_pose, self.plane, turns, file=f, line=n))
+                    rotation = self.frames.arc_rotation(self.plane)
+                    self._out.append(ArcFeed(end, centre_pose, self.plane, turns, rotation, file=f, line=n))
                 self._comp_normal = item.normal
                 self.pos = end
             else:

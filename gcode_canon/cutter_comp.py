@@ -33,6 +33,9 @@ How the core uses it
   move nor one of those is not this module's business: LinuxCNC rejects most of them while
   compensation is on (probe, G28/G30, G53, G92, coordinate system change, motion-synchronised I/O,
   M66, override changes, G61/G64 changes ...); the core keeps those errors.
+* A move made with the compensation switched off while it stays on (LinuxCNC's G70 pass start):
+  emit it at once and call :meth:`CutterCompensator.jump` with its end; the next line's concave
+  corner is then worked out as LinuxCNC's ``convert_straight_comp2`` does, from that point.
 * On G40, M2/M30 (or before anything else that needs the path final) call
   :meth:`CutterCompensator.finish`: it returns the held segments (the last one ending at its normal
   offset point) and the compensator is done. The tool is then at :attr:`CutterCompensator.tool`
@@ -352,6 +355,7 @@ class CutterCompensator:
         self._closed = False
         self._queue: list[object] = []
         self._held: _Held | None = None
+        self._jumped = False  # the tool left the held move's offset end (jump): LinuxCNC's corner rule
 
     # --- public ---------------------------------------------------------------------------------
 
@@ -397,9 +401,23 @@ class CutterCompensator:
             out = self._entry_line(seg) if self._first else self._line(seg)
         else:
             out = self._entry_arc(seg) if self._first else self._arc(seg)
+        self._jumped = False
         self._programmed = seg.end
         self._normal = seg.normal
         return self._to_tip(out)
+
+    def jump(self, point: Point) -> None:
+        """The tool went to ``point`` by a move made outside the compensation (LinuxCNC's G70 starts
+        each pass with a rapid made with compensation switched off, emitted at once, ahead of the held
+        move). Before the entry move the programmed point goes with it (the entry starts where the tool
+        is); after it, the programmed point and the held move stay, and the next corner is worked out
+        from them and this point, as LinuxCNC's from its current and programmed points."""
+        self._check_open()
+        self._tool = (float(point[0]), float(point[1]))
+        if self._first:
+            self._programmed = self._tool
+        else:
+            self._jumped = True
 
     def finish(self) -> list[object]:
         """Release the held move at its offset end (G40, program end); the compensator is then done."""
@@ -628,6 +646,15 @@ class CutterCompensator:
                 cands = _circle_circle(held.center, held.radius, new_arc[0], new_arc[1])
                 error = ARC_ARC_GOUGE
         else:
+            if new_line is not None and self._jumped:
+                # LinuxCNC (convert_straight_comp2) steps back from the tool along the direction its
+                # offset from the programmed point gives: the intersection below while the tool is
+                # where the held move's offset path ends, not after a jump
+                d_prev = _rot(_unit(_sub(c, self._programmed)), -self._s)
+                halfcorner = (self._beta(new_line[1]) + math.pi) / 2.0
+                if halfcorner == 0.0:
+                    raise GCodeError(LINE_LINE_ZERO_CORNER, line=line)
+                return _sub(c, _mul(d_prev, self.radius / math.tan(halfcorner)))
             if new_line is not None:
                 cands = _line_line(c, held.direction, new_line[0], new_line[1])
                 error = LINE_LINE_ZERO_CORNER

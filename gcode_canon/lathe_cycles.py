@@ -9,10 +9,12 @@ executed), then cut: D the allowance left on the profile, I the depth of cut (de
 retract (0.5), U W a shift of the finished profile. G7x.1 leaves the pockets out, G7x.2 cuts only
 them. ``G70 Q<n> X Z D E P``: P passes (1) from D down to E (0) along the profile.
 
-Where canon differs from LinuxCNC: G70 with cutter compensation of a radius other than 0 is refused
-(LinuxCNC starts each pass with an uncompensated rapid and compensates the rest; with radius 0 the
-passes go through the compensation and agree); a G2/G3 with R too small for its ends is refused
-(LinuxCNC computes a NaN centre).
+G70 may run with cutter compensation on (G71/G72 may not), as LinuxCNC's: the line's rapid and
+each pass's first rapid are made with the compensation switched off, straight to their points and
+out at once, ahead of the move the compensation holds back (:meth:`CutterCompensator.jump`); the rest
+of the pass goes through the compensation, its first rapid the entry move if none was made before.
+Where canon differs from LinuxCNC: a G2/G3 with R too small for its ends is refused (LinuxCNC
+computes a NaN centre).
 """
 
 from __future__ import annotations
@@ -93,6 +95,15 @@ class _Moves:
         i._emit((StraightFeed if feed else StraightTraverse)(end, file=i.file, line=i.line))
         self.last = 10 if feed else 0
 
+    def rapid_uncompensated(self, end: complex) -> None:
+        """A rapid made with cutter compensation switched off (LinuxCNC's G70 at each pass's start):
+        straight to ``end``, out at once ahead of any move the compensation holds back."""
+        if self.i.comp is None:
+            self._line(end, False)
+            return
+        self.i._rapid_uncompensated(self._target(end))
+        self.last = 0
+
     def straight(self, end: complex) -> None:
         self._line(end, True)
 
@@ -128,9 +139,6 @@ class LatheCycleMixin:
         comp = self.comp  # type: ignore[attr-defined]
         if comp is not None and cycle != 70:
             raise GCodeError(f"{name} cannot be used with cutter compensation enabled")
-        if comp is not None and comp.radius != 0.0:
-            # LinuxCNC starts each pass with an uncompensated rapid, then compensates: not mirrored
-            raise GCodeError("G70 with cutter compensation of a tool radius other than 0 is not supported")
         if self.plane is not Plane.XZ:  # type: ignore[attr-defined]
             raise GCodeError(f"{name} can only be used in XZ plane (G18)")
         scale = self.scale  # type: ignore[attr-defined]
@@ -148,11 +156,7 @@ class LatheCycleMixin:
                 target = self._target(block)  # type: ignore[attr-defined]
             finally:
                 self.absolute = not incremental  # type: ignore[attr-defined]
-            end = self._to_machine(target)  # type: ignore[attr-defined]
-            if not math.isfinite(sum(end)):
-                raise GCodeError("Coordinate out of range")
-            self.prog, self.pos = target, end  # type: ignore[attr-defined]
-            self._emit(StraightTraverse(end, file=self.file, line=self.line))  # type: ignore[attr-defined]
+            self._rapid_uncompensated(target)
         cap = _Capture(complex(z, x), incremental, self.ijk_absolute)  # type: ignore[attr-defined]
         self._read_profile(int(q), cap)
         path = cap.path
@@ -181,6 +185,19 @@ class LatheCycleMixin:
         except lp.ProfileError as exc:
             raise GCodeError(f"G7X error: {exc.message}") from None
         self.motion = out.last  # type: ignore[attr-defined]
+
+    def _rapid_uncompensated(self, target: list[float]) -> None:
+        """A rapid to ``target`` (program frame) made with cutter compensation switched off, as
+        LinuxCNC's convert_g7x makes the line's rapid and G70 each pass's first: straight there, out at
+        once, ahead of any move the compensation holds back, the compensation told of the jump."""
+        end = self._to_machine(target)  # type: ignore[attr-defined]
+        if not math.isfinite(sum(end)):
+            raise GCodeError("Coordinate out of range")
+        self.prog, self.pos = target, end  # type: ignore[attr-defined]
+        self._out.append(StraightTraverse(end, file=self.file, line=self.line))  # type: ignore[attr-defined]
+        comp = self.comp  # type: ignore[attr-defined]
+        if comp is not None:
+            comp.jump((target[2], target[0]))
 
     def _read_profile(self, q: int, cap: _Capture) -> None:
         """Run subroutine o<q> for its control flow and parameters; its moves make the profile."""

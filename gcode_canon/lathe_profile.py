@@ -32,6 +32,7 @@ def _c_str(p: complex) -> str:
 class Output(Protocol):
     def straight(self, end: complex) -> None: ...
     def rapid(self, end: complex) -> None: ...
+    def rapid_uncompensated(self, end: complex) -> None: ...
     def arc(self, ccw: bool, centre: complex, end: complex) -> None: ...
 
 
@@ -369,6 +370,9 @@ class Swapped:
     def rapid(self, end: complex) -> None:
         self.out.rapid(self.f(end))
 
+    def rapid_uncompensated(self, end: complex) -> None:
+        self.out.rapid_uncompensated(self.f(end))
+
     def arc(self, ccw: bool, centre: complex, end: complex) -> None:
         self.out.arc(ccw != self.flip, self.f(centre), self.f(end))
 
@@ -443,7 +447,7 @@ class Profile:
             distance = (n - 1) * (d - e) / passes + e
             paths = self.copy()
             paths.add_distance(distance)
-            sw.rapid(paths.segs[0].s)
+            sw.rapid_uncompensated(paths.segs[0].s)  # LinuxCNC: with cutter compensation switched off
             sw.rapid(paths.segs[0].e)
             for s in paths.segs[1:]:
                 s.draw(sw)

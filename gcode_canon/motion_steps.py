@@ -15,7 +15,6 @@ from gcode_canon.commands import (
     Dwell,
     FeedMode,
     MotionControlMode,
-    Plane,
     Pose,
     Probe,
     ProbeMode,
@@ -125,7 +124,8 @@ class MotionMixin:
                 if self.xform_on:
                     clockwise = xform.arc_clockwise(clockwise, self.plane)
                 centre_pose = self._to_machine(centre)
-                self._emit(ArcFeed(end_pose, centre_pose, self.plane, -1 if clockwise else 1, file=f, line=n))
+                self._emit(ArcFeed(end_pose, centre_pose, self.plane, -1 if clockwise else 1,
+                                   self.frames.arc_rotation(self.plane), file=f, line=n))
             self.prog = target
             self.pos = end_pose
         _ = normal
@@ -147,7 +147,7 @@ class MotionMixin:
                 self._lathe_cycle(motion, block)
             return
         if motion in SPLINE_MOTIONS:
-            if has_axes or explicit == 52:
+            if has_axes or explicit in (52, 62):
                 self._spline(motion, block, previous)
             elif explicit is not None:
                 raise GCodeError(f"All axes missing with motion code {gname(motion)}")
@@ -331,9 +331,6 @@ class MotionMixin:
     def _arc(self, block: Block, clockwise: bool) -> None:
         name = "G2" if clockwise else "G3"
         first, second, normal = self.plane._value_
-        if self.frames.rotation != 0.0 and self.plane is not Plane.XY:
-            raise GCodeError(f"{name} in {self.plane.gcode}: arcs out of the XY plane with a rotated "
-                             "coordinate system are not supported")
         letters = {first: _IJK[first], second: _IJK[second]}
         normal_letter = _IJK[normal]
         if normal_letter in block.words:
@@ -410,5 +407,6 @@ class MotionMixin:
             raise GCodeError("Coordinate out of range")
         self.prog = target
         self.pos = end_pose
-        self._emit(ArcFeed(end_pose, centre_pose, self.plane, rot, file=self.file, line=self.line))
+        self._emit(ArcFeed(end_pose, centre_pose, self.plane, rot, self.frames.arc_rotation(self.plane),
+                           file=self.file, line=self.line))
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 
-from gcode_canon.commands import Pose
+from gcode_canon.commands import Plane, Pose
 from gcode_canon.parameters import Parameters
 
 N_AXES = 9
@@ -60,6 +60,11 @@ class Frames:
         self.g5x = [params.numbered[base + k] for k in range(N_AXES)]
         self.rotation = params.numbered[base + 9]
         self.refresh()
+
+    def arc_rotation(self, plane: Plane) -> float:
+        """An arc's ``rotation`` (ArcFeed): the system's rotation turns the XZ and YZ planes about Z
+        (LinuxCNC's ARC_FEED); the XY plane and the UVW ones stay."""
+        return self.rotation if plane is Plane.XZ or plane is Plane.YZ else 0.0
 
     # --- transforms -------------------------------------------------------------------------------
 

@@ -16,6 +16,7 @@ the machine is not), canon joins the two samples by a straight line.
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
 from dataclasses import dataclass
 
 _DU = 1e-5  # LinuxCNC nurbs_G5_tangent's parameter step
@@ -64,15 +65,14 @@ def point(u: float, k: int, cps: list[tuple[float, float, float]], kv: list[floa
         den += b * cp[2]
     x = y = 0.0
     for b, cp in zip(basis, cps, strict=True):
-        x += cp[0] * b * cp[2] / den
-        y += cp[1] * b * cp[2] / den
+        x += _div(cp[0] * b * cp[2], den)  # den 0 (weights not all positive): inf or NaN, as in C
+        y += _div(cp[1] * b * cp[2], den)
     return x, y
 
 
 def tangent(u: float, k: int, cps: list[tuple[float, float, float]], kv: list[float]) -> tuple[float, float]:
     """Unit tangent at u by a central difference (``nurbs_G5_tangent``)."""
-    umax = len(cps) - 1 - k + 2
-    lo, hi = max(0.0, u - _DU), min(float(umax), u + _DU)
+    lo, hi = max(kv[0], u - _DU), min(kv[-1], u + _DU)  # G5.2: 0 and n - k + 2
     p1, p3 = point(lo, k, cps, kv), point(hi, k, cps, kv)
     return _unit((p3[0] - p1[0]) / (hi - lo), (p3[1] - p1[1]) / (hi - lo))
 
@@ -146,4 +146,67 @@ def nurbs_moves(cps: list[tuple[float, float, float]], order: int) -> list[Splin
         p1, t1 = point(u, order, cps, kv), tangent(u, order, cps, kv)
         out.extend(biarc(p0, t0, p1, t1))
         p0, t0 = p1, t1
+    return out
+
+
+def point_local(u: float, k: int, cps: list[tuple[float, float, float]],
+                kv: list[float]) -> tuple[float, float]:
+    """The curve at u from the ``k`` basis functions that are not 0 there (de Boor's local form, the
+    NURBS Book's A2.2): the same point as :func:`point` where the curve is continuous, in O(k^2)
+    rather than O(len(cps) k); spans half-open, the last one closed."""
+    p, n = k - 1, len(cps) - 1
+    i = min(max(bisect_right(kv, u, p, n + 1) - 1, p), n)
+    while i > p and kv[i] >= kv[i + 1]:  # the last span that is not empty (u at the end)
+        i -= 1
+    basis = [1.0] + [0.0] * p
+    left, right = [0.0] * (p + 1), [0.0] * (p + 1)
+    for j in range(1, p + 1):
+        left[j], right[j] = u - kv[i + 1 - j], kv[i + j] - u
+        saved = 0.0
+        for r in range(j):
+            den = right[r + 1] + left[j - r]
+            temp = basis[r] / den if den != 0 else 0.0
+            basis[r] = saved + right[r + 1] * temp
+            saved = left[j - r] * temp
+        basis[j] = saved
+    x = y = w = 0.0
+    for b, cp in zip(basis, cps[i - p: i + 1], strict=True):
+        x += b * cp[2] * cp[0]
+        y += b * cp[2] * cp[1]
+        w += b * cp[2]
+    return _div(x, w), _div(y, w)
+
+
+def _tangent_local(u: float, k: int, cps: list[tuple[float, float, float]],
+                   kv: list[float]) -> tuple[float, float]:
+    lo, hi = max(kv[0], u - _DU), min(kv[-1], u + _DU)  # LinuxCNC's nurbs_G6_tangent_x
+    p1, p3 = point_local(lo, k, cps, kv), point_local(hi, k, cps, kv)
+    return _unit((p3[0] - p1[0]) / (hi - lo), (p3[1] - p1[1]) / (hi - lo))
+
+
+def nurbs_g6_moves(cps: list[tuple[float, float, float]], knots: list[float], order: int) -> list[SplineMove]:
+    """The moves of one G6.2 NURBS as LinuxCNC's ``NURBS_FEED_G6_2_WITH_BIARCH_DU_CONST`` makes them:
+    cps (first, second, weight R) are the ``len(knots) - order`` control points, ``knots`` the K
+    words (not decreasing, the last ``order`` equal); a straight feed to the curve's start, then the
+    curve sampled at ``15 x len(cps)`` equal steps of its parameter from 0, each step a biarc (order 2
+    and less: a line), then a straight feed to its end."""
+    umax = knots[-1]
+    du = umax / (len(cps) * 15)
+    if not du > 0:
+        raise ValueError("the knots must end above 0")
+    start, end = point_local(knots[0], order, cps, knots), point_local(umax, order, cps, knots)
+    out = [SplineMove(start)]
+    p0, t0 = start, _tangent_local(knots[0], order, cps, knots)
+    for step in range(1, int(umax / du) + 2):
+        u = step * du
+        if u > umax - du:
+            break
+        p1 = point_local(u, order, cps, knots)
+        if order >= 3:
+            t1 = _tangent_local(u, order, cps, knots)
+            out.extend(biarc(p0, t0, p1, t1))
+            p0, t0 = p1, t1
+        else:
+            out.append(SplineMove(p1))
+    out.append(SplineMove(end))
     return out

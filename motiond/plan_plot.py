@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from gcode_canon import commands as C
+from planner.checker import turn_points
 
 ARC_CHORD = 1e-4  # arcs become polylines whose chords stay this close to the arc (machine units)
 NEIGHBOURS = 4  # pieces either side of a setpoint's own line that its deviation is measured against
@@ -51,8 +52,12 @@ def programmed_pieces(commands: list[Any], machine: Any, start: np.ndarray | Non
         if not isinstance(cmd, C.MOTION_TYPES):
             continue
         end = np.array([cmd.end[p] for p in index], dtype=float)  # type: ignore[attr-defined]
-        if isinstance(cmd, C.ArcFeed) and cmd.plane.value[0] in where and cmd.plane.value[1] in where:
-            pts = _arc_points(cmd, pos, end, where[cmd.plane.value[0]], where[cmd.plane.value[1]])
+        if isinstance(cmd, C.ArcFeed) and cmd.plane.value[0] in where and cmd.plane.value[1] in where and (
+                not cmd.rotation or (0 in where and 1 in where)):
+            turn = (where[0], where[1], cmd.rotation) if cmd.rotation else None
+            i0, i1 = where[cmd.plane.value[0]], where[cmd.plane.value[1]]
+            flat = _arc_points(cmd, turn_points(pos, turn, -1), turn_points(end, turn, -1), i0, i1)
+            pts = turn_points(flat, turn)
         else:
             pts = np.vstack([pos, end])
         out.append(Piece(cmd.file, cmd.line, isinstance(cmd, C.StraightTraverse), pts))
@@ -61,8 +66,11 @@ def programmed_pieces(commands: list[Any], machine: Any, start: np.ndarray | Non
 
 
 def _arc_points(cmd: Any, start: np.ndarray, end: np.ndarray, i0: int, i1: int) -> np.ndarray:
+    """The arc's points (in the frame where it lies in its axis plane: ``start`` and ``end`` turned
+    back by its ``rotation`` when it has one)."""
     p0, p1, _ = cmd.plane.value
-    c0, c1 = cmd.center[p0], cmd.center[p1]
+    centre = C.rotate_about_z(cmd.center, -cmd.rotation)
+    c0, c1 = centre[p0], centre[p1]
     a0 = math.atan2(start[i1] - c1, start[i0] - c0)
     a1 = math.atan2(end[i1] - c1, end[i0] - c0)
     full = 2 * math.pi

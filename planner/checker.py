@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -51,6 +51,7 @@ class _Path:
     r0: float = 0.0
     r1: float = 0.0
     length: float = 0.0
+    turn: tuple[int, int, float] | None = None  # an arc's plane turned about Z: X, Y indexes, degrees
 
 
 @dataclass
@@ -139,19 +140,22 @@ def _program_geometry(program: Iterable[C.Canon], machine: MachineLimits, start:
         if isinstance(cmd, C.ArcFeed):
             p0, p1, _ = cmd.plane.value
             i0, i1 = where[p0], where[p1]
-            c0, c1 = cmd.center[p0], cmd.center[p1]
-            th0 = math.atan2(pos[i1] - c1, pos[i0] - c0)
-            th1 = math.atan2(end[i1] - c1, end[i0] - c0)
+            turn = (where[0], where[1], cmd.rotation) if cmd.rotation else None
+            centre = C.rotate_about_z(cmd.center, -cmd.rotation)
+            c0, c1 = centre[p0], centre[p1]
+            a, b = (_unturn(v, turn) for v in (pos, end))
+            th0 = math.atan2(a[i1] - c1, a[i0] - c0)
+            th1 = math.atan2(b[i1] - c1, b[i0] - c0)
             if cmd.turns > 0:
                 sweep = (th1 - th0) % (2 * math.pi)
                 sweep = (sweep if sweep > 1e-12 else sweep + 2 * math.pi) + 2 * math.pi * (cmd.turns - 1)
             else:
                 sweep = -((th0 - th1) % (2 * math.pi))
                 sweep = (sweep if sweep < -1e-12 else sweep - 2 * math.pi) - 2 * math.pi * (-cmd.turns - 1)
-            r0 = math.hypot(pos[i0] - c0, pos[i1] - c1)
-            r1 = math.hypot(end[i0] - c0, end[i1] - c1)
+            r0 = math.hypot(a[i0] - c0, a[i1] - c1)
+            r1 = math.hypot(b[i0] - c0, b[i1] - c1)
             paths.append(_Path("arc", pos.copy(), end, allowed, before, i0, i1, c0, c1, th0, sweep, r0, r1,
-                               abs(sweep) * min(r0, r1)))  # a lower bound: sizes search windows
+                               abs(sweep) * min(r0, r1), turn))  # length: a lower bound, sizes windows
         else:
             paths.append(_Path("line", pos.copy(), end, allowed, before,
                                length=float(np.linalg.norm(end - pos))))
@@ -166,7 +170,28 @@ def _program_geometry(program: Iterable[C.Canon], machine: MachineLimits, start:
     return paths, stops, pos
 
 
+def turn_points(v: np.ndarray, turn: tuple[int, int, float] | None, sign: int = 1) -> np.ndarray:
+    """Points (a vector or rows) with X and Y turned about Z by ``sign`` times the degrees of
+    ``turn`` (X index, Y index, an arc's ``rotation``: -1 into the frame where the arc lies in its
+    axis plane, 1 back)."""
+    if turn is None:
+        return v
+    ix, iy, degrees = turn
+    c, s = math.cos(math.radians(sign * degrees)), math.sin(math.radians(sign * degrees))
+    out = np.array(v, dtype=float, copy=True)
+    x, y = v[..., ix], v[..., iy]
+    out[..., ix], out[..., iy] = x * c - y * s, x * s + y * c
+    return out
+
+
+def _unturn(v: np.ndarray, turn: tuple[int, int, float] | None) -> np.ndarray:
+    return turn_points(v, turn, -1)
+
+
 def _distance(path: _Path, pts: np.ndarray) -> np.ndarray:
+    if path.turn is not None:  # in the frame turned back, where the arc lies in its axis plane
+        return _distance(replace(path, start=_unturn(path.start, path.turn), end=_unturn(path.end, path.turn),
+                                 turn=None), _unturn(pts, path.turn))
     if path.kind == "line":
         d = path.end - path.start
         dd = float(d @ d)

@@ -45,6 +45,8 @@ from planner.geometry import (
     Arc,
     Line,
     Piece,
+    TurnedArc,
+    turn_xy,
 )
 from planner.kinematics import max_reach
 from planner.limits import LimitsMixin
@@ -444,7 +446,18 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
         if cmd.turns == 0:
             raise PlannerError("arc with 0 turns", cmd.file, cmd.line)
         i0, i1 = self._machine_index[p0], self._machine_index[p1]
-        c0, c1 = cmd.center[p0], cmd.center[p1]
+        centre = cmd.center
+        turned = cmd.rotation != 0.0
+        if turned:  # planned in the frame turned back about Z, where it lies in its axis plane
+            ix, iy = self._machine_index.get(0), self._machine_index.get(1)
+            if ix is None or iy is None:
+                raise PlannerError(f"arc in plane {cmd.plane.gcode} turned by a rotated coordinate system "
+                                   "needs axes X and Y", cmd.file, cmd.line)
+            outer = (start, end)
+            c, s = math.cos(math.radians(cmd.rotation)), math.sin(math.radians(cmd.rotation))
+            start, end = (list(turn_xy(v, ix, iy, c, -s)) for v in outer)
+            centre = C.rotate_about_z(centre, -cmd.rotation)
+        c0, c1 = centre[p0], centre[p1]
         r0 = math.hypot(start[i0] - c0, start[i1] - c1)
         r1 = math.hypot(end[i0] - c0, end[i1] - c1)
         if max(r0, r1) < MIN_ARC_RADIUS:
@@ -471,8 +484,13 @@ class Planner(LimitsMixin, MergingMixin, BlendingMixin, SmoothingMixin, Profiles
         if length <= MIN_LENGTH:
             return None
         arc = Arc(tuple(start), tuple(end), i0, i1, c0, c1, sweep, length)
-        if any(lim != (None, None) for lim in (self._soft[i0], self._soft[i1])):
-            # the arc's extremes in its plane lie where its angle passes a multiple of 90 degrees
+        checked = (i0, i1)
+        if turned:
+            arc = TurnedArc(arc, ix, iy, cmd.rotation, *outer)
+            checked = (i0, i1, ix, iy)
+        if any(self._soft[i] != (None, None) for i in checked):
+            # the arc's extremes in its plane lie where its angle passes a multiple of 90 degrees (also
+            # the turned arc's in X and Y: they are the turned-back frame's in-plane axis, scaled)
             lo, hi = sorted((th0, th0 + sweep))
             k = math.ceil(lo / (0.5 * math.pi))
             while k * 0.5 * math.pi < hi:

@@ -205,6 +205,59 @@ class Arc(Piece):
                    self._k * (s1 - s0), s1 - s0)
 
 
+def turn_xy(v: Sequence[float], ix: int, iy: int, c: float, s: float) -> Vec:
+    """``v`` with its X and Y (indexes ``ix``, ``iy``) turned about Z by the angle of cosine ``c``
+    and sine ``s``."""
+    out = list(v)
+    x, y = v[ix], v[iy]
+    out[ix], out[iy] = x * c - y * s, x * s + y * c
+    return tuple(out)
+
+
+class TurnedArc(Arc):
+    """An arc in an axis plane turned about machine Z (``ArcFeed.rotation``: G18/G19 in a rotated
+    coordinate system): ``inner``, the arc in the frame turned back, with its X and Y (indexes ``ix``
+    and ``iy``) turned by ``degrees``. The derivative bounds of X and Y are the turned bounds'
+    combination (|cos| bx + |sin| by), an upper bound; ``radius`` is the inner arc's."""
+
+    __slots__ = ("_cs", "_inner", "_ix", "_iy")
+
+    def __init__(self, inner: Arc, ix: int, iy: int, degrees: float, start: Vec, end: Vec) -> None:
+        self._inner, self._ix, self._iy = inner, ix, iy
+        c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+        self._cs = (c, s)
+        self._r0, self._dr = inner._r0, inner._dr
+        turn, bound = self._turn, self._bound
+        Piece.__init__(self, inner.length, tuple(start), tuple(end), turn(inner.d1_start), turn(inner.d1_end),
+                       turn(inner.d2_start), turn(inner.d2_end), bound(inner.d1_max), bound(inner.d2_max),
+                       bound(inner.d3_max))
+
+    def _turn(self, v: Sequence[float]) -> Vec:
+        return turn_xy(v, self._ix, self._iy, *self._cs)
+
+    def _bound(self, v: Sequence[float]) -> Vec:
+        c, s = abs(self._cs[0]), abs(self._cs[1])
+        out = list(v)
+        x, y = v[self._ix], v[self._iy]
+        out[self._ix], out[self._iy] = c * x + s * y, s * x + c * y
+        return tuple(out)
+
+    def _deriv(self, s: float, order: int) -> Vec:
+        return self._turn(self._inner._deriv(s, order))
+
+    def pos(self, s: float) -> list[float]:
+        if s >= self.length:
+            return list(self.end)
+        if s <= 0.0:
+            return list(self.start)
+        return list(self._turn(self._inner.pos(s)))
+
+    def part(self, s0: float, s1: float) -> Arc:
+        c, s = self._cs
+        return TurnedArc(self._inner.part(s0, s1), self._ix, self._iy, math.degrees(math.atan2(s, c)),
+                         tuple(self.pos(s0)), tuple(self.pos(s1)))
+
+
 class MergedArc(_Parts, Arc):
     """Consecutive programmed lines within a tolerance of one circular arc, planned as this arc
     (``planner.merging``, ``planner.arcfit``). ``cmds[i]`` is the programmed move from ``starts[i]``

@@ -62,11 +62,11 @@ def _arc(r: random.Random, plane: int, incremental: bool) -> str:
 
 
 def program(seed: int, lines: int = 30, avoid_known: bool = True) -> str:
-    """One program. ``avoid_known`` leaves out the two constructs docs/interpreter.md lists as known
-    differences: arcs in G18/G19 once a coordinate system may be rotated (canon refuses them), and
-    G10 L2 R while a G92/G52 offset may be active (LinuxCNC loses the current point, canon does not)."""
+    """One program. ``avoid_known`` leaves out the construct docs/interpreter.md lists as a known
+    difference: G10 L2 R while a G92/G52 offset may be active (LinuxCNC loses the current point, canon
+    does not)."""
     r = random.Random(seed)
-    rotated = g92 = False
+    g92 = False
     out = ["G21 G17 G90 G40 G49 G80 G94 F500", "#5161=10 #5162=20 #5163=30 #5181=-5 #5182=5 #5183=15"]
     plane, incremental, tool_loaded, subs = 17, False, False, []
     # LinuxCNC keeps a tool length offset in the units it was applied in: a G20/G21 change while one
@@ -78,10 +78,7 @@ def program(seed: int, lines: int = 30, avoid_known: bool = True) -> str:
         if pick < 0.25:
             out.append(f"G{r.choice((0, 1))} {_axes(r, incremental)}")
         elif pick < 0.37:
-            if avoid_known and rotated and plane != 17:
-                out.append(f"G1 {_axes(r, incremental)}")
-            else:
-                out.append(_arc(r, plane, incremental))
+            out.append(_arc(r, plane, incremental))
         elif pick < 0.41:
             plane = r.choice((17, 18, 19))
             out.append(f"G{plane}")
@@ -92,7 +89,6 @@ def program(seed: int, lines: int = 30, avoid_known: bool = True) -> str:
             out.append(r.choice(("G20", "G21")) if not tlo else "G4 P0")
         elif pick < 0.53:
             rot = f" R{_num(r, -40, 40, 1)}" if r.random() < 0.3 and not (avoid_known and g92) else ""
-            rotated = rotated or bool(rot)
             out.append(f"G10 L2 P{r.randint(1, 3)} {_axes(r, False)}{rot}")
         elif pick < 0.55:
             out.append(f"G10 L20 P{r.randint(0, 3)} {_axes(r, False)}")

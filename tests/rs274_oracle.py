@@ -33,6 +33,7 @@ from gcode_canon.commands import (
     StraightFeed,
     StraightTraverse,
     ToolChange,
+    rotate_about_z,
 )
 from gcode_canon.errors import GCodeError
 from gcode_canon.interpreter import Interpreter
@@ -201,8 +202,9 @@ def run_rs274(binary: Path, work: Path, case: Case) -> Result:
 
 
 class OracleMachine:
-    """Answers as rs274's stand-alone canon does: inputs read their default (0); a probe trips at its
-    target and the machine then stands 0.254 mm back towards the start; after a tool change the
+    """Answers as rs274's stand-alone canon does: inputs read their default (0); a probe ends at its
+    target (tripped for G38.2/G38.4, not for G38.3/G38.5) and the machine then stands 0.254 mm back
+    towards the start; after a tool change the
     position read back is its program position (the last move's, shifted by G5x/G92 changes since,
     not by rotation or tool offset changes) in the offsets now in force. A real machine reports
     where it is, which canon then reads in the new offsets."""
@@ -233,7 +235,9 @@ class OracleMachine:
             back = 0.254  # mm: 0.01 in is the same distance
             self.after_probe = Pose(*(e + back * v / length for e, v in zip(end[:3], d, strict=True)),
                                     *end[3:])
-        return cmd.end, True
+        # its GET_EXTERNAL_PROBE_TRIPPED_VALUE is 0 (#5070 reads 0), and it never refuses a probe that
+        # did not trip: G38.3/G38.5 untripped, G38.2/G38.4 tripped (canon refuses them untripped)
+        return cmd.end, cmd.mode.error_on_miss
 
     def current_position(self) -> Pose | None:
         if self.after_probe is not None:
@@ -264,7 +268,13 @@ class OracleMachine:
         if cmd.MOVES:
             assert self.interp is not None
             f = self.interp.frames
-            self.p, self.p_g5x, self.p_g92 = list(self.interp.prog), list(f.g5x), list(f.g92)
+            # the move's end as the canon call had it (program frame): with cutter compensation the
+            # compensated point, not the programmed one the interpreter holds
+            if isinstance(cmd, (StraightTraverse, StraightFeed, ArcFeed)):
+                self.p = f.machine_to_program(cmd.end)
+            else:
+                self.p = list(self.interp.prog)
+            self.p_g5x, self.p_g92 = list(f.g5x), list(f.g92)
 
 
 def run_canon(work: Path, case: Case) -> Result:
@@ -306,7 +316,8 @@ def run_canon(work: Path, case: Case) -> Result:
                 result.moves.append(Move("tap", tuple(cmd.end[:3])))
             elif isinstance(cmd, ArcFeed):
                 first, second, _ = cmd.plane.value
-                result.moves.append(Move("arc", tuple(cmd.end[:6]), (cmd.center[first], cmd.center[second]),
+                centre = _centre_at_end(cmd)
+                result.moves.append(Move("arc", tuple(cmd.end[:6]), (centre[first], centre[second]),
                                          int(cmd.turns)))
             if len(result.moves) > MAX_MOVES:
                 result.error = "canon: too many moves"
@@ -315,6 +326,16 @@ def run_canon(work: Path, case: Case) -> Result:
         result.error = str(exc)
     result.prints = machine.prints
     return result
+
+
+def _centre_at_end(cmd: ArcFeed) -> Pose:
+    """The arc's centre moved along its axis to the end's height, as rs274 prints it (canon's is at
+    the start's): the same point when the arc is no helix or its plane is not turned (``rotation``)."""
+    normal = [0.0] * 9
+    normal[cmd.plane.value[2]] = 1.0
+    n = rotate_about_z(Pose(*normal), cmd.rotation)
+    along = sum((e - c) * k for e, c, k in zip(cmd.end, cmd.center, n, strict=True))
+    return Pose(*(c + along * k for c, k in zip(cmd.center, n, strict=True)))
 
 
 def _ini_flag(work: Path, case: Case, key: str) -> bool:

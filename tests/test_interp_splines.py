@@ -149,6 +149,10 @@ BINARY = oracle.rs274_binary()
     "G18 G21 F100\nG0 X1 Z1\nG5.1 X5 Z3 I1 J2\nG1 Y2\nG19 G5.1 Y3 Z5 I2 J1\nG1 X0\nG18 G5.2 X4 Z4 P1"
     "\nX0 Z4 P1\nG5.3\nG1 X1\nM2",
     "G20 F10\nG10 L2 P1 X1 R30\nG0 X0 Y0\nG5.1 X1 Y1 I0.5 J0\nG1 X2\nG5 X3 Y2 I0 J1 P1 Q0\nG1 Y0\nM2",
+    "G21 F100\nG5.2 X1 Y1\nX2 Y2 P1\nX3 Y0 P1\nX5 Y3 P1\nG5.3\nG1 X0\nM2",
+    "G21 F100\nG0 X1\nG5.2 X5 Y5 P-0.5\nX10 Y5 P1\nX15 Y0 P2 L3\nG5.3\nG1 X0\nG5.2 X1 Y1 P0\nX2 Y2 P1"
+    "\nX3 Y0 P1\nG5.3\nG1 Y4\nM2",
+    "G21 F100\nG5.2 X1 Y1 P1\nX2 Y2\nX3 Y0 P1\nG5.3\nM2",
     "G21 F100\nG5.1 X1 Y1 I1\nM2",
     "G21 F100\nG5.3\nM2",
 ])
@@ -157,6 +161,24 @@ def test_against_rs274(program: str, tmp_path: Path) -> None:
     theirs, ours = oracle.run_program(program, tmp_path, BINARY)
     assert oracle.compare(theirs, ours) is None
     assert sum(m.kind == "nurbs" for m in theirs.moves) == sum(m.kind == "nurbs" for m in ours.moves)
+
+
+def test_a_first_nurbs_point_without_p_has_linuxcncs_weight_minus_1() -> None:
+    """convert_nurbs checks P on every point but the first line's, which takes P as it is: unset, -1."""
+    tail = "\nX2 Y2 P1\nX3 Y0 P1\nX5 Y3 P1\nG5.3"
+    without = _moves("G21 F100\nG5.2 X1 Y1" + tail)
+    assert without and [m.end for m in without] == [m.end for m in _moves("G21 F100\nG5.2 X1 Y1 P-1" + tail)]
+    assert [m.end for m in without] != [m.end for m in _moves("G21 F100\nG5.2 X1 Y1 P1" + tail)]
+    assert without[-1].end[:2] == pytest.approx((5.0, 3.0))
+    # P0 and negative P there likewise; the points after it still need a positive P
+    assert _moves("G21 F100\nG5.2 X1 Y1 P0" + tail)[-1].end[:2] == pytest.approx((5.0, 3.0))
+    assert "Must specify positive weight P" in str(error("F100\nG5.2 X1 Y1\nX2 Y2 P0", tool_table=None))
+
+
+def test_a_nurbs_through_infinity_is_refused_with_its_reason() -> None:
+    # weights 1, -1, 1, 1 (order 3): the denominator of the rational curve reaches 0 on a sample
+    message = str(error("G21 F100\nG5.2 X1 Y1\nX2 Y2 P1\nX3 Y0 P1\nG5.3", tool_table=None))
+    assert "t.ngc:5: NURBS goes through infinity" in message and "weight -1" in message
 
 
 def test_repeated_control_points_move_nothing_between_them() -> None:
