@@ -7,7 +7,7 @@ master (``canon run`` or a test) finds them as it would real drives: boot-up, SD
 from __future__ import annotations
 
 import argparse
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from fieldbus.canopen.config import AxisScale
@@ -107,12 +107,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import signal
-    import sys
     import threading
 
     from fieldbus.canopen.drive_sim import SimDrive, motor_for
     from fieldbus.canopen.drive_sim_probe import sim_probe
-    from fieldbus.canopen.sim_process import SimBus
     from motiond.config_canopen import canopen_for_tool
 
     config, bus = canopen_for_tool(args.config, args.interface, args.channel)
@@ -166,8 +164,24 @@ def run(args: argparse.Namespace) -> int:
 
         drives.append(sim_spindle(config.spindle, boot_delay_s=args.boot_delay_ms / 1000.0))
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    # the handlers are given back on the way out: called in-process (canon's own main, a test), a
+    # handler left behind that only sets this event swallowed every later Ctrl-C of that process
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        _serve(args, drives, bus, config, stop)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return 0
+
+
+def _serve(args: argparse.Namespace, drives: list[Any], bus: Any, config: Any, stop: Any) -> None:
+    """Run the simulated drives on ``bus`` until ``stop`` (an Event) or ``--seconds``, then print
+    their report."""
+    import sys
+
+    from fieldbus.canopen.sim_process import SimBus
+
     try:
         sims = SimBus(drives, bus, tick_s=args.tick_ms / 1000.0)
     except Exception as exc:  # python-can: no such interface or channel
@@ -185,4 +199,3 @@ def run(args: argparse.Namespace) -> int:
     for d in drives:
         print(f"node {d.id}: syncs {d.syncs}, missed setpoints {d.missed_setpoints}, late syncs "
               f"{d.late_syncs}, emcy {[hex(c) for c in d.emcys]}", file=sys.stderr)
-    return 0

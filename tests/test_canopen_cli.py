@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import threading
 import time
 
@@ -96,7 +97,10 @@ def test_sim_drives_runs_the_drives_clock_at_tick_ms(tmp_path, capsys, monkeypat
     path = tmp_path / "m.toml"
     path.write_text('[machine]\ncycle_ms = 2.0\n[axes.x]\n[canopen]\ninterface = "virtual"\n'
                     f'channel = "tick-{tmp_path.name}"\n[canopen.axes.x]\nnode_id = 1\n')
+    before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     assert main(["sim", "drives", "--config", str(path), "--tick-ms", "20", "--seconds", "0.05"]) == 0
     assert ticks == [0.02]
+    # run in-process, it gives the signal handlers back: one left behind swallowed later Ctrl-Cs
+    assert {sig: signal.getsignal(sig) for sig in before} == before
     assert main(["sim", "drives", "--config", str(path), "--tick-ms", "0", "--seconds", "0.05"]) == 1
     assert "--tick-ms 0: must be between 0.5 and 100" in capsys.readouterr().err

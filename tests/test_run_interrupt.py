@@ -169,6 +169,7 @@ def test_a_signal_taken_by_another_thread_still_interrupts_the_wait() -> None:
     t.start()
     other_ready.wait(5.0)
     sender = threading.Timer(0.3, lambda: signal.pthread_kill(t.ident, signal.SIGINT))
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # Ctrl-C as canon run has it
     sender.start()
     t0 = time.monotonic()
     try:
@@ -179,3 +180,4 @@ def test_a_signal_taken_by_another_thread_still_interrupts_the_wait() -> None:
         ends.cancel()
         sender.cancel()
         leave.set()
+        signal.signal(signal.SIGINT, previous)
