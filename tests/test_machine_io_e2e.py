@@ -8,12 +8,13 @@ flood coil 13, cycle start DI 11, door DI 14, limit_x_max DI 17, M101: coil 14 t
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from test_motion_process import OWN, own_mode
+from test_motion_process import OWN, fifo_allowed, own_mode, thread_policy
 from test_run_from_line import Recorder, wait_for
 
 from motiond.config import load_machine
@@ -135,6 +136,8 @@ def test_estop_input_during_motion_stops_at_once_and_drops_machine_enable(rig: R
     assert t_estop - t_pressed < poll_s + 1.0
     if rig.machine.motion_mode == "own":  # the motion process's cycles: the quick stop's came by pipe
         cycle = stop_latency(rig, "last_estop", "estop")
+        if fifo_allowed():  # the loop that read the input is on the stop path: FIFO two below the cycle
+            assert thread_policy(rig.machine.io_loop._thread.native_id) == (os.SCHED_FIFO, 78)
     # no setpoint streamed after the cycle that saw it
     assert max(c for c, _t, _p, _e in rig.machine.trace) <= cycle
     assert rig.x() < 100.0

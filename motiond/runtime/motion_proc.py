@@ -577,14 +577,9 @@ def rank_threads(cycle_priority: int) -> None:
     thread it starts afterwards, at SCHED_FIFO just below the cycle thread (python-can's reader, the
     heartbeat, the pipes' threads): none of them, holding the interpreter lock, waits behind an ordinary
     process while the cycle waits for the lock (:func:`~fieldbus.canopen.clock.set_fifo`)."""
-    if not cycle_priority:
-        return
-    from fieldbus.canopen.clock import helper_priority, set_fifo
+    from fieldbus.canopen.clock import rank_below_cycle
 
-    refused = set_fifo(helper_priority(cycle_priority))
-    if refused:
-        log.warning("the motion process's threads stay at normal priority (SCHED_FIFO %d refused: %s)",
-                    helper_priority(cycle_priority), refused)
+    rank_below_cycle(cycle_priority, "the motion process's threads", log)
 
 
 def main(conns: dict[str, Any], limits: Any, canopen: Any, late_fault_s: float, simulated: bool,

@@ -162,6 +162,7 @@ class MotionProxy:
         self._stream_id = 0
         self._hold_stream = False
         self._optional_stop = False
+        self._rank_refused = False
 
     # ------------------------------------------------------------------ life cycle
     def open(self) -> None:
@@ -183,7 +184,7 @@ class MotionProxy:
         for name, target in (("canon-hooks", self._dispatcher), ("canon-motion-out", self._receive_out),
                              ("canon-motion-req", self._receive_replies),
                              ("canon-motion-watch", self._watch)):
-            threading.Thread(target=target, name=name, daemon=True).start()
+            threading.Thread(target=self.ranked(target), name=name, daemon=True).start()
         self.master = MasterProxy(self)
         try:
             if self.request("open", self.io_setup, timeout=OPEN_TIMEOUT_S):  # a drive's touch probe
@@ -193,7 +194,26 @@ class MotionProxy:
         except BaseException:
             self.close()
             raise
-        threading.Thread(target=self._ping, name="canon-motion-ping", daemon=True).start()
+        threading.Thread(target=self.ranked(self._ping), name="canon-motion-ping", daemon=True).start()
+
+    def ranked(self, target: Callable[[], None]) -> Callable[[], None]:
+        """``target`` run on a thread of the task's stop path (the pipes' readers, the hooks, the
+        liveness ping, the I/O loop) at SCHED_FIFO two below a real-time cycle (``[canopen]
+        realtime_priority``; the motion process's own threads are one below), else as it is. At normal
+        priority a busy PC (two CPU hogs) kept them off a CPU past the 500 ms liveness watch, and the
+        motion process stopped a healthy machine; a task thread that waits behind ordinary work also
+        delays an E-stop input on its way to the drives. Only these threads: the interpreter's job
+        thread, the status and the command server stay ordinary, so a long program's parse cannot take
+        a CPU from the rest of the PC."""
+        def run() -> None:
+            from fieldbus.canopen.clock import rank_below_cycle
+
+            if self.canopen.realtime_priority and not self._rank_refused:  # refused once: said once
+                self._rank_refused = not rank_below_cycle(self.canopen.realtime_priority,
+                                                          "the task's stop-path threads", log, below=2)
+            target()
+
+        return run
 
     def start_cycle(self) -> None:
         self.request("start_cycle")

@@ -37,14 +37,9 @@ def _rank_like_hardware(cycle_priority: int) -> None:
     every SYNC whatever else the PC runs. At ordinary priority a busy PC stalled them past their own
     heartbeat watch (EMCY 0x8130 at enable with the demo in "own" mode and two CPU hogs beside it),
     a fault real drives would not have. Refused (not root): logged, they run as they are."""
-    if cycle_priority <= 0:
-        return
-    from fieldbus.canopen.clock import helper_priority, set_fifo
+    from fieldbus.canopen.clock import rank_below_cycle
 
-    refused = set_fifo(helper_priority(cycle_priority))
-    if refused:
-        logging.getLogger(__name__).warning("simulated drives at ordinary priority (SCHED_FIFO %d refused: "
-                                            "%s)", helper_priority(cycle_priority), refused)
+    rank_below_cycle(cycle_priority, "the simulated drives", logging.getLogger(__name__))
 
 
 class SimDrivesProcess:
