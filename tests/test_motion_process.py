@@ -186,6 +186,16 @@ def test_a_program_runs_with_the_motion_and_the_drives_in_processes_of_their_own
         assert result is not None and result.ok, result.error if result is not None else "no result"
         wait_for(lambda: all(abs(a - c) < 0.01 for a, c in zip(m.motion.actual, (5.0, 4.0, 2.0),
                                                                   strict=True)), 5.0, "drives at the end")
+        # at shutdown the pipes from the motion process are closed only after their readers ended (at
+        # the pipes' end): closed under a reader's recv, it died with a TypeError on stderr
+        readers_alive_at_close: list[bool] = []
+        readers = [t for t in threading.enumerate() if t.name in ("canon-motion-out", "canon-motion-req")]
+        assert len(readers) == 2, readers
+        for name in ("out", "req"):
+            conn = m.motion._conns[name]
+            conn.close = lambda real=conn.close: (readers_alive_at_close.append(
+                any(t.is_alive() for t in readers)), real())
+    assert readers_alive_at_close == [False, False], readers_alive_at_close
 
 
 def test_the_liveness_timeouts_default_and_are_checked_with_their_key(tmp_path: Path) -> None:

@@ -163,6 +163,7 @@ class MotionProxy:
         self._hold_stream = False
         self._optional_stop = False
         self._rank_refused = False
+        self._readers: list[threading.Thread] = []  # of the pipes from the motion process
 
     # ------------------------------------------------------------------ life cycle
     def open(self) -> None:
@@ -184,7 +185,10 @@ class MotionProxy:
         for name, target in (("canon-hooks", self._dispatcher), ("canon-motion-out", self._receive_out),
                              ("canon-motion-req", self._receive_replies),
                              ("canon-motion-watch", self._watch)):
-            threading.Thread(target=self.ranked(target), name=name, daemon=True).start()
+            thread = threading.Thread(target=self.ranked(target), name=name, daemon=True)
+            thread.start()
+            if name in ("canon-motion-out", "canon-motion-req"):
+                self._readers.append(thread)
         self.master = MasterProxy(self)
         try:
             if self.request("open", self.io_setup, timeout=OPEN_TIMEOUT_S):  # a drive's touch probe
@@ -236,6 +240,8 @@ class MotionProxy:
         if self.proc.is_alive():  # it ignores SIGTERM while this process lives (motion_proc)
             self.proc.kill()
             self.proc.join(2.0)
+        for t in self._readers:  # at the end of their pipes now: closed under them, recv would raise
+            t.join(1.0)
         for c in self._conns.values():
             c.close()
         self._dispatch.put(None)
