@@ -279,7 +279,7 @@ def main() -> int:
         LATENCY = None if args.cpu_latency_us < 0 else args.cpu_latency_us
         LAYOUT, FE_EVERY = args.layout, args.fe_every
         sys.setswitchinterval(args.switch_interval_ms / 1000.0)
-        return fieldbus_stress.run(args, layout_for, build_rt_floor, c_reference)
+        return fieldbus_stress.run(args, layout_for, build_rt_floor)
     if args.bus == "socketcan":
         import fieldbus_vcan
 

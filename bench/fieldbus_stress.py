@@ -21,14 +21,18 @@ The drives' process records each SYNC (its CANopen reader thread, the one that r
 kernel's receive time stamp of its datagram (SO_TIMESTAMPNS, what a drive's hardware would see) and the
 time its reader got it. The SYNC period is taken from the kernel's stamps (p50, p99, p99.9, max, and
 its deviation from the nominal period); the deviation p99.9 from the reader's times is a column of its
-own (it adds the simulator's own scheduling). The drives count their missed setpoints. In the same run
-and under the same hogs (before the cases, not beside them), ``bench/rt_floor.c`` gives the C
-reference: the kernel's wake-up lateness for a periodic thread at the same priority. Each row has the
-1-minute load average when it ended; the ``own`` case prints the motion process's threads during the
+own (it adds the simulator's own scheduling), and so is the spread of the deviation's p99.9 taken
+second by second (median / max). The drives count their missed setpoints. In the same run and under
+the same hogs, before the cases and again after them (not beside them), ``bench/rt_floor.c`` gives
+the C reference: the kernel's wake-up lateness for a periodic thread at the same priority, with the
+spread of its per-second p99.9. A host that takes the CPUs away now and then (a VM) shows there: a
+few seconds far above the median; the bench says so, and judges the target against the quieter of
+the two runs, so that a disturbed reference does not make it easier. Each row has the 1-minute load
+average when it ended; the ``own`` case prints the motion process's threads during the
 measured window (policy and priority, CPU time, time runnable but waiting for a CPU, preemptions).
 
 Target (issue 14): no setpoint missed at any drive, and the SYNC period's deviation p99.9 no more
-than 1.5 x the C reference's wake-up lateness p99.9.
+than 1.5 x the C reference's wake-up lateness p99.9 (the lower of its two runs).
 
 The drives' process gets the master's SCHED_FIFO priority minus one (``--drives-priority``): real
 drives are hardware, and the point is the master's SYNC, not the simulator's own jitter under the hogs.
@@ -447,6 +451,55 @@ def thread_sched(pid: int) -> list[dict]:
     return rows
 
 
+def per_second_p999(times_s, values) -> list[float]:
+    """The p99.9 of ``values`` in each whole second of ``times_s`` (seconds, same length), in order;
+    seconds with fewer than 100 values are left out."""
+    import numpy as np
+
+    times_s, values = np.asarray(times_s), np.asarray(values)
+    if len(times_s) == 0:
+        return []
+    sec = np.floor(times_s - times_s[0]).astype(int)
+    return [float(np.percentile(values[sec == k], 99.9)) for k in range(sec.max() + 1)
+            if np.count_nonzero(sec == k) >= 100]
+
+
+def spread(per_s: list[float]) -> dict:
+    """Median, max and the seconds over 1 ms of per-second p99.9 figures (us)."""
+    import numpy as np
+
+    if not per_s:
+        return {"med": math.nan, "max": math.nan, "over": 0, "n": 0}
+    return {"med": float(np.median(per_s)), "max": max(per_s), "over": sum(v > 1000 for v in per_s),
+            "n": len(per_s)}
+
+
+def reference(period: float, seconds: float, exe: Path | None, rt: int, latency: int | None,
+              when: str) -> dict | None:
+    """``bench/rt_floor.c`` under the hogs for ``seconds``: its wake-up lateness (us) p50/p99/p99.9/max
+    and the spread of its per-second p99.9 (the host taking the CPUs away shows there: a few seconds
+    far above the others)."""
+    import numpy as np
+
+    if exe is None:
+        return None
+    with tempfile.TemporaryDirectory() as tmp:
+        out_path = Path(tmp) / "late.txt"
+        out = subprocess.run([str(exe), str(round(period * 1e6)), str(round(seconds / period)), str(rt),
+                              str(-1 if latency is None else latency), str(out_path)], capture_output=True,
+                             text=True, timeout=seconds * 3 + 10)
+        if out.returncode != 0 or not out_path.exists():
+            print(f"rt_floor failed: {out.stderr.strip()}", file=sys.stderr)
+            return None
+        late = np.loadtxt(out_path, dtype=np.int64) / 1e3  # us
+    # the k-th wake-up is due k + 1 periods after the start
+    per_s = per_second_p999((np.arange(len(late)) + 1) * period, late)
+    return {"when": when, "p50": float(np.percentile(late, 50)), "p99": float(np.percentile(late, 99)),
+            "p999": float(np.percentile(late, 99.9)), "max": float(late.max()),
+            "missed": int(np.count_nonzero(late > 1e6 * period / 2)), "per_s": spread(per_s),
+            "load": f"{os.getloadavg()[0]:.1f}"}
+
+
 def finish_row(row: dict, window: tuple[float, float], period: float, result: dict, fault, cycles: str,
                gc_text: str) -> dict:
     """The SYNC figures of the drives' records within ``window`` (time.monotonic) and their counts into
@@ -470,6 +523,8 @@ def finish_row(row: dict, window: tuple[float, float], period: float, result: di
                     "dev999": float(np.percentile(dev, 99.9)), "devmax": float(dev.max())})
         reader = np.abs(np.diff(arrivals) * 1e6 - 1e6 * period)
         row["reader"] = f"{np.percentile(reader, 99.9):.0f}"
+        sp = spread(per_second_p999(stamps[1:], dev))
+        row["per_s"] = f"{sp['med']:.0f} / {sp['max']:.0f} ({sp['over']} of {sp['n']} s > 1 ms)"
     missed = sum(result.get("missed_setpoints", {}).values()) if result else -1
     row["setpoints"] = str(missed) + (" (fault)" if fault else "")
     row["missed_n"] = missed
@@ -482,7 +537,7 @@ def finish_row(row: dict, window: tuple[float, float], period: float, result: di
     return row
 
 
-def run(args, layout_for, build_rt_floor, c_reference) -> int:
+def run(args, layout_for, build_rt_floor) -> int:
     """The stressed bench (``bench/fieldbus.py --stress``); in a private network namespace."""
     from rich.console import Console
     from rich.table import Table
@@ -512,8 +567,7 @@ def run(args, layout_for, build_rt_floor, c_reference) -> int:
           f"motion process; in-process: a status thread beside the master in this process", flush=True)
     rows = []
     try:
-        c_row = c_reference(period, args.seconds, exe)
-        c_load = f"{os.getloadavg()[0]:.1f}"
+        refs = [reference(period, args.seconds, exe, rt, latency, "before the cases")]
         for n in (int(x) for x in args.drives.split(",")):
             for arrangement in arrangements:
                 for steer in modes:
@@ -524,6 +578,7 @@ def run(args, layout_for, build_rt_floor, c_reference) -> int:
                                              task_priority))
                     else:
                         rows.append(case(n, period, args.seconds, rt, latency, steer, layout_for))
+        refs.append(reference(period, args.seconds, exe, rt, latency, "after the cases"))
     finally:
         hogs.stop()
         tmp.cleanup()
@@ -534,32 +589,53 @@ def run(args, layout_for, build_rt_floor, c_reference) -> int:
     cols = [("case", "case"), ("syncs", "SYNCs at drives"), ("p50", "SYNC period p50 ms"), ("p99", "p99 ms"),
             ("p999", "p99.9 ms"), ("max", "max ms"), ("d50", "|dev| p50 us"), ("d99", "|dev| p99 us"),
             ("d999", "|dev| p99.9 us"), ("dmax", "|dev| max us"),
-            ("reader", "|dev| p99.9 us at the drives' reader"), ("setpoints", "missed setpoints"),
+            ("reader", "|dev| p99.9 us at the drives' reader"),
+            ("per_s", "per-second p99.9 us: median / max"), ("setpoints", "missed setpoints"),
             ("cycles", "master late cycles"), ("gc", "gc in slack"), ("status", "status sent/received"),
             ("load", "load avg (1 min)")]
     for _, title in cols:
         table.add_column(title, justify="right")
-    c_p999 = float(c_row["p999"]) if c_row is not None else math.nan
-    if c_row is not None:
-        table.add_row(f"reference: C wake-up lateness, {args.stress_period_ms:g} ms", "-", "-", "-", "-", "-",
-                      *(c_row[k] for k in ("p50", "p99", "p999", "max")), "-", "-", c_row["missed"], "-", "-",
-                      c_load)
+    refs_ok = [c for c in refs if c is not None]
+    for c in refs_ok:
+        sp = c["per_s"]
+        table.add_row(f"reference: C wake-up lateness, {args.stress_period_ms:g} ms, {c['when']}", "-", "-",
+                      "-", "-", "-", *(f"{c[k]:.0f}" for k in ("p50", "p99", "p999", "max")), "-",
+                      f"{sp['med']:.0f} / {sp['max']:.0f} ({sp['over']} of {sp['n']} s > 1 ms)", "-",
+                      str(c["missed"]), "-", "-", c["load"])
+    # judged against the quieter reference: a host that took the CPUs away in one of them must not
+    # make the target easier
+    c_p999 = min((c["p999"] for c in refs_ok), default=math.nan)
     for r in rows:
         for k in ("50", "99", "999", "max"):
             r[f"d{k}"] = f"{r[f'dev{k}']:.0f}" if f"dev{k}" in r else "-"
         table.add_row(*(r.get(k, "-") for k, _ in cols))
     Console(width=240).print(table)
     print(f"target: no setpoint missed at any drive, and SYNC period |deviation| p99.9 <= 1.5 x the C "
-          f"reference's wake-up p99.9 ({c_p999:.0f} us x 1.5 = {1.5 * c_p999:.0f} us)")
+          f"reference's wake-up p99.9, the lower of its runs before and after the cases ({c_p999:.0f} us x "
+          f"1.5 = {1.5 * c_p999:.0f} us)")
+    for c in refs_ok:
+        sp = c["per_s"]
+        if sp["over"]:
+            print(f"  the C reference {c['when']} was disturbed: its per-second p99.9 is {sp['med']:.0f} us "
+                  f"(median) but {sp['max']:.0f} us at worst, {sp['over']} of {sp['n']} seconds over 1 ms: "
+                  "something (in a VM most likely the host taking the vCPU away) stopped a SCHED_FIFO "
+                  "thread that only sleeps; its p99.9 then says more about that than about this PC's floor")
+    worst_ref = max((c["p999"] for c in refs_ok), default=math.nan)
+    if len(refs_ok) == 2 and worst_ref > 3 * c_p999:
+        print(f"  the C reference's p99.9 differs {worst_ref / c_p999:.1f}x between its runs before and "
+              "after the cases: the ratio below is a loose figure")
     ok_all = True
     for r in rows:
         missed_ok = r["missed_n"] == 0 and not r["fault"]  # a fault ended the stream early: not met
         sync_ok = "dev999" in r and r["dev999"] <= 1.5 * c_p999
         ok_all &= missed_ok and sync_ok
         ratio = r["dev999"] / c_p999 if "dev999" in r and c_p999 > 0 else math.nan
+        ratios = ", ".join(f"{r['dev999'] / c['p999']:.1f} x {c['when'].split()[0]}" for c in refs_ok
+                           if "dev999" in r and c["p999"] > 0)
         print(f"  {r['case']}: setpoints {'met' if missed_ok else 'NOT met'}"
               f"{' (a fault ended the stream)' if r['fault'] else ''}, SYNC "
-              f"{'met' if sync_ok else 'NOT met'} ({r.get('d999', '-')} us = {ratio:.1f} x the C reference)")
+              f"{'met' if sync_ok else 'NOT met'} ({r.get('d999', '-')} us = {ratio:.1f} x the C reference; "
+              f"{ratios})")
     print(f"target {'met' if ok_all else 'NOT met'}")
     if not rt:
         print("note: without --rt-priority the C reference is an ordinary thread under the hogs too: its "

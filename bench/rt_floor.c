@@ -2,11 +2,12 @@
  * thread, without Python. Like cyclictest: sleep to absolute deadlines with clock_nanosleep
  * (TIMER_ABSTIME), measure how late each wake-up is.
  *
- *   rt_floor PERIOD_US CYCLES PRIORITY CPU_LATENCY_US
+ *   rt_floor PERIOD_US CYCLES PRIORITY CPU_LATENCY_US [LATENESS_FILE]
  *
  * PRIORITY > 0: SCHED_FIFO at that priority. CPU_LATENCY_US >= 0: hold a PM QoS request on
  * /dev/cpu_dma_latency for the run. Prints: p50 p99 p999 max (us) and the cycles later than half a
- * period, as one line of numbers.
+ * period, as one line of numbers. LATENESS_FILE: every wake-up's lateness (ns), one a line, in
+ * order (bench/fieldbus_stress.py takes its per-second p99.9 from it: is the host taking CPUs away?).
  */
 #define _GNU_SOURCE
 #include <fcntl.h>
@@ -23,8 +24,8 @@ static int cmp(const void *a, const void *b) {
 }
 
 int main(int argc, char **argv) {
-    if (argc != 5) {
-        fprintf(stderr, "usage: rt_floor PERIOD_US CYCLES PRIORITY CPU_LATENCY_US\n");
+    if (argc != 5 && argc != 6) {
+        fprintf(stderr, "usage: rt_floor PERIOD_US CYCLES PRIORITY CPU_LATENCY_US [LATENESS_FILE]\n");
         return 2;
     }
     int64_t period = atoll(argv[1]) * 1000;
@@ -52,6 +53,15 @@ int main(int argc, char **argv) {
         late[i] = (now.tv_sec - t.tv_sec) * 1000000000LL + (now.tv_nsec - t.tv_nsec);
     }
     if (qos >= 0) close(qos);
+    if (argc == 6) {
+        FILE *f = fopen(argv[5], "w");
+        if (!f) {
+            perror("rt_floor: lateness file");
+            return 1;
+        }
+        for (int i = 0; i < n; i++) fprintf(f, "%lld\n", (long long)late[i]);
+        fclose(f);
+    }
     int missed = 0;
     for (int i = 0; i < n; i++) missed += late[i] > period / 2;
     qsort(late, (size_t)n, sizeof(int64_t), cmp);

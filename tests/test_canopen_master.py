@@ -67,46 +67,77 @@ def test_following_error_is_reported(rig):
     assert r.master.state[0].following_error == fe
 
 
-def test_targets_of_all_drives_land_in_the_same_sync_period(rig):
+def test_each_cycle_sends_the_sync_first_then_every_drives_target_for_the_next_sync(rig):
+    """The master's SYNC goes out first in each cycle, then one RPDO per drive; the drives latch those
+    targets at the next SYNC (the next cycle's), all of them at the same one."""
     r = rig(3, up=False)
     spy = can.Bus(interface="virtual", channel=r.config.bus.channel, receive_own_messages=False)
     try:
         r.master.boot()
         r.master.enable()
+        # no cycle ran during the enable here (the daemon's runs all along): the first SYNC finds no
+        # target yet, the second latches the first cycle's
+        r.run(1)
         for s in r.sims.drives.values():
             s.record_targets = True
+        time.sleep(0.05)  # no cycle runs: the drives' SYNC counts stand still
         while spy.recv(timeout=0) is not None:
             pass
-        r.run(50, lambda k: [0.001 * k, -0.001 * k, 0.002 * k])
+        first = {n: r.sim(n).syncs + 1 for n in (1, 2, 3)}  # each drive's number of the run's first SYNC
+        missed = [r.sim(n).missed_setpoints for n in (1, 2, 3)]
+        r.run(50, lambda k: [0.001 * (k + 1), -0.001 * (k + 1), 0.002 * (k + 1)])
         frames = []
         while (m := spy.recv(timeout=0)) is not None and len(frames) < 100000:
-            frames.append(m.arbitration_id)
+            if m.arbitration_id == 0x80 or 0x200 <= m.arbitration_id < 0x280:  # SYNC, RPDO1s
+                frames.append(m.arbitration_id)
     finally:
         spy.shutdown()
-    # between two SYNCs: exactly one RPDO per drive, and all before the SYNC that latches them
-    period: list[int] = []
-    syncs = 0
+    # the first frame is a SYNC; after each SYNC exactly one RPDO per drive, before the next SYNC
+    assert frames[0] == 0x80
+    cycles: list[list[int]] = []
     for cob in frames:
         if cob == 0x80:
-            assert sorted(period) == [0x201, 0x202, 0x203]
-            period = []
-            syncs += 1
-        elif 0x200 <= cob < 0x280:
-            period.append(cob)
-    assert syncs == 50
+            cycles.append([])
+        else:
+            cycles[-1].append(cob)
+    assert len(cycles) == 50
+    assert all(sorted(c) == [0x201, 0x202, 0x203] for c in cycles)
     # the drives' reader thread may still be on the last SYNCs on a loaded machine
-    assert wait_for(lambda: all(r.sim(n).syncs >= 50 for n in (1, 2, 3)), 2.0)
+    assert wait_for(lambda: all(r.sim(n).syncs >= first[n] + 49 for n in (1, 2, 3)), 2.0)
+    counts = r.master.drives[0].scale.to_counts
     latched = [dict(r.sim(n).latched) for n in (1, 2, 3)]
-    assert latched[0].keys() == latched[1].keys() == latched[2].keys()
-    for sync_no, target in latched[0].items():
-        assert latched[1][sync_no] == -target
-        assert latched[2][sync_no] == 2 * target
+    for k in range(49):  # cycle k's targets at the drives' SYNC of cycle k + 1
+        assert latched[0][first[1] + k + 1] == counts(0.001 * (k + 1))
+        assert latched[1][first[2] + k + 1] == -latched[0][first[1] + k + 1]
+        assert latched[2][first[3] + k + 1] == 2 * latched[0][first[1] + k + 1]
+    assert [r.sim(n).missed_setpoints for n in (1, 2, 3)] == missed
+
+
+def test_drives_enabled_while_the_cycle_runs_miss_no_setpoint(rig):
+    """The cycle runs (SYNC, then the RPDOs for the next one) while the drives are enabled by SDO, one
+    by one: the enable command lands between a cycle's RPDO and the next SYNC, and that SYNC latches
+    the RPDO's target (a drive keeps the last 0x607A it received). No SYNC goes without a setpoint."""
+    r = rig(3, up=False)
+    r.master.boot()
+    runner = PeriodicRunner(r.config.cycle_s, lambda k, t: r.master.cycle(None), cycles=3000,
+                            late_s=1.0).start()
+    try:
+        r.master.enable()
+        assert wait_for(lambda: all(r.sim(n).syncs > 100 for n in (1, 2, 3)), 5.0)
+    finally:
+        runner.stop()
+        assert runner.join(5.0)
+    assert r.master.fault is None, r.master.fault
+    assert [r.sim(n).state for n in (1, 2, 3)] == [State.OPERATION_ENABLED] * 3
+    assert [r.sim(n).missed_setpoints for n in (1, 2, 3)] == [0, 0, 0]
 
 
 def test_emcy_stops_all_axes_names_the_node_and_can_be_reset(rig):
     r = rig(3)
     r.run(50, lambda k: [0.002 * k, 0.001 * k, 0.0])
     held = r.master.positions()
+    # the last target a SYNC latched: cycle 48's (cycle 49's went out after the last SYNC, for the next)
+    latched = 0.002 * 48
     r.sim(2).inject_fault(0x2310)
     assert wait_for(lambda: r.master.fault is not None, 2.0)
     f = r.master.fault
@@ -119,7 +150,7 @@ def test_emcy_stops_all_axes_names_the_node_and_can_be_reset(rig):
     assert r.sim(1).state == State.SWITCH_ON_DISABLED
     assert r.sim(3).state == State.SWITCH_ON_DISABLED
     assert r.sim(2).state == State.FAULT
-    assert abs(r.sim(1).target - round(held[0] * 10000)) <= 10  # stopped where the master held it
+    assert abs(r.sim(1).target - round(latched * 10000)) <= 10  # stopped where its last SYNC left it
     with pytest.raises(CanopenError, match="reset_faults"):
         r.master.enable()
     r.master.reset_faults()
@@ -195,7 +226,10 @@ def test_sync_without_a_setpoint_and_late_sync_are_counted(rig):
     missed, late = sim.missed_setpoints, sim.late_syncs
     spy = can.Bus(interface="virtual", channel=r.config.bus.channel)
     try:
-        spy.send(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False))
+        # the first latches the last cycle's target (sent after its SYNC, for the next); the second
+        # finds none
+        for _ in range(2):
+            spy.send(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False))
     finally:
         spy.shutdown()
     assert wait_for(lambda: sim.missed_setpoints == missed + 1, 1.0)

@@ -118,7 +118,10 @@ class StateMachineMixin:
             self._enable()
 
     def _enable(self) -> None:
-        # As drives do: the demand starts where the motor is, so enabling never jumps.
+        # As drives do: the demand starts where the motor is, so enabling never jumps. A target received
+        # since the last SYNC stays for the next one: a drive's 0x607A keeps the last RPDO's value, and
+        # a master that sends its RPDOs right after a SYNC (for the next one) may enable the drive
+        # after them, before that SYNC (that SYNC did not go without a setpoint).
         if self.quick_stop_input:
             return  # the input holds the drive in its stop
         self.enables += 1
@@ -126,7 +129,6 @@ class StateMachineMixin:
         self.state = State.OPERATION_ENABLED
         self.demand = self.actual
         self.target = round(self.actual)
-        self._pending_target = None
         self.velocity = 0.0
 
     def _fault(self, code: int, why: str) -> None:

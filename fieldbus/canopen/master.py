@@ -4,7 +4,8 @@ Life of a master (the daemon's loop thread calls :meth:`CanopenMaster.cycle` onc
 
     master = CanopenMaster(config)          # refuses a bus load over config.max_bus_load
     master.open(); master.boot(); master.enable()
-    fb = master.cycle(positions)            # RPDO per drive (its target), then one SYNC
+    master.sync()                           # at the cycle's deadline: the SYNC, first
+    fb = master.cycle(positions)            # an RPDO per drive (its target for the next SYNC)
     ...                                     # on a fault: master.fault, drives quick-stopped
     master.reset_faults(); master.enable()  # and stream again from master.positions()
     master.shutdown()
@@ -15,8 +16,12 @@ Design choices:
   travels by PDO (with the target in the standard layout, in its own RPDO on a change in the compact
   one: :mod:`fieldbus.canopen.pdo`), so an SDO write could not override it.
 * Every PDO a drive has beyond the layout's is disabled at boot: a factory mapping adds no traffic.
-* All RPDOs of a cycle are sent before its SYNC, so the targets of every drive land in the same SYNC
-  period (the drive latches on SYNC).
+* SYNC first, then the RPDOs for the next SYNC: at each deadline the SYNC goes out at once
+  (:meth:`CanopenMaster.sync`, or first thing in :meth:`CanopenMaster.cycle`), then the cycle's checks
+  and every drive's RPDO, which the drives latch at the next SYNC (one cycle of latency, as with the
+  kernel's SYNC, :mod:`fieldbus.canopen.sync`). All RPDOs of a cycle go out between the same two SYNCs,
+  so the targets of every drive land in the same SYNC period; the work of a cycle never delays its
+  SYNC.
 * Counts are converted from absolute positions each cycle (``AxisScale``): no drift.
 * Quick stop (on any fault, or asked for): every drive gets the CiA 402 quick-stop controlword at once
   and no new target is streamed; the drives decelerate on their own 0x6085 ramp. The quick stop option
@@ -32,7 +37,8 @@ Design choices:
   is streamed to, or a target that moves toward an active one, stops the machine (quick stop, as any
   fault), naming axis, node and switch. After a reset the axis may move off the switch, not onto it.
 * The spindle drive (``[canopen.spindle]``, :mod:`~fieldbus.canopen.master_spindle`), in a velocity
-  mode, is booted, enabled, stopped and parked with the axes; its RPDO goes out before each SYNC too.
+  mode, is booted, enabled, stopped and parked with the axes; its RPDO goes out with the axes', after
+  each SYNC for the next one.
 * The drives' digital outputs (0x60FE, :mod:`~fieldbus.canopen.master_outputs`): :meth:`set_output`
   never blocks; its own thread writes them by SDO.
 * Faults are reported once (the first, which caused the stop) in :attr:`fault`; later ones go to
@@ -123,6 +129,8 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin
         self._stream_t0 = 0.0  # first cycle with a drive streamed to: TPDO ages count from there
         self._last_sent = 0.0  # the last cycle's frames sent while streaming to a drive (0: none yet)
         self._rpdo_syncs = -1
+        self._synced = False  # this cycle's SYNC is out (or, kernel SYNC, counted): :meth:`sync`
+        self._sync_at = 0.0  # when the master last sent a SYNC
         self._reader_sync_at = 0.0
         #: who times the SYNC: "kernel" (the broadcast manager, :mod:`fieldbus.canopen.sync`) or "master"
         self.sync_mode = "kernel" if config.kernel_sync else "master"
@@ -209,17 +217,44 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin
         self.network.send_message(cob_id, data)
 
     # ------------------------------------------------------------------ the cycle
-    def cycle(self, positions: Sequence[float] | None = None) -> DriveFeedback:
-        """One cycle: check the drives' feedback, send one RPDO per drive with ``positions`` (machine
-        units, axis order; ``None`` holds), then one SYNC. Faulted or not enabled: SYNC only.
+    def sync(self) -> None:
+        """The start of a cycle, at its deadline: the master's SYNC goes out now, before the cycle's
+        work (the planner's setpoint, the checks, the RPDOs), so that work never delays it; the RPDOs
+        :meth:`cycle` sends afterwards are for the *next* SYNC. With the kernel's SYNC nothing is sent
+        (the kernel sent it; the cycle runs right after it). Either way :attr:`cycles` counts it now.
+        :meth:`cycle` does the same itself when this was not called since the last cycle."""
+        with self._lock:
+            if self.network is not None and not self._synced:
+                self._sync_locked()
 
-        With the kernel's SYNC (:attr:`sync_mode` "kernel") no SYNC is sent here: the RPDOs are for the
-        next SYNC, and the cycle is best called right after one (:attr:`sync_tick`)."""
+    def _sync_locked(self) -> None:
+        self.cycles += 1
+        self._synced = True
+        if self._kernel_sync is not None:
+            return
+        try:
+            self.network.sync.transmit()  # type: ignore[union-attr]
+        except (can.CanError, OSError) as exc:
+            self.raise_fault(0, f"bus error: {exc}")
+        self._sync_at = time.monotonic()
+
+    def cycle(self, positions: Sequence[float] | None = None) -> DriveFeedback:
+        """One cycle: the SYNC (unless :meth:`sync` sent it already), then check the drives' feedback
+        and send one RPDO per drive with ``positions`` (machine units, axis order; ``None`` holds), which
+        the drives latch at the next SYNC. Faulted or not enabled: the SYNC only.
+
+        SYNC first, RPDOs for the next one: the structure of the kernel's SYNC (:attr:`sync_mode`
+        "kernel", where no SYNC is sent here and the cycle is best called right after one:
+        :attr:`sync_tick`), with the master's SYNC at the cycle's deadline. A stall of the cycle then
+        delays the SYNC only by what came before it, never by the setpoint's work; every SYNC still
+        finds the RPDOs of the cycle before it (one thread sends both, in that order)."""
         now = time.monotonic()
         with self._lock:
             if self.network is None:  # not open, or shut down: nothing to send
                 return self.feedback()
-            self.cycles += 1
+            if not self._synced:
+                self._sync_locked()
+            self._synced = False
             ks = self._kernel_sync
             if ks is not None:
                 try:
@@ -238,10 +273,10 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin
                     if d.active and not d.homing:
                         self._send(d.rpdo_id, d.cyclic_rpdo())
                 self._spindle_cycle(now)
-                if ks is None:
-                    self.network.sync.transmit()  # type: ignore[union-attr]
                 if any(d.active for d in self.drives):
-                    self._last_sent = time.monotonic()
+                    # the latest SYNC (the master's: TPDO ages count to it) or, with the kernel's, when
+                    # the setpoints went out
+                    self._last_sent = self._sync_at if ks is None else time.monotonic()
                     if ks is not None:
                         self._count_setpoints(ks.seen)
             except (can.CanError, OSError) as exc:

@@ -3,9 +3,9 @@
 
 The spindle drive runs in profile velocity (3) or cyclic synchronous velocity (9) mode. Its PDOs:
 
-* RPDO1 = controlword + target velocity (0x60FF, counts/s), sent every cycle before the SYNC while it is
-  enabled. In ``csv`` the master ramps the target at ``acceleration`` (the drive follows each SYNC's);
-  in ``pv`` the target is the commanded speed and the drive ramps at 0x6083 / 0x6084.
+* RPDO1 = controlword + target velocity (0x60FF, counts/s), sent every cycle (for the next SYNC)
+  while it is enabled. In ``csv`` the master ramps the target at ``acceleration`` (the drive follows
+  each SYNC's); in ``pv`` the target is the commanded speed and the drive ramps at 0x6083 / 0x6084.
 * TPDO1 = statusword + velocity actual (0x606C), TPDO2 = position actual (0x6064), both every SYNC: the
   measured speed and the spindle's revolutions, counted across the 32-bit wrap of the encoder count
   (what spindle-synchronized motion follows).
@@ -334,7 +334,7 @@ class SpindleMixin(MasterCore):
         return self.spindle.feedback() if self.spindle is not None else None
 
     def _spindle_cycle(self, now: float) -> None:
-        """With ``_lock`` held, before the SYNC: supervise the spindle drive, ramp its target (csv),
+        """With ``_lock`` held, after the SYNC: supervise the spindle drive, ramp its target (csv),
         send its RPDO."""
         sb = self.spindle
         if sb is None or not sb.active:

@@ -96,7 +96,11 @@ class StateMachineMixin(MasterCore):
 
     def _activate(self, d: DriveBook) -> None:
         """From now on the cycle sends ``d`` a target every SYNC: its actual position (read by SDO),
-        held until the machine streams. Called just before the enable command reaches the drive."""
+        held until the machine streams. Called just before the enable command reaches the drive.
+
+        The first target goes out here, at once: the cycle sends its RPDOs right after a SYNC, for the
+        next one, so the SYNC after the enable command would otherwise find none (the cycle's RPDOs of
+        that period went out before the drive was active)."""
         actual = self._sdo(d, "position actual", 0x6064, 0, "i")
         inputs = self._sdo(d, "digital inputs", 0x60FD, 0, "I") if d.has_inputs else 0
         with self._lock:
@@ -107,6 +111,11 @@ class StateMachineMixin(MasterCore):
             d.enabled_at = math.inf
             d.active_at = d.feedback_at = time.monotonic()
             d.active = True
+            if self.network is not None and not d.homing:
+                try:
+                    self._send(d.rpdo_id, d.cyclic_rpdo())
+                except (can.CanError, OSError) as exc:
+                    raise CanopenError(f"{d.describe()}: its first target not sent: {exc}") from None
 
     def _enable_drive(self, d: DriveBook) -> None:
         timeout = self.config.state_timeout_s
@@ -122,6 +131,7 @@ class StateMachineMixin(MasterCore):
                     self._activate(d)
                 break
             if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+                self._fault_during_enable(d)  # its EMCY, when one came since the enable began
                 code = self._sdo(d, "error code", 0x603F, 0, "H")
                 raise CanopenError(f"{d.describe()}: in '{state}' (error code 0x{code:04X}): "
                                    "reset_faults() first")

@@ -2,9 +2,11 @@
 
 ``[canopen] sync`` (:attr:`~fieldbus.canopen.config.CanopenConfig.sync`) chooses who times the SYNC:
 
-* ``"master"``: the master's cycle sends every drive's RPDO and then the SYNC (the only way on buses
-  without kernel timing: ``virtual``, ``udp_multicast``). Every stall of the Python process is then a
-  SYNC stall on the bus.
+* ``"master"``: the master's cycle sends the SYNC at its deadline, first, and then every drive's RPDO
+  for the next SYNC (:meth:`~fieldbus.canopen.master.CanopenMaster.sync`; the only way on buses
+  without kernel timing: ``virtual``, ``udp_multicast``): the same structure as the kernel's, with the
+  SYNC from the cycle thread. The cycle's own work (the planner's setpoint, the RPDOs) never delays
+  the SYNC, but a stall of the Python process at the deadline still does.
 * ``"kernel"``: on SocketCAN, ``bus.send_periodic`` is the kernel's broadcast manager (BCM): a kernel
   timer sends the SYNC every period whatever Python does. The kernel loops the frames it sends back to
   every other socket on the interface, so the master sees each SYNC on a socket of its own

@@ -1,11 +1,12 @@
 """The motion side's cycle: what the ``canon-cycle`` thread does every period, and the state it keeps.
 
 :class:`Cycle` is the base of :class:`motiond.runtime.motion.MotionCore` (whose docstring is the
-interface): every period it runs the calls posted to it, acts on a pending fault (through the task's
-``fault`` hook), moves at most :data:`FEED_PER_CYCLE` commands from the bounded command queue into
-the planner (keeping :data:`LOOKAHEAD` queued there), takes one setpoint, sends it with one
-``master.cycle`` and reads the drives' feedback back, tracks velocities, accelerations and jerks
-against the running job's :class:`~motiond.runtime.records.Stream`, passes the setpoint's events on
+interface): every period it sends the SYNC first (``master.sync``, at the deadline), runs the calls
+posted to it, acts on a pending fault (through the task's ``fault`` hook), moves at most
+:data:`FEED_PER_CYCLE` commands from the bounded command queue into the planner (keeping
+:data:`LOOKAHEAD` queued there), takes one setpoint, sends it with one ``master.cycle`` (for the next
+SYNC) and reads the drives' feedback back, tracks velocities, accelerations and jerks against the
+running job's :class:`~motiond.runtime.records.Stream`, passes the setpoint's events on
 (``io.on_setpoint``, the status's spindle / coolant / tool / modal state, messages), stops at sync
 points, and tells the task side when the motion comes to rest (an abort, a fault's stop, a job's end).
 Nothing here waits on a network.
@@ -145,6 +146,9 @@ class Cycle:
             self.post_fault(f"internal error in the cycle loop: {exc!r}", "motiond")
 
     def _cycle_step(self) -> None:
+        # the SYNC first, at the deadline: nothing below delays it; the setpoint this step sends is for
+        # the next SYNC (master.sync_tick's kernel SYNC has the same structure)
+        self.master.sync()
         if self._cycle_ident == 0:
             self._cycle_ident = threading.get_ident()
         self.cycle += 1

@@ -16,8 +16,10 @@ same three parts:
 * job thread (:meth:`InputProbing.answer`): the probed point (:class:`~motiond.runtime.probing.Probed`).
 
 Latency: the input is seen by the first poll after it changes (the device's ``poll_ms`` plus the
-request) and acted on in the next cycle: the probed point lies up to (``poll_ms`` + one cycle) x the
-probing feed past the true contact (the drive touch probe, latched by the drive, has none).
+request) and acted on in the next cycle, whose setpoint the drives latch one SYNC later (the SYNC goes
+out first in each cycle, the setpoint for the next): the probed point lies up to (``poll_ms`` + two
+cycles) x the probing feed past the true contact (the drive touch probe, latched by the drive, has
+none).
 """
 
 from __future__ import annotations

@@ -71,7 +71,8 @@ class SpindleDriveControl:
     def _predicted(self) -> Any:
         """(revolutions, feedback): the revolutions predicted for the SYNC the next setpoint is latched
         at, from the last position, speed and change of speed measured (as many SYNCs ahead as that
-        position is old: one, or more when its TPDO came late)."""
+        position is old: the setpoint goes out after SYNC ``master.cycles``, for the one after it, and
+        the last position answers the SYNC before: two, or more when its TPDO came late)."""
         master = self.c.master
         fb = master.spindle_feedback()
         tau = self.c.T * max(1, master.cycles + 1 - fb.sync)
@@ -84,7 +85,8 @@ class SpindleDriveControl:
         revs, fb = self._predicted()
         if self._tap is not None and p is not self._tap.planner:
             self._tap = None  # a new planner: it starts where the axes stand
-        missed = self.c.master.cycles - fb.sync  # SYNCs since, whose position did not come
+        # SYNCs since, whose position did not come (the one just sent cannot have answered yet)
+        missed = self.c.master.cycles - 1 - fb.sync
         if missed > self.cfg.max_missed_positions:
             self._feedback_lost(p, missed)
         if self._tap is None:

@@ -202,9 +202,8 @@ def test_kernel_sync_comes_at_the_period_and_the_rpdos_right_after_it(rig, liste
     assert len(syncs) >= 90, len(syncs)
     # the kernel's timer: its median period is the configured one (the emulated VM adds latency)
     assert statistics.median(gaps) == pytest.approx(period, rel=0.2)
-    # each drive's RPDO goes out after a SYNC, in the period (for the next SYNC); with the master's SYNC
-    # it would come just before it, a whole period after the previous one (the emulated guest wakes the
-    # cycle thread milliseconds late)
+    # each drive's RPDO goes out after a SYNC, early in the period (for the next SYNC), the cycle paced
+    # by the SYNCs it sees (on its own clock the emulated guest wakes the cycle thread milliseconds late)
     after: dict[int, list[float]] = {1: [], 2: []}
     last_sync = None
     for t, cob in (f for f in listener.frames if t0 <= f[0] <= t1):
