@@ -168,7 +168,15 @@ def run(args: argparse.Namespace) -> int:
     # handler left behind that only sets this event swallowed every later Ctrl-C of that process
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        _serve(args, drives, bus, config, stop)
+        # they stand in for hardware, which answers every SYNC whatever else the PC runs: with a
+        # SCHED_FIFO cycle in the file, just below it (as the daemon's own simulated drives' process)
+        import logging
+
+        from fieldbus.canopen.clock import ranked_below_cycle
+
+        log = logging.getLogger(__name__)
+        with ranked_below_cycle(config.realtime_priority, "the simulated drives", log):
+            _serve(args, drives, bus, config, stop)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import threading
 import time
@@ -10,6 +11,7 @@ import time
 import can.interfaces.virtual as virtual
 import pytest
 from canopen_helpers import Rig, make_config
+from test_motion_process import fifo_allowed
 
 from fieldbus.canopen.dump import describe, name_of
 from motiond import cmd_can_dump
@@ -88,19 +90,29 @@ def test_sim_drives_runs_the_drives_clock_at_tick_ms(tmp_path, capsys, monkeypat
 
     ticks: list[float] = []
 
+    policies: list[tuple[int, int]] = []
+
     class Counted(sim_process.SimBus):
         def __init__(self, *args, **kw):
             super().__init__(*args, **kw)
             ticks.append(self.tick_s)
+            policies.append((os.sched_getscheduler(0), os.sched_getparam(0).sched_priority))
 
     monkeypatch.setattr(sim_process, "SimBus", Counted)
     path = tmp_path / "m.toml"
     path.write_text('[machine]\ncycle_ms = 2.0\n[axes.x]\n[canopen]\ninterface = "virtual"\n'
-                    f'channel = "tick-{tmp_path.name}"\n[canopen.axes.x]\nnode_id = 1\n')
+                    f'channel = "tick-{tmp_path.name}"\nrealtime_priority = 20\n'
+                    '[canopen.axes.x]\nnode_id = 1\n')
     before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    policy = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
     assert main(["sim", "drives", "--config", str(path), "--tick-ms", "20", "--seconds", "0.05"]) == 0
     assert ticks == [0.02]
     # run in-process, it gives the signal handlers back: one left behind swallowed later Ctrl-Cs
     assert {sig: signal.getsignal(sig) for sig in before} == before
+    # with a SCHED_FIFO cycle in the file the drives ran just below it (they stand in for hardware),
+    # and the calling thread has its own policy back
+    if fifo_allowed():
+        assert policies == [(os.SCHED_FIFO, 19)], policies
+    assert (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority) == policy
     assert main(["sim", "drives", "--config", str(path), "--tick-ms", "0", "--seconds", "0.05"]) == 1
     assert "--tick-ms 0: must be between 0.5 and 100" in capsys.readouterr().err

@@ -11,6 +11,7 @@ import threading
 import time
 from pathlib import Path
 
+import can
 import pytest
 from canopen_helpers import make_config
 
@@ -145,3 +146,34 @@ def test_ticks_pace_the_runner_and_missed_ones_are_late_and_skipped():
         ticks.put()
         assert runner.join(5.0)
     assert runner.error is None
+
+
+class Flood:
+    """A listening socket on a machine that reads slower than the SYNCs come: every read finds one
+    more, stamped when it is read (``backlog`` first, stamped a second ago); at most ``limit`` reads."""
+
+    def __init__(self, backlog: int, limit: int = 10_000) -> None:
+        self.backlog = backlog
+        self.reads = 0
+        self.limit = limit
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        self.reads += 1
+        if self.reads > self.limit:
+            return None
+        stamp = time.time() - (1.0 if self.reads <= self.backlog else 0.0)
+        return can.Message(arbitration_id=0x80, data=b"", is_extended_id=False, timestamp=stamp)
+
+
+def test_taking_the_waiting_syncs_ends_at_the_first_that_came_after_it_began():
+    """poll() and wait() take the SYNCs already there, not "until none is left": read slower than the
+    SYNCs come (the emulated VM), that held the cycle for seconds (4.0 s for 299)."""
+    from fieldbus.canopen.sync import KernelSync
+
+    sync = KernelSync(None, {}, 0.01)  # type: ignore[arg-type]  (never opened: start() does nothing)
+    sync._listener = Flood(backlog=3)  # type: ignore[assignment]
+    assert sync.poll() == 4  # the three waiting, and the first stamped after the poll began
+    sync._listener = Flood(backlog=5)  # type: ignore[assignment]
+    got = sync.wait(time.monotonic() + 1.0)
+    assert got is not None and got[2] == 6, got
+    assert got[0] < got[1]  # the first of the backlog, then the one that ended the drain

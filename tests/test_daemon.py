@@ -61,6 +61,9 @@ class Daemon:
         self._lock = threading.Lock()
         self.var = tmp / "params.var"
         self.tmp = tmp
+        for _ in range(100_000):  # bounded: what an earlier test's machine published is still queued in
+            if self.lc.handle_timeout(0) <= 0:  # the shared memq, and its first status (IDLE) reached
+                break  # the next test's subscription as this machine's first
         self.subs = [self.lc.subscribe("CANON_STATUS", self._on_status),
                      self.lc.subscribe("CANON_EVENT", self._on_event)]
         config = load_machine(None) if config is None else config

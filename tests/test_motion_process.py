@@ -34,7 +34,9 @@ SHORT = "%\nG21 G90 G94\nG1 X5 Y4 Z2 F1500\nM2\n%\n"
 
 
 def machine_text(interface: str, channel: str, *, simulate: bool, process: str = "own",
-                 extra: str = "") -> str:
+                 extra: str = "", rt: int = 80) -> str:
+    """The test machine: ``rt``, the cycle's SCHED_FIFO priority (realtime_priority), as a machine on
+    a busy PC is configured (own_mode says why; refused when not root, and the test runs as it is)."""
     axes = "".join(f"""
 [axes.{a}]
 max_velocity = {v}
@@ -53,6 +55,7 @@ channel = "{channel}"
 heartbeat_producer_ms = 100
 heartbeat_consumer_ms = 1000
 sdo_timeout_s = 1.0
+realtime_priority = {rt}
 simulate = {str(simulate).lower()}
 {drives}
 [motion]
@@ -451,8 +454,8 @@ def test_every_thread_of_the_motion_process_runs_fifo_below_a_realtime_cycle(tmp
     if not fifo_allowed():
         pytest.skip("SCHED_FIFO needs root or CAP_SYS_NICE")
     channel = group()
-    text = machine_text("udp_multicast", channel, simulate=False).replace(
-        "simulate = false\n", "simulate = false\nrealtime_priority = 20\ncpu_latency_us = -1\n")
+    text = machine_text("udp_multicast", channel, simulate=False, rt=20).replace(
+        "simulate = false\n", "simulate = false\ncpu_latency_us = -1\n")
     path = write(tmp_path, text)
     drives = DriveProcess(path)
     stop_path = ("canon-hooks", "canon-motion-out", "canon-motion-req", "canon-motion-watch",
@@ -460,6 +463,7 @@ def test_every_thread_of_the_motion_process_runs_fifo_below_a_realtime_cycle(tmp
     try:
         with own_machine(path) as m:
             policies = thread_policies(m.motion.pid)
+            drive_policies = thread_policies(drives.proc.pid)
             wait_for(lambda: all(any(t.name == n for t in threading.enumerate()) for n in stop_path), 5.0,
                      "the task's stop-path threads")
             time.sleep(0.2)  # each ranks itself as it starts
@@ -471,6 +475,8 @@ def test_every_thread_of_the_motion_process_runs_fifo_below_a_realtime_cycle(tmp
     assert policies.count((fifo, 20)) == 1, policies  # the cycle thread
     assert all(p in ((fifo, 20), (fifo, 19)) for p in policies), policies
     assert all(task[n] == (fifo, 18) for n in stop_path), task
+    # `canon sim drives` with the same file: hardware's stand-in, just below the cycle
+    assert drive_policies and all(p == (fifo, 19) for p in drive_policies), drive_policies
     assert task[threading.current_thread().name] == (os.SCHED_OTHER, 0), task
 
 
@@ -484,8 +490,8 @@ def test_the_simulated_drives_process_runs_fifo_below_a_realtime_cycle(tmp_path:
     from motiond.config_canopen import canopen_for_machine
     from motiond.runtime.sim_drives_proc import SimDrivesProcess
 
-    text = machine_text("canon_local", f"fifo-{os.getpid()}", simulate=True).replace(
-        "simulate = true\n", "simulate = true\nrealtime_priority = 20\ncpu_latency_us = -1\n")
+    text = machine_text("canon_local", f"fifo-{os.getpid()}", simulate=True, rt=20).replace(
+        "simulate = true\n", "simulate = true\ncpu_latency_us = -1\n")
     canopen = canopen_for_machine(load_machine(str(write(tmp_path, text))))
     sim = SimDrivesProcess(canopen, 0.0)
     try:

@@ -35,13 +35,14 @@ collector's previous state (enabled or not; frozen objects unfrozen if none were
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import logging
 import os
 import struct
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 log = logging.getLogger(__name__)
@@ -146,6 +147,25 @@ def rank_below_cycle(cycle_priority: int, who: str, logger: logging.Logger, belo
     if refused:
         logger.warning("%s stay at normal priority (SCHED_FIFO %d refused: %s)", who, priority, refused)
     return not refused
+
+
+@contextlib.contextmanager
+def ranked_below_cycle(cycle_priority: int, who: str, logger: logging.Logger,
+                       below: int = 1) -> Iterator[bool]:
+    """:func:`rank_below_cycle` for the body of a ``with`` only: the calling thread's policy is given
+    back at the end, so a tool's entry point called in-process (canon's ``main`` in a test, a user's
+    script) does not leave that process's thread at real-time priority."""
+    try:
+        before = (os.sched_getscheduler(0), os.sched_getparam(0))
+    except (AttributeError, OSError):
+        before = None
+    ranked = rank_below_cycle(cycle_priority, who, logger, below)
+    try:
+        yield ranked
+    finally:
+        if ranked and before is not None:
+            with contextlib.suppress(OSError):
+                os.sched_setscheduler(0, before[0], before[1])
 
 
 class PeriodicRunner:
