@@ -35,7 +35,12 @@ Both are guarded by :func:`follow_jump`: a spindle that turned on while no setpo
 cycle) would have the axes catch up in one step, a target jump the drive faults on (EMCY 0x8400)
 mid-thread. Following stops there instead: G33 / G76 run on at their planned pace (the machine's fault
 then stops them on their quick-stop ramp), the tap holds where it is; the fault names the line and the
-jump. A stop on the path (hold, abort, quick stop) runs on the wall clock, never on the spindle's.
+jump. G33 / G76 are guarded by :func:`follow_overspeed` as well: a spindle measured faster than planned
+(an override on the drive, an overshoot) carries the axes faster on its clock; an axis beyond
+:data:`FOLLOW_SPEED_MARGIN` times its max_velocity over :data:`FOLLOW_SPEED_WINDOW_S` stops following
+in the same way, the fault naming the line, the axis and the measured rpm. (The plan-time checks,
+``_synced_speed``, cover the commanded rpm: S under G97, the G96 rpm along the move.) A stop on the
+path (hold, abort, quick stop) runs on the wall clock, never on the spindle's.
 """
 
 from __future__ import annotations
