@@ -7,14 +7,15 @@ exists; on a machine whose kernel has no CAN: ``tests/vcan/run-vm --bench --seco
 well a PC keeps time).
 
 Per case (drives x period x SYNC mode): the drives simulated in another process on vcan0 (``canon sim
-drives``, as the stressed bench and the daemon have them: in the emulated VM, drives in the master's
-process starved its cycle of CPU and faulted it with the kernel's SYNC), a sine move
+drives``, as the stressed bench has them: in the master's process they slowed its cycle further in
+the emulated VM), a sine move
 streamed for ``--seconds`` with the cycle paced as the daemon paces it (by the SYNCs it sees, with the
 kernel's SYNC; on absolute deadlines with the master's), and a listener on its own socket (filtered to
 the SYNC, the kernel's receive time stamps) measuring every SYNC period: p50/p99/p99.9/max, the
 periods longer than 1.5 x the cycle, the cycles the runner saw late or skipped, the SYNCs that found
-no new setpoint (the master's count; kernel SYNC only) and the setpoints the drives missed. Reported,
-not judged.
+no new setpoint (the master's count; kernel SYNC only) and the setpoints the drives missed; the first
+cycle's delay after enable(), the longest gap between cycles and the longest gc pass (a stalled cycle
+told from a stalled SYNC). Reported, not judged (docs/canopen.md, "Benchmark").
 """
 
 from __future__ import annotations
