@@ -150,12 +150,12 @@ def build_rt_floor(tmp: Path) -> Path | None:
 
 
 class DriveProcess:
-    """``canon sim drives`` on udp_multicast in a child process (the master's process then holds only
-    the master); its report of missed setpoints is read when it ends."""
+    """``canon sim drives`` on udp_multicast (or ``interface``: socketcan) in a child process (the
+    master's process then holds only the master); its report of missed setpoints is read when it ends."""
 
-    def __init__(self, n: int, group: str, tmp: Path) -> None:
+    def __init__(self, n: int, group: str, tmp: Path, interface: str = "udp_multicast") -> None:
         text = "".join(f"[axes.{'xyzabc'[i]}]\n" for i in range(n))
-        text += f'[canopen]\ninterface = "udp_multicast"\nchannel = "{group}"\n'
+        text += f'[canopen]\ninterface = "{interface}"\nchannel = "{group}"\n'
         text += "".join(f"[canopen.axes.{'xyzabc'[i]}]\nnode_id = {i + 1}\n" for i in range(n))
         (tmp / "bench.toml").write_text(text)
         self.proc = subprocess.Popen([sys.executable, "-m", "motiond.cli", "sim", "drives", "--config",
@@ -287,7 +287,7 @@ def main() -> int:
         LAYOUT, FE_EVERY = args.layout, args.fe_every
         sys.setswitchinterval(args.switch_interval_ms / 1000.0)
         return fieldbus_vcan.run(args, layout_for, sine_step, print_table, args.rt_priority,
-                                 None if args.cpu_latency_us < 0 else args.cpu_latency_us)
+                                 None if args.cpu_latency_us < 0 else args.cpu_latency_us, DriveProcess)
     if args.bus == "udp_multicast" and os.environ.get("CANON_NETNS") != "1":
         ap.error("--bus udp_multicast joins a multicast group: run it as tests/netns-run python "
                  "bench/fieldbus.py --bus udp_multicast")

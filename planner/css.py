@@ -83,6 +83,15 @@ class SurfaceSpeed:
         assert mode is not None
         return css_rpm(mode.surface, x - mode.x_centre, mode.css_max)
 
+    def highest_rpm(self, x0: float, x1: float) -> float:
+        """The highest G96 rpm along a move from machine X ``x0`` to ``x1`` (as the commands come in):
+        at its end nearer the centre, or D where it crosses the centre."""
+        mode = self.intake_mode
+        assert mode is not None
+        if (x0 - mode.x_centre) * (x1 - mode.x_centre) <= 0.0:
+            return self.rpm_at(mode.x_centre)
+        return max(self.rpm_at(x0), self.rpm_at(x1))
+
     def split_line(self, x0: float, x1: float) -> list[float]:
         """Where (0 < u < 1 along it) a line from machine X ``x0`` to ``x1`` is cut so that within each
         piece the G96 rpm changes by at most :data:`CSS_PIECE_RATIO` (at most :data:`CSS_MAX_PIECES`

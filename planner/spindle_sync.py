@@ -35,7 +35,12 @@ Both are guarded by :func:`follow_jump`: a spindle that turned on while no setpo
 cycle) would have the axes catch up in one step, a target jump the drive faults on (EMCY 0x8400)
 mid-thread. Following stops there instead: G33 / G76 run on at their planned pace (the machine's fault
 then stops them on their quick-stop ramp), the tap holds where it is; the fault names the line and the
-jump. A stop on the path (hold, abort, quick stop) runs on the wall clock, never on the spindle's.
+jump. G33 / G76 are guarded by :func:`follow_overspeed` as well: a spindle measured faster than planned
+(an override on the drive, an overshoot) carries the axes faster on its clock; an axis beyond
+:data:`FOLLOW_SPEED_MARGIN` times its max_velocity over :data:`FOLLOW_SPEED_WINDOW_S` stops following
+in the same way, the fault naming the line, the axis and the measured rpm. (The plan-time checks,
+``_synced_speed``, cover the commanded rpm: S under G97, the G96 rpm along the move.) A stop on the
+path (hold, abort, quick stop) runs on the wall clock, never on the spindle's.
 """
 
 from __future__ import annotations
@@ -43,6 +48,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -65,6 +71,34 @@ def follow_jump(axes: Sequence[AxisLimits], T: float, last: Sequence[float], pos
             return (f"axis {lim.name.upper()} would jump {abs(b - a):.3f} {lim.unit} in one cycle to follow "
                     f"the spindle (at most {most:.3f}: the spindle turned while no setpoint went out, a "
                     "stalled cycle)")
+    return ""
+
+
+FOLLOW_SPEED_MARGIN = 1.05
+"""Following the spindle an axis may go at most this many times its max_velocity, averaged over
+:data:`FOLLOW_SPEED_WINDOW_S` (a spindle a little faster than planned, its speed's ripple, is ridden
+through); beyond, the spindle turns too fast for the pitch (:func:`follow_overspeed`)."""
+
+FOLLOW_SPEED_WINDOW_S = 0.02
+"""The time over which a followed axis's speed is taken for :data:`FOLLOW_SPEED_MARGIN` (a cycle's
+speed carries the spindle position's prediction error)."""
+
+
+def follow_overspeed(axes: Sequence[AxisLimits], window: Sequence[tuple[float, Sequence[float]]],
+                     T: float) -> str:
+    """Why following the spindle cannot go on ("" it can): over ``window`` ((revolutions, axis position)
+    of consecutive cycles) an axis went faster than :data:`FOLLOW_SPEED_MARGIN` times its
+    max_velocity."""
+    if len(window) < 2:
+        return ""
+    (r0, p0), (r1, p1) = window[0], window[-1]
+    dt = (len(window) - 1) * T
+    for lim, a, b in zip(axes, p0, p1, strict=True):
+        v = abs(b - a) / dt
+        if v > FOLLOW_SPEED_MARGIN * lim.max_velocity:
+            return (f"the spindle turns at {abs(r1 - r0) * 60.0 / dt:.0f} rpm (measured), too fast for the "
+                    f"pitch: axis {lim.name.upper()} would move at {v:.4g} {lim.unit}/s, beyond its "
+                    f"max_velocity {lim.max_velocity:g} (x{FOLLOW_SPEED_MARGIN:g})")
     return ""
 
 
@@ -118,6 +152,7 @@ class SpindleSyncMixin:
     _sp_index: float | None = None
     _sp_act: Any = None  # the running profile followed (a replan of the same move makes a new one)
     _sp_broken = False  # a jump was refused: no following until the planner is made again
+    _sp_window: deque[tuple[float, list[float]]] | None = None  # (revolutions, axes) of the last cycles
 
     def _spindle_sync(self, cmd: C.Canon) -> None:
         if isinstance(cmd, C.RigidTap):
@@ -141,24 +176,35 @@ class SpindleSyncMixin:
         if self._spindle_rpm <= 0:
             raise PlannerError("spindle-synchronized motion (G33, G33.1, G76) needs a turning spindle",
                                cmd.file, cmd.line)
+        end = self._sync_move_end()
+        top = self._pitch_rpm_cap(end)
         if self._css.in_css:
-            rpm = self._css_sync_rpm(cmd)
+            rpm = self._css_sync_rpm(cmd, end, top)
+            fastest = self._css.highest_rpm(self._end[self._css.x_index], end[self._css.x_index])
+            what = f"under G96 turns the spindle at up to {fastest:.0f} rpm along this move"
+            most = f"{math.floor(top):g} rpm"
+            fix = "lower S or D"
         else:
-            rpm = self._spindle_rpm
-            top = self._pitch_rpm_cap()
-            if rpm > top * (1.0 + 1e-9):
-                raise PlannerError(
-                    f"spindle-synchronized motion at S{rpm:g} with a pitch of {self._sync_pitch:g} needs "
-                    f"the axes faster than their max_velocity allows (at most S{math.floor(top):g} for this "
-                    "move): the thread's pitch would not hold; lower S", cmd.file, cmd.line)
+            rpm = fastest = self._spindle_rpm
+            what, most, fix = f"at S{rpm:g}", f"S{math.floor(top):g}", "lower S"
+        if fastest > top * (1.0 + 1e-9):
+            raise PlannerError(
+                f"spindle-synchronized motion {what} with a pitch of {self._sync_pitch:g} needs the axes "
+                f"faster than their max_velocity allows (at most {most} for this move): the thread's "
+                f"pitch would not hold; {fix}", cmd.file, cmd.line)
         self._note_synced(cmd, self._sync_pitch, locked=True, rpm=rpm)
         return self._sync_pitch * rpm / 60.0
 
-    def _pitch_rpm_cap(self) -> float:
-        """The highest rpm at which this synchronized move's axes keep their max_velocity at the pitch
-        (``inf`` for a move of no length). Beyond it the axes' cap would shorten the pitch: on the
-        spindle's clock the axes lag the turns, in a thread cut at the wrong pitch."""
-        end = [self._pose[i] for i in self._pose_index]  # type: ignore[attr-defined]  # _target set it
+    def _sync_move_end(self) -> list[float]:
+        """The end (machine, the planner's axis order) of the synchronized move being queued: where
+        ``_target`` put it in ``_pose``."""
+        return [self._pose[i] for i in self._pose_index]  # type: ignore[attr-defined]
+
+    def _pitch_rpm_cap(self, end: Sequence[float]) -> float:
+        """The highest rpm at which the synchronized move to ``end`` keeps its axes within their
+        max_velocity at the pitch (``inf`` for a move of no length). Beyond it the axes' cap would
+        shorten the pitch: on the spindle's clock the axes lag the turns, in a thread cut at the wrong
+        pitch."""
         delta = [b - a for a, b in zip(self._end, end, strict=True)]
         length = math.hypot(*delta)
         tiny = 1e-12 * (1.0 + length)
@@ -167,21 +213,20 @@ class SpindleSyncMixin:
         assert self._sync_pitch is not None
         return top * 60.0 / self._sync_pitch
 
-    def _css_sync_rpm(self, cmd: C.Canon) -> float:
+    def _css_sync_rpm(self, cmd: C.Canon, end: Sequence[float], top: float) -> float:
         """G33 / G76 under G96 (LinuxCNC runs them: its spindle turns at the G96 rpm of the commanded X,
         the axes follow its position). Followed on the spindle's measured position (``follow_taps``),
-        a move is planned at D (at most the rpm at which its axes keep their max_velocity): on the
-        spindle's clock the pitch holds at whatever rpm G96 gives, and every pass has the same lead-in
-        (the same groove). Otherwise at the G96 rpm along the move (the lowest: a straight pass has
-        one), as the spindle is commanded to turn."""
+        a move is planned at D (at most ``top``, the rpm at which its axes keep their max_velocity): on
+        the spindle's clock the pitch holds at whatever rpm G96 gives, and every pass has the same
+        lead-in (the same groove). Otherwise at the G96 rpm along the move (the lowest: a straight pass
+        has one), as the spindle is commanded to turn."""
         mode = self._css.intake_mode
-        end = [self._pose[i] for i in self._pose_index]  # type: ignore[attr-defined]  # _target set it
         if self.follow_taps:
             if mode.css_max >= 1e29:
                 raise PlannerError("spindle-synchronized motion under constant surface speed (G96) needs "
                                    "its D word (the highest rpm): a thread followed on the spindle is "
                                    "planned at it", cmd.file, cmd.line)
-            return min(float(mode.css_max), self._pitch_rpm_cap())
+            return min(float(mode.css_max), top)
         x = self._css.x_index
         return min(self._css.rpm_at(self._end[x]), self._css.rpm_at(end[x]))
 
@@ -250,6 +295,7 @@ class SpindleSyncMixin:
         t_next = (self._k + 1) * self.T
         if act.seg is not self._sp_seg:  # a synchronized move began with the last setpoint
             self._sp_seg = act.seg
+            self._sp_window = deque(maxlen=1 + max(1, round(FOLLOW_SPEED_WINDOW_S / self.T)))
             from_rest = abs(act.traj.at_time(0.0)[1][0]) < 1e-12 and act.s_off <= act.seg.s0 + 1e-12
             self._sp_tau = max(0.0, t_next - self.T - act.t0)  # its time so far (one cycle's at most)
             self._sp_index = None
@@ -270,7 +316,11 @@ class SpindleSyncMixin:
         tau = self._sp_tau + (step if locked else min(step, self.T))
         if locked:
             p = min(act.traj.at_time(min(tau, act.traj.duration))[0][0] + act.s_off, act.s_end)
-            why = follow_jump(self.machine.axes, self.T, self._last_pos, act.seg.piece.pos(p))
+            pos = act.seg.piece.pos(p)
+            why = follow_jump(self.machine.axes, self.T, self._last_pos, pos)
+            if not why and self._sp_window is not None:
+                self._sp_window.append((revolutions, pos))
+                why = follow_overspeed(self.machine.axes, self._sp_window, self.T)
             if why:
                 self._sp_broken = True  # on at the planned pace from here: act.t0 as it was
                 cmd = act.seg.cmd

@@ -11,6 +11,7 @@ timeouts are generous: these tests check behaviour, not timing.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import statistics
 import subprocess
@@ -293,3 +294,18 @@ def test_a_cycle_stalled_beyond_the_timeout_is_the_masters_fault(rig):
     assert r.master.fault is not None
     assert r.master.fault.node == 0, r.master.fault
     assert "sent no setpoint" in r.master.fault.reason and "SYNC went on" in r.master.fault.reason
+
+
+@pytest.mark.timeout(600)
+def test_the_socketcan_bench_runs_on_vcan0():
+    """``bench/fieldbus.py --bus socketcan`` (what ``tests/vcan/run-vm --bench`` runs), one short case with
+    the kernel's SYNC: it ends, prints its row, and its listener saw the kernel's SYNC through the run.
+    Its figures are the emulated guest's: reported by the bench, not judged here."""
+    res = subprocess.run([sys.executable, str(ROOT / "bench" / "fieldbus.py"), "--bus", "socketcan",
+                          "--seconds", "1", "--drives", "1", "--periods-ms", "20", "--sync", "kernel"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=540)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    row = re.search(r"1 drives, 20(?: ms)?\s*│\s*kernel\s*│\s*(\d+)", res.stdout)  # the cell may wrap
+    assert row is not None, res.stdout
+    assert int(row.group(1)) >= 10, res.stdout  # 50 SYNCs at 20 ms in a second: at least a fifth seen
+    print(res.stdout)
