@@ -53,6 +53,7 @@ from gcode_canon.lexer import (
     parse_line,
     read_prefix,
 )
+from gcode_canon.messages import classify
 
 Node = float | Callable[[], float]
 """A compiled value: a constant, or a function that computes it now."""
@@ -190,10 +191,35 @@ class _Compiler:
         return (1.0 if 1 <= index <= MAX_PARAMETER else 0.0), k
 
 
+_PLAIN_WORDS = frozenset("xyzf")
+
+
+def plain_shape(g: list[int], m: list[int], letters, comments: list[str], deleted: bool,
+                line_number: float | None) -> tuple[int | None, str | None] | None:
+    """:attr:`Block.plain` of a line with these codes, word letters and comments."""
+    if m or deleted or line_number is not None or not _PLAIN_WORDS.issuperset(letters):
+        return None
+    if len(g) > 1 or (g and g[0] not in (0, 10)):
+        return None
+    comment = None
+    if comments:
+        keyword, comment = classify(comments[-1])
+        if keyword:
+            return None
+    return (g[0] if g else None), comment
+
+
+def _with_plain(block: Block) -> Block:
+    if block.o_text is None and not block.assigns:
+        block.plain = plain_shape(block.g, block.m, block.words, block.comments, block.deleted,
+                                  block.line_number)
+    return block
+
+
 class CompiledLine:
     """One line's words in order, each a constant or a closure; :meth:`run` makes its Block."""
 
-    __slots__ = ("comments", "deleted", "items", "line_number")
+    __slots__ = ("comments", "deleted", "items", "line_number", "plain")
 
     def __init__(self, raw: str, compiler: _Compiler) -> None:
         s, self.comments = fold(raw)
@@ -239,6 +265,11 @@ class CompiledLine:
             else:
                 raise GCodeError("bad character")
         self.items = tuple(items)
+        self.plain = None
+        if all(kind == _WORD or (kind == _G and not callable(node)) for kind, _, node, _ in items):
+            self.plain = plain_shape([g_code(node) for kind, _, node, _ in items if kind == _G],  # type: ignore[arg-type]
+                                     [], [letter for kind, letter, _, _ in items if kind == _WORD],
+                                     self.comments, self.deleted, self.line_number)
 
     def run(self) -> Block:
         """The Block ``parse_line`` would give now (values from the parameters in force)."""
@@ -246,6 +277,7 @@ class CompiledLine:
         block.comments = self.comments
         block.deleted = self.deleted
         block.line_number = self.line_number
+        block.plain = self.plain
         words = block.words
         for kind, letter, node, key in self.items:
             value = node() if callable(node) else node
@@ -281,7 +313,10 @@ class LineCache:
             entries = self._entries
             if len(entries) >= self.size:
                 entries.clear()
-            entries[raw] = block if (block.o_text is not None or "#" not in raw) else _SEEN
+            if block.o_text is not None or "#" not in raw:
+                entries[raw] = _with_plain(block)
+            else:
+                entries[raw] = _SEEN
             return block
         if entry.__class__ is Block:
             return entry  # type: ignore[return-value]

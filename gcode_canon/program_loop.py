@@ -16,8 +16,9 @@ from gcode_canon.commands import (
     Pose,
     SetFeedRate,
     SetMotionControlMode,
-    StraightFeed,
-    StraightTraverse,
+    new_comment,
+    new_straight_feed,
+    new_straight_traverse,
 )
 from gcode_canon.dialect import GRBL_JUNCTION_DEVIATION_MM, Dialect
 from gcode_canon.errors import GCodeError
@@ -68,6 +69,8 @@ class ProgramLoopMixin:
         MDI call, until the call stack is back to ``depth`` frames."""
         fast_match = FAST_LINE.match
         fast = self._fast
+        fast_block = self._fast_block
+        parse = self._lines.parse
         flow = self.flow
         self._tail = None
         settings = self.settings
@@ -110,7 +113,10 @@ class ProgramLoopMixin:
                 if seen_fast:
                     self.seen_code = True
                 try:
-                    out = self._execute_line(raw)
+                    block = parse(raw)
+                    cmds = fast_block(block) if block.plain is not None and self._fast_ok else None
+                    if cmds is None:
+                        out = self._execute_block(block)
                 except GCodeError as exc:
                     raise exc.located(self.file, self.line) from None
                 except RecursionError:
@@ -118,6 +124,10 @@ class ProgramLoopMixin:
                 except Exception as exc:
                     log.exception("internal error")
                     raise GCodeError(f"internal error: {exc!r}", self.file, self.line) from exc
+                if cmds is not None:
+                    self.seen_code = True
+                    yield from cmds
+                    continue
                 for item in out:
                     if type(item) is Resume:
                         try:
@@ -168,18 +178,36 @@ class ProgramLoopMixin:
     def _fast(self, m) -> tuple[Canon, ...] | None:
         """A plain G0/G1 line of literal X Y Z F words; None sends the line the general way."""
         g, xs, ys, zs, fs = m.groups()
-        has_axes = xs is not None or ys is not None or zs is not None
+        return self._fast_values(None if g is None else 0 if g == "0" else 10,
+                                 None if xs is None else float(xs), None if ys is None else float(ys),
+                                 None if zs is None else float(zs), None if fs is None else float(fs))
+
+    def _fast_block(self, block: Block) -> tuple[Canon, ...] | None:
+        """The fast path for a parsed line of the same shape (:attr:`Block.plain`: an optional G0/G1,
+        X Y Z F words whatever their values are written as, a comment that is not active): the
+        general path's commands, or None to send it there."""
+        motion, comment = block.plain  # type: ignore[misc]
+        w = block.words
+        cmds = self._fast_values(motion, w.get("x"), w.get("y"), w.get("z"), w.get("f"))
+        if cmds is None or comment is None:
+            return cmds
+        return (new_comment(comment, self.file, self.line), *cmds)  # _step_comment runs first
+
+    def _fast_values(self, g: int | None, xv: float | None, yv: float | None, zv: float | None,
+                     fv: float | None) -> tuple[Canon, ...] | None:
+        """:meth:`_fast` and :meth:`_fast_block`: motion code (None, 0, 10) and the words' values."""
+        has_axes = xv is not None or yv is not None or zv is not None
         if g is None:
-            if not has_axes and fs is None:
+            if not has_axes and fv is None:
                 return None
             motion = self.motion
         else:
-            motion = 0 if g == "0" else 10
+            motion = g
         scale = self.scale
         feed = self.feed
-        if fs is not None:
-            feed = float(fs) * scale
-            if feed < 0.0 or not math.isfinite(feed):
+        if fv is not None:
+            feed = fv * scale
+            if feed < 0.0 or not _isfinite(feed):
                 return None
         if has_axes and ((motion == 10 and feed == 0.0) or motion not in (0, 10)):
             return None
@@ -189,19 +217,19 @@ class ProgramLoopMixin:
             prog = self.prog
             x, y, z = prog[0], prog[1], prog[2]
             if self.absolute:
-                if xs is not None:
-                    x = float(xs) * scale
-                if ys is not None:
-                    y = float(ys) * scale
-                if zs is not None:
-                    z = float(zs) * scale
+                if xv is not None:
+                    x = xv * scale
+                if yv is not None:
+                    y = yv * scale
+                if zv is not None:
+                    z = zv * scale
             else:
-                if xs is not None:
-                    x += float(xs) * scale
-                if ys is not None:
-                    y += float(ys) * scale
-                if zs is not None:
-                    z += float(zs) * scale
+                if xv is not None:
+                    x += xv * scale
+                if yv is not None:
+                    y += yv * scale
+                if zv is not None:
+                    z += zv * scale
             s = self.frames.sum
             mx, my, mz = x + s[0], y + s[1], z + s[2]
             if not (_isfinite(mx) and _isfinite(my) and _isfinite(mz)):
@@ -214,9 +242,9 @@ class ProgramLoopMixin:
             end = _new_pose(Pose, (mx, my, mz, *tail))
             self.pos = end
             if motion:
-                cmd: Canon = StraightFeed(end, file=file, line=line)
+                cmd: Canon = new_straight_feed(end, file, line)
             else:
-                cmd = StraightTraverse(end, file=file, line=line)
+                cmd = new_straight_traverse(end, file, line)
             self.motion = motion
             if feed != self.feed:
                 self.feed = feed
@@ -236,8 +264,10 @@ class ProgramLoopMixin:
         self._out.append(cmd)
 
     def _execute_line(self, raw: str) -> list[Canon | Resume]:
+        return self._execute_block(self._lines.parse(raw))
+
+    def _execute_block(self, block: Block) -> list[Canon | Resume]:
         self._out = []
-        block = self._lines.parse(raw)
         if block.deleted and self.settings.block_delete:
             return []
         if block.o_text is not None:
