@@ -64,16 +64,28 @@ def _write(interp: Any, args: argparse.Namespace, write: Callable[[str], Any],
         for cmd in commands:
             write(dumps(to_json(cmd)) + "\n")
     else:
+        from gcode_canon.commands import StraightFeed, StraightTraverse
+
         main = args.file
         lines: list[str] = []
         add = lines.append
+        straight = {StraightFeed: "%6d STRAIGHT_FEED(%.4f, %.4f, %.4f, 0.0000, 0.0000, 0.0000)\n",
+                    StraightTraverse: "%6d STRAIGHT_TRAVERSE(%.4f, %.4f, %.4f, 0.0000, 0.0000, 0.0000)\n"}
+        zeros = (0.0,) * 6
         try:
             for cmd in commands:
                 file = cmd.file
                 if file and file != main:  # a subroutine's file: FILE:LINE where the number stands
                     add(f"{file}:{cmd.line} {format_text(cmd)}\n")
-                else:
-                    add(f"{cmd.line:>6} {format_text(cmd)}\n")
+                    continue
+                form = straight.get(cmd.__class__)
+                if form is not None:
+                    e = cmd.end
+                    if e[3:] == zeros:  # the bulk: format_text's text in one formatting
+                        text = form % (cmd.line, e[0], e[1], e[2])
+                        add(text.replace("-0.0000", "0.0000") if "-0.0000" in text else text)
+                        continue
+                add(f"{cmd.line:>6} {format_text(cmd)}\n")
                 if len(lines) >= 256:  # one write per block of lines: a write call per line costs more
                     write("".join(lines))
                     lines.clear()

@@ -123,3 +123,24 @@ def test_dialect_and_subroutine_path_options(tmp_path: Path, capsys: pytest.Capt
     assert main(["check", "--dialect", "gcode-canon", str(labels)]) == 0
     assert main(["check", str(labels)]) != 0  # LinuxCNC: O5 reached in the flow of the main program
     assert "main program must end" in capsys.readouterr().err
+
+
+def test_straight_moves_are_written_as_format_text_writes_them(tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """The bulk of the text (straight moves with A B C U V W at zero) is formatted in one go: the same
+    text as :func:`motiond.cmd_check.format_text`, "-0.0000" written "0.0000" included."""
+    from gcode_canon.interpreter import Interpreter
+    from gcode_canon.settings import InterpreterSettings
+    from motiond.cmd_check import format_text
+
+    values = ["0", "-0.00004", "0.00004", "-0.00005", "-0.00006", "-10", "12.34565", "-0.000049999", "1e3"]
+    body = [f"G{k % 2} X{values[k % 9]} Y{values[(k * 4) % 9]} Z{values[(k * 7 + 1) % 9]}" for k in range(81)]
+    body += ["G0 A-0.00004 X1", "G1 A0 B0.5", "G0 X-0.00001 Y2"]
+    text = "G21 F100\n" + "\n".join(body).replace("e3", "000") + "\nM2\n"
+    path = write(tmp_path, text)
+    assert main(["check", str(path)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    expected = [f"{cmd.line:>6} {format_text(cmd)}"
+                for cmd in Interpreter(InterpreterSettings(dry_run=True)).run_file(path)]
+    assert out == expected
+    assert any("STRAIGHT_FEED(0.0000, 0.0000, 0.0000" in line for line in out)
