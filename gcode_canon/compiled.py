@@ -219,7 +219,7 @@ def _with_plain(block: Block) -> Block:
 class CompiledLine:
     """One line's words in order, each a constant or a closure; :meth:`run` makes its Block."""
 
-    __slots__ = ("comments", "deleted", "items", "line_number", "plain")
+    __slots__ = ("comments", "deleted", "items", "line_number", "plain", "shape", "static")
 
     def __init__(self, raw: str, compiler: _Compiler) -> None:
         s, self.comments = fold(raw)
@@ -265,6 +265,8 @@ class CompiledLine:
             else:
                 raise GCodeError("bad character")
         self.items = tuple(items)
+        self.shape = None  # Block.shape, the same for every run when the G and M codes are constants
+        self.static = all(kind in (_WORD, _ASSIGN) or not callable(node) for kind, _, node, _ in items)
         self.plain = None
         if all(kind == _WORD or (kind == _G and not callable(node)) for kind, _, node, _ in items):
             self.plain = plain_shape([g_code(node) for kind, _, node, _ in items if kind == _G],  # type: ignore[arg-type]
@@ -278,6 +280,10 @@ class CompiledLine:
         block.deleted = self.deleted
         block.line_number = self.line_number
         block.plain = self.plain
+        if self.shape is not None:
+            block.shape = self.shape
+        elif self.static:
+            block.origin = self
         words = block.words
         for kind, letter, node, key in self.items:
             value = node() if callable(node) else node

@@ -275,16 +275,13 @@ class ProgramLoopMixin:
             return self._drain_list()
         if block.g or block.m or block.words or block.assigns:
             self.seen_code = True
-        codes = (tuple(block.g), tuple(block.m))
-        ml = self._modal_lines.get(codes)
-        if ml is None:  # sort_codes depends on the codes only; a line in error is not kept
-            ml = sort_codes(block, self.settings.user_mcodes)
-            if len(self._modal_lines) >= 4096:
-                self._modal_lines.clear()
-            self._modal_lines[codes] = ml
+        shape = block.shape
+        if shape is None:
+            shape = self._shape(block)
+        ml = shape[0]
         capture = self._g7x is not None  # reading a G70-G72 profile: no checks, nothing executed
         if not capture:
-            self._check_block(block, ml, codes)
+            self._check_block(block, ml, shape[1])
         for key, _ in block.assigns:
             self.params.check_assignable(key)
         for key, value in block.assigns:
@@ -300,23 +297,46 @@ class ProgramLoopMixin:
         if capture:
             self._profile_line(block, ml)
             return self._drain_list()
-        words = block.words
-        key = (codes, "f" in words, "s" in words, "t" in words, bool(block.comments))
-        steps = self._step_cache.get(key)
+        steps = self._step_cache.get(shape)
         if steps is None or len(self.steps) != self._step_cache_len:
-            steps = self._steps_for(key, ml)
+            steps = self._steps_for(shape, block, ml)
         for step in steps:
             step(block, ml)
         self._fast_ok = self.fast_path_allowed()
         return self._drain_list()
-    def _steps_for(self, key: tuple, ml: ModalLine) -> list[Callable[[Block, ModalLine], None]]:
+    def _shape(self, block: Block) -> tuple[ModalLine, int]:
+        """What the line's execution depends on besides its values, computed once per line text
+        (:attr:`Block.shape`): its codes sorted by group (``sort_codes``, remembered per codes) and a
+        number for its codes, word letters and comments, which keys the checks passed and the step
+        lists. A line in error is not kept."""
+        codes = (tuple(block.g), tuple(block.m))
+        ml = self._modal_lines.get(codes)
+        if ml is None:  # sort_codes depends on the codes only
+            ml = sort_codes(block, self.settings.user_mcodes)
+            if len(self._modal_lines) >= 4096:
+                self._modal_lines.clear()
+            self._modal_lines[codes] = ml
+        key = (codes, tuple(block.words), bool(block.comments))
+        ids = self._shape_ids
+        number = ids.get(key)
+        if number is None:
+            if len(ids) >= 4096:
+                ids.clear()  # numbers are never given twice (the count goes on): old keys stay apart
+            number = ids[key] = next(self._shape_count)
+        shape = (ml, number)
+        block.keep_shape(shape)
+        return shape
+
+    def _steps_for(self, shape: tuple, block: Block,
+                   ml: ModalLine) -> list[Callable[[Block, ModalLine], None]]:
         if self._step_cache_for != self.steps:  # a module inserted or removed steps: start again
             self._step_cache = {}
             self._step_cache_for = list(self.steps)
             self._step_cache_len = len(self.steps)
-        _, f, s, t, comments = key
+        words = block.words
+        comments = bool(block.comments)
         g_groups, m_groups = ml.g, ml.m
-        present = {"f": f, "s": s, "t": t}
+        present = {"f": "f" in words, "s": "s" in words, "t": "t" in words}
         chosen = []
         for step in self.steps:
             trigger = self._STEP_TRIGGERS.get(getattr(step, "__name__", ""))
@@ -327,7 +347,9 @@ class ProgramLoopMixin:
             if (any(g in g_groups for g in gs) or any(m in m_groups for m in ms)
                     or any(present[c] for c in letters) or (wants_comments and comments)):
                 chosen.append(step)
-        self._step_cache[key] = chosen
+        if len(self._step_cache) >= 4096:
+            self._step_cache.clear()
+        self._step_cache[shape] = chosen
         return chosen
 
     def fast_path_allowed(self) -> bool:

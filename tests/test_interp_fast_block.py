@@ -103,3 +103,29 @@ def test_errors_on_plain_lines_read_again_name_their_line(line: str, message: st
     assert error is not None and error.startswith("t.ngc:5: ") and message in error, error
     assert [n for n, _ in cmds].count(5) >= 2  # the readings before it ran
     assert (cmds, error) == _outcome(_general(text))
+
+
+# --- the shape a line keeps (Block.shape: its sorted codes, checks and steps, computed once) ---------
+
+def test_a_g_code_from_a_parameter_is_sorted_again_at_each_reading() -> None:
+    looped = ("G21 G90 F100\n#3 = 0 #1 = 1\no1 repeat [4]\nG#3 X#1 Y[#1 * 2]\n"
+              "#3 = [1 - #3] #1 = [#1 + 1]\no1 endrepeat\nM2\n")
+    unrolled = "G21 G90 F100\nG0 X1 Y2\nG1 X2 Y4\nG0 X3 Y6\nG1 X4 Y8\nM2\n"
+
+    def moves(text: str) -> list:
+        return [(c.NAME, c.end) for c in _interp().run_string(text) if hasattr(c, "end")]
+
+    assert moves(looped) == moves(unrolled)
+    assert [name for name, _ in moves(looped)] == ["STRAIGHT_TRAVERSE", "STRAIGHT_FEED"] * 2
+
+
+def test_a_line_read_again_is_checked_again_in_the_modal_state_of_then() -> None:
+    # line 4 passes its checks in G1 and is refused at its second reading, after G80
+    text = "G21 G90 F100\n#1 = 1\no1 repeat [2]\nX#1 Y[#1 + 1]\nG80\n#1 = 2\no1 endrepeat\nM2\n"
+    cmds, error = _outcome(text)
+    assert error == "t.ngc:4: Cannot use axis values without a G code that uses them"
+    assert [n for n, _ in cmds].count(4) == 0  # G80 from the start: refused at the first reading too
+    text = "G21 G90 F100 G1\n#1 = 1\no1 repeat [2]\nX#1 Y[#1 + 1] (n)\nG80\n#1 = 2\no1 endrepeat\nM2\n"
+    cmds, error = _outcome(text)
+    assert error == "t.ngc:4: Cannot use axis values without a G code that uses them"
+    assert [n for n, _ in cmds].count(4) == 2  # the comment and the move of the first reading
