@@ -219,7 +219,8 @@ def _with_plain(block: Block) -> Block:
 class CompiledLine:
     """One line's words in order, each a constant or a closure; :meth:`run` makes its Block."""
 
-    __slots__ = ("comments", "deleted", "items", "line_number", "plain", "shape", "static")
+    __slots__ = ("assigns", "axes", "comments", "deleted", "g", "items", "line_number", "m", "plain", "shape",
+                 "simple", "static", "values")
 
     def __init__(self, raw: str, compiler: _Compiler) -> None:
         s, self.comments = fold(raw)
@@ -267,6 +268,15 @@ class CompiledLine:
         self.items = tuple(items)
         self.shape = None  # Block.shape, the same for every run when the G and M codes are constants
         self.static = all(kind in (_WORD, _ASSIGN) or not callable(node) for kind, _, node, _ in items)
+        if self.static:
+            # constant codes read now (an error here: not compiled, parse_line says it in its place);
+            # a run evaluates only the words and settings, in their order on the line
+            self.g = [g_code(node) for kind, _, node, _ in items if kind == _G]  # type: ignore[arg-type]
+            self.m = [m_code(node) for kind, _, node, _ in items if kind == _M]  # type: ignore[arg-type]
+            self.values = tuple((letter, node) for kind, letter, node, _ in items if kind == _WORD)
+            self.axes = any(letter in _AXIS_WORDS for letter, _ in self.values)
+            self.assigns = tuple((key, node) for kind, _, node, key in items if kind == _ASSIGN)
+        self.simple = self.static and not (self.assigns and self.values)  # both: the general run
         self.plain = None
         if all(kind == _WORD or (kind == _G and not callable(node)) for kind, _, node, _ in items):
             self.plain = plain_shape([g_code(node) for kind, _, node, _ in items if kind == _G],  # type: ignore[arg-type]
@@ -275,6 +285,36 @@ class CompiledLine:
 
     def run(self) -> Block:
         """The Block ``parse_line`` would give now (values from the parameters in force)."""
+        if self.simple:
+            return self._run_simple()
+        return self._run_items()
+
+    def _run_simple(self) -> Block:
+        """Constant codes (shared by every run: a Block is never changed), then the words' values or
+        the parameter settings."""
+        block = Block()
+        block.comments = self.comments
+        block.deleted = self.deleted
+        block.line_number = self.line_number
+        block.plain = self.plain
+        if self.shape is not None:
+            block.shape = self.shape
+        else:
+            block.origin = self
+        block.g = self.g
+        block.m = self.m
+        block.axes = self.axes
+        words = block.words
+        for letter, node in self.values:
+            words[letter] = node() if callable(node) else node
+        if self.assigns:
+            assigns = block.assigns
+            for key, node in self.assigns:
+                value = node() if callable(node) else node
+                assigns.append((key() if callable(key) else key, value))
+        return block
+
+    def _run_items(self) -> Block:
         block = Block()
         block.comments = self.comments
         block.deleted = self.deleted
