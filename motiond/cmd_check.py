@@ -147,8 +147,10 @@ def format_text(cmd) -> str:
     if isinstance(cmd, ArcFeed):
         f, s, n = cmd.plane._value_  # Enum's value property is Python code: read per arc
         e, c = cmd.end, cmd.center
-        text = (f"{_num(e[f])}, {_num(e[s])}, {_num(c[f])}, {_num(c[s])}, {cmd.turns}, {_num(e[n])}, "
-                f"{_num(e[3])}, {_num(e[4])}, {_num(e[5])}")
+        # one formatting, then _num's "0.0000" for "-0.0000" (see the straight moves above)
+        text = _ARC_TEXT % (e[f], e[s], c[f], c[s], cmd.turns, e[n], e[3], e[4], e[5])
+        if "-0.0000" in text:
+            text = text.replace("-0.0000", "0.0000")
         if e[6] or e[7] or e[8]:
             text += ", " + ", ".join(_num(v) for v in e[6:])
         return f"{cmd.NAME}({text})"
@@ -158,6 +160,8 @@ def format_text(cmd) -> str:
     fields = [fl.name for fl in dataclasses.fields(cmd) if fl.name not in ("file", "line")]
     return f"{cmd.NAME}({', '.join(_value_text(getattr(cmd, name)) for name in fields)})"
 
+
+_ARC_TEXT = "%.4f, %.4f, %.4f, %.4f, %s, %.4f, %.4f, %.4f, %.4f"
 
 # Arguments written as LinuxCNC's rs274 writes them, where canon's command carries the same thing.
 _LINUXCNC_STYLE = {

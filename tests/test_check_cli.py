@@ -144,3 +144,28 @@ def test_straight_moves_are_written_as_format_text_writes_them(tmp_path: Path,
                 for cmd in Interpreter(InterpreterSettings(dry_run=True)).run_file(path)]
     assert out == expected
     assert any("STRAIGHT_FEED(0.0000, 0.0000, 0.0000" in line for line in out)
+
+
+def test_arcs_are_written_with_four_decimals_and_no_negative_zero(tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """ARC_FEED as LinuxCNC orders its arguments, each number as ``_num`` writes it."""
+    from gcode_canon.commands import ArcFeed
+    from gcode_canon.interpreter import Interpreter
+    from gcode_canon.settings import InterpreterSettings
+    from motiond.cmd_check import _num
+
+    text = ("G21 G17 F100\nG0 X0 Y0 Z-0.00004\nG2 X-0.00004 Y10 I0 J5\nG3 X0.00004 Y0 J-5 Z-0.00006\n"
+            "G18\nG2 Z-0.00004 X4 K0 I2\nG19 G3 Y0 Z-3 J-0.00003 K-1.5 P2\nM2\n")
+    path = write(tmp_path, text)
+    assert main(["check", str(path)]) == 0
+    arcs = [line.split(None, 1)[1] for line in capsys.readouterr().out.splitlines() if "ARC_FEED" in line]
+    expected = []
+    for cmd in Interpreter(InterpreterSettings(dry_run=True)).run_file(path):
+        if isinstance(cmd, ArcFeed):
+            f, s, n = cmd.plane.value
+            e, c = cmd.end, cmd.center
+            values = [_num(e[f]), _num(e[s]), _num(c[f]), _num(c[s]), str(cmd.turns), _num(e[n]),
+                      _num(e[3]), _num(e[4]), _num(e[5])]
+            expected.append(f"ARC_FEED({', '.join(values)})")
+    assert arcs == expected and len(arcs) == 4
+    assert not any("-0.0000" in line for line in arcs)
