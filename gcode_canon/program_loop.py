@@ -68,7 +68,7 @@ class ProgramLoopMixin:
         """Read and execute lines from ``self.source`` until the program ends (``main``) or, for an
         MDI call, until the call stack is back to ``depth`` frames."""
         fast_match = FAST_LINE.match
-        fast = self._fast
+        fast = self._fast_values
         fast_block = self._fast_block
         parse = self._lines.parse
         flow = self.flow
@@ -86,7 +86,10 @@ class ProgramLoopMixin:
                 if self._fast_ok:
                     m = fast_match(raw)
                     if m is not None:
-                        cmds = fast(m)
+                        g, xs, ys, zs, fs = m.groups()
+                        cmds = fast(None if g is None else 0 if g == "0" else 10,
+                                    None if xs is None else float(xs), None if ys is None else float(ys),
+                                    None if zs is None else float(zs), None if fs is None else float(fs))
                         if cmds is not None:
                             seen_content = seen_fast = True
                             yield from cmds
@@ -175,13 +178,6 @@ class ProgramLoopMixin:
             else:
                 yield item
 
-    def _fast(self, m) -> tuple[Canon, ...] | None:
-        """A plain G0/G1 line of literal X Y Z F words; None sends the line the general way."""
-        g, xs, ys, zs, fs = m.groups()
-        return self._fast_values(None if g is None else 0 if g == "0" else 10,
-                                 None if xs is None else float(xs), None if ys is None else float(ys),
-                                 None if zs is None else float(zs), None if fs is None else float(fs))
-
     def _fast_block(self, block: Block) -> tuple[Canon, ...] | None:
         """The fast path for a parsed line of the same shape (:attr:`Block.plain`: an optional G0/G1,
         X Y Z F words whatever their values are written as, a comment that is not active): the
@@ -195,7 +191,8 @@ class ProgramLoopMixin:
 
     def _fast_values(self, g: int | None, xv: float | None, yv: float | None, zv: float | None,
                      fv: float | None) -> tuple[Canon, ...] | None:
-        """:meth:`_fast` and :meth:`_fast_block`: motion code (None, 0, 10) and the words' values."""
+        """The fast path (FAST_LINE's lines, and :meth:`_fast_block`): motion code (None, 0, 10) and the
+        words' values; None sends the line the general way."""
         has_axes = xv is not None or yv is not None or zv is not None
         if g is None:
             if not has_axes and fv is None:
