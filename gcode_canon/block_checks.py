@@ -25,12 +25,11 @@ class BlockChecksMixin:
         motion = ml.g.get(1)
         return self.motion if motion is None else motion
 
-    def _check_block(self, block: Block, ml: ModalLine, codes: tuple) -> None:
-        """:meth:`_check_words`, remembered: a line with the same codes and word letters in the same
-        modal state (motion, plane, distance mode, compensation on or off) passes again; only M19's
-        checks read the words' values, and they run every time."""
-        key = (codes, tuple(block.words), self.motion, self.plane._value_[2], self.absolute,
-               self.comp is None)
+    def _check_block(self, block: Block, ml: ModalLine, shape: int) -> None:
+        """:meth:`_check_words`, remembered: a line with the same codes and word letters (``shape``,
+        :meth:`_shape`) in the same modal state (motion, plane, distance mode, compensation on or
+        off) passes again; only M19's checks read the words' values, and they run every time."""
+        key = (shape, self.motion, self.plane._value_[2], self.absolute, self.comp is None)
         passed = self._checks_passed
         if key in passed:
             if ml.m.get(7) == 19:

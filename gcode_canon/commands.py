@@ -518,3 +518,49 @@ class ProgramEnd(Canon):
 
 
 MOTION_TYPES: tuple[type[Canon], ...] = (StraightTraverse, StraightFeed, ArcFeed, Probe)
+
+
+def _maker(cls: type[Canon]):
+    """A constructor of ``cls`` taking every field positionally, ``file`` and ``line`` last, that sets
+    the slots directly: the frozen dataclass ``__init__`` (keyword arguments, ``object.__setattr__``
+    per field) costs a microsecond or more per command, and the interpreter makes one per move. The
+    object is the one ``cls(...)`` makes (no ``__post_init__`` here)."""
+    import dataclasses
+
+    names = [f.name for f in dataclasses.fields(cls) if f.name not in ("file", "line")] + ["file", "line"]
+    setters = tuple(getattr(cls, name).__set__ for name in names)
+    new = object.__new__
+    if len(names) == 3:
+        s0, s1, s2 = setters
+
+        def make3(a, file, line):
+            obj = new(cls)
+            s0(obj, a)
+            s1(obj, file)
+            s2(obj, line)
+            return obj
+
+        return make3
+    assert len(names) == 7
+    s0, s1, s2, s3, s4, s5, s6 = setters
+
+    def make7(a, b, c, d, e, file, line):
+        obj = new(cls)
+        s0(obj, a)
+        s1(obj, b)
+        s2(obj, c)
+        s3(obj, d)
+        s4(obj, e)
+        s5(obj, file)
+        s6(obj, line)
+        return obj
+
+    return make7
+
+
+new_straight_feed = _maker(StraightFeed)
+"""``StraightFeed(end, file=file, line=line)``, faster: ``new_straight_feed(end, file, line)``."""
+new_straight_traverse = _maker(StraightTraverse)
+new_comment = _maker(Comment)
+new_arc_feed = _maker(ArcFeed)
+"""``ArcFeed(end, center, plane, turns, rotation, file=file, line=line)``, every argument given."""

@@ -53,6 +53,7 @@ from gcode_canon.lexer import (
     parse_line,
     read_prefix,
 )
+from gcode_canon.messages import classify
 
 Node = float | Callable[[], float]
 """A compiled value: a constant, or a function that computes it now."""
@@ -190,10 +191,36 @@ class _Compiler:
         return (1.0 if 1 <= index <= MAX_PARAMETER else 0.0), k
 
 
+_PLAIN_WORDS = frozenset("xyzf")
+
+
+def plain_shape(g: list[int], m: list[int], letters, comments: list[str], deleted: bool,
+                line_number: float | None) -> tuple[int | None, str | None] | None:
+    """:attr:`Block.plain` of a line with these codes, word letters and comments."""
+    if m or deleted or line_number is not None or not _PLAIN_WORDS.issuperset(letters):
+        return None
+    if len(g) > 1 or (g and g[0] not in (0, 10)):
+        return None
+    comment = None
+    if comments:
+        keyword, comment = classify(comments[-1])
+        if keyword:
+            return None
+    return (g[0] if g else None), comment
+
+
+def _with_plain(block: Block) -> Block:
+    if block.o_text is None and not block.assigns:
+        block.plain = plain_shape(block.g, block.m, block.words, block.comments, block.deleted,
+                                  block.line_number)
+    return block
+
+
 class CompiledLine:
     """One line's words in order, each a constant or a closure; :meth:`run` makes its Block."""
 
-    __slots__ = ("comments", "deleted", "items", "line_number")
+    __slots__ = ("assigns", "axes", "comments", "deleted", "g", "items", "line_number", "m", "plain", "shape",
+                 "simple", "static", "values")
 
     def __init__(self, raw: str, compiler: _Compiler) -> None:
         s, self.comments = fold(raw)
@@ -239,13 +266,64 @@ class CompiledLine:
             else:
                 raise GCodeError("bad character")
         self.items = tuple(items)
+        self.shape = None  # Block.shape, the same for every run when the G and M codes are constants
+        self.static = all(kind in (_WORD, _ASSIGN) or not callable(node) for kind, _, node, _ in items)
+        if self.static:
+            # constant codes read now (an error here: not compiled, parse_line says it in its place);
+            # a run evaluates only the words and settings, in their order on the line
+            self.g = [g_code(node) for kind, _, node, _ in items if kind == _G]  # type: ignore[arg-type]
+            self.m = [m_code(node) for kind, _, node, _ in items if kind == _M]  # type: ignore[arg-type]
+            self.values = tuple((letter, node) for kind, letter, node, _ in items if kind == _WORD)
+            self.axes = any(letter in _AXIS_WORDS for letter, _ in self.values)
+            self.assigns = tuple((key, node) for kind, _, node, key in items if kind == _ASSIGN)
+        self.simple = self.static and not (self.assigns and self.values)  # both: the general run
+        self.plain = None
+        if all(kind == _WORD or (kind == _G and not callable(node)) for kind, _, node, _ in items):
+            self.plain = plain_shape([g_code(node) for kind, _, node, _ in items if kind == _G],  # type: ignore[arg-type]
+                                     [], [letter for kind, letter, _, _ in items if kind == _WORD],
+                                     self.comments, self.deleted, self.line_number)
 
     def run(self) -> Block:
         """The Block ``parse_line`` would give now (values from the parameters in force)."""
+        if self.simple:
+            return self._run_simple()
+        return self._run_items()
+
+    def _run_simple(self) -> Block:
+        """Constant codes (shared by every run: a Block is never changed), then the words' values or
+        the parameter settings."""
         block = Block()
         block.comments = self.comments
         block.deleted = self.deleted
         block.line_number = self.line_number
+        block.plain = self.plain
+        if self.shape is not None:
+            block.shape = self.shape
+        else:
+            block.origin = self
+        block.g = self.g
+        block.m = self.m
+        block.axes = self.axes
+        words = block.words
+        for letter, node in self.values:
+            words[letter] = node() if callable(node) else node
+        if self.assigns:
+            assigns = block.assigns
+            for key, node in self.assigns:
+                value = node() if callable(node) else node
+                assigns.append((key() if callable(key) else key, value))
+        return block
+
+    def _run_items(self) -> Block:
+        block = Block()
+        block.comments = self.comments
+        block.deleted = self.deleted
+        block.line_number = self.line_number
+        block.plain = self.plain
+        if self.shape is not None:
+            block.shape = self.shape
+        elif self.static:
+            block.origin = self
         words = block.words
         for kind, letter, node, key in self.items:
             value = node() if callable(node) else node
@@ -281,7 +359,10 @@ class LineCache:
             entries = self._entries
             if len(entries) >= self.size:
                 entries.clear()
-            entries[raw] = block if (block.o_text is not None or "#" not in raw) else _SEEN
+            if block.o_text is not None or "#" not in raw:
+                entries[raw] = _with_plain(block)
+            else:
+                entries[raw] = _SEEN
             return block
         if entry.__class__ is Block:
             return entry  # type: ignore[return-value]

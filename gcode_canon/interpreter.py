@@ -72,6 +72,7 @@ Decisions a machine builder should know:
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -134,6 +135,8 @@ class Interpreter(ProgramLoopMixin, BlockChecksMixin, ModeStepsMixin, ToolSpindl
         self._lines = LineCache(self.reader)
         self._modal_lines: dict[tuple, ModalLine] = {}  # (G codes, M codes) -> sort_codes' answer
         self._checks_passed: set[tuple] = set()  # see _check_block
+        self._shape_ids: dict[tuple, int] = {}  # see _shape
+        self._shape_count = itertools.count()
         self.flow = FlowControl(self)
         self.source: LineSource = LineSource.from_string("", "<none>")
         self.seen_code = False

@@ -39,7 +39,8 @@ _AXIS_WORDS = frozenset("xyzabcuvw@^")
 class Block:
     """What one line says, before any of it is executed."""
 
-    __slots__ = ("assigns", "axes", "comments", "deleted", "g", "line_number", "m", "o_text", "words")
+    __slots__ = ("assigns", "axes", "comments", "deleted", "g", "line_number", "m", "o_text", "origin",
+                 "plain", "shape", "words")
 
     def __init__(self) -> None:
         self.g: list[int] = []  # G codes times ten: G38.2 -> 382
@@ -51,6 +52,20 @@ class Block:
         self.deleted = False
         self.o_text: str | None = None  # the folded line when it starts with an O word (flow control)
         self.axes = False  # any of X Y Z A B C U V W @ ^
+        self.plain: tuple[int | None, str | None] | None = None
+        """Set by :mod:`gcode_canon.compiled` on a line read again that the fast path can run (an
+        optional G0/G1, X Y Z F words only, no active comment): (motion code or None, the text of
+        its comment or None); None: the general path."""
+        self.shape: tuple | None = None
+        """What its execution depends on besides its values (the interpreter's ``_shape``), kept
+        with the line once computed; None: not yet."""
+        self.origin = None
+        """The compiled line that made this Block, where its shape is kept (None: the Block itself)."""
+
+    def keep_shape(self, shape: tuple) -> None:
+        self.shape = shape
+        if self.origin is not None:
+            self.origin.shape = shape
 
     def has_axes(self) -> bool:
         return self.axes

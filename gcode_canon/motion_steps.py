@@ -27,6 +27,9 @@ from gcode_canon.commands import (
     SpindleOrient,
     StraightFeed,
     StraightTraverse,
+    new_arc_feed,
+    new_straight_feed,
+    new_straight_traverse,
 )
 from gcode_canon.errors import GCodeError
 from gcode_canon.lathe_cycles import LATHE_CYCLES
@@ -40,6 +43,7 @@ from gcode_canon.spline_steps import SPLINE_MOTIONS
 _PROBE_MODES = {382: ProbeMode.TOWARD_ERROR, 383: ProbeMode.TOWARD, 384: ProbeMode.AWAY_ERROR,
                 385: ProbeMode.AWAY}
 _IJK = "ijk"
+_PLAIN_MOTIONS = frozenset((0, 10, 20, 30))
 _isfinite = math.isfinite
 _AXIS_INDEX = {letter: k for k, letter in enumerate(AXIS_LETTERS)}
 
@@ -141,28 +145,29 @@ class MotionMixin:
         motion = previous if explicit is None else explicit
         self.motion = motion
         w = block.words
-        has_axes = block.has_axes()
-        if motion in LATHE_CYCLES:
-            if has_axes or explicit == motion:
-                self._lathe_cycle(motion, block)
-            return
-        if motion in SPLINE_MOTIONS:
-            if has_axes or explicit in (52, 62):
-                self._spline(motion, block, previous)
-            elif explicit is not None:
-                raise GCodeError(f"All axes missing with motion code {gname(motion)}")
-            return
-        if motion in cycles.CYCLE_CODES:
-            if has_axes:
-                self._cycle(motion, block)
-            return
+        has_axes = block.axes
+        if motion not in _PLAIN_MOTIONS:  # the common case (G0 G1 G2 G3) skips these tests
+            if motion in LATHE_CYCLES:
+                if has_axes or explicit == motion:
+                    self._lathe_cycle(motion, block)
+                return
+            if motion in SPLINE_MOTIONS:
+                if has_axes or explicit in (52, 62):
+                    self._spline(motion, block, previous)
+                elif explicit is not None:
+                    raise GCodeError(f"All axes missing with motion code {gname(motion)}")
+                return
+            if motion in cycles.CYCLE_CODES:
+                if has_axes:
+                    self._cycle(motion, block)
+                return
         if self.cycle_state.motion is not None or self.cycle_state.initial_level is not None:
             self.cycle_state = cycles.cancel(self.cycle_state)
         if motion in SYNC_MOTIONS:
             if has_axes:
                 self._sync_motion(motion, block)
             return
-        if motion in (20, 30):
+        if motion == 20 or motion == 30:
             # a G2/G3 written on the line is an arc even with no other word (LinuxCNC then refuses it:
             # "R, I, J or K words missing"); a line in G2/G3 mode with none of them moves nothing
             if has_axes or "i" in w or "j" in w or "k" in w or "r" in w or explicit in (20, 30):
@@ -202,10 +207,10 @@ class MotionMixin:
             return
         self._after_comp = False
         if motion == 0:
-            cmd: Canon = StraightTraverse(end_pose, file=f, line=n)
+            cmd: Canon = new_straight_traverse(end_pose, f, n)
         elif motion == 10:
             self._require_feed(block, "G1")
-            cmd = StraightFeed(end_pose, file=f, line=n)
+            cmd = new_straight_feed(end_pose, f, n)
         elif motion in _PROBE_MODES:
             if self.comp is not None:
                 raise GCodeError("Cannot probe with cutter radius compensation on")
@@ -331,16 +336,16 @@ class MotionMixin:
     def _arc(self, block: Block, clockwise: bool) -> None:
         name = "G2" if clockwise else "G3"
         first, second, normal = self.plane._value_
-        letters = {first: _IJK[first], second: _IJK[second]}
-        normal_letter = _IJK[normal]
-        if normal_letter in block.words:
+        words = block.words
+        first_letter, second_letter, normal_letter = _IJK[first], _IJK[second], _IJK[normal]
+        if normal_letter in words:
             raise GCodeError(f"{normal_letter.upper()} word given for arc in {self.plane.gcode} plane")
-        turns = self._int_word(block, "p", name, minimum=1)
+        turns = self._int_word(block, "p", name, minimum=1) if "p" in words else None
         turns = 1 if turns is None else turns
         self._require_feed(block, name)
         start = self.prog
-        radius = block.take("r")
-        has_ijk = letters[first] in block.words or letters[second] in block.words
+        radius = words.get("r")
+        has_ijk = first_letter in words or second_letter in words
         if radius is not None and has_ijk:
             raise GCodeError("Mixed radius-ijk format for arc")
         target = self._target(block)
@@ -350,8 +355,8 @@ class MotionMixin:
         if radius is not None:
             cx, cy, rot = centre_r(clockwise, s2, e2, radius * self.scale, turns)
         elif has_ijk:
-            off1 = (block.take(letters[first]) or 0.0) * self.scale
-            off2 = (block.take(letters[second]) or 0.0) * self.scale
+            off1 = (words.get(first_letter) or 0.0) * self.scale
+            off2 = (words.get(second_letter) or 0.0) * self.scale
             if self.ijk_absolute:
                 centre = (off1, off2)
             else:
@@ -407,6 +412,6 @@ class MotionMixin:
             raise GCodeError("Coordinate out of range")
         self.prog = target
         self.pos = end_pose
-        self._emit(ArcFeed(end_pose, centre_pose, self.plane, rot, self.frames.arc_rotation(self.plane),
-                           file=self.file, line=self.line))
+        self._emit(new_arc_feed(end_pose, centre_pose, self.plane, rot, self.frames.arc_rotation(self.plane),
+                                self.file, self.line))
 

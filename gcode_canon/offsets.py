@@ -14,6 +14,7 @@ the persistent truth, as in LinuxCNC; :class:`Frames` caches what the active sys
 from __future__ import annotations
 
 import math
+from operator import add as _add
 
 from gcode_canon.commands import Plane, Pose
 from gcode_canon.parameters import Parameters
@@ -89,9 +90,8 @@ class Frames:
     def to_machine(self, prog: list[float]) -> Pose:
         if self.rotation == 0.0:
             s = self.sum
-            return _new_pose(Pose, (prog[0] + s[0], prog[1] + s[1], prog[2] + s[2], prog[3] + s[3],
-                                    prog[4] + s[4], prog[5] + s[5], prog[6] + s[6], prog[7] + s[7],
-                                    prog[8] + s[8]))  # NamedTuple's own __new__ is Python: slower
+            # prog[k] + s[k] for the nine axes, added in C; NamedTuple's own __new__ is Python: slower
+            return _new_pose(Pose, map(_add, prog, s))
         a = self.to_absolute(prog)
         return Pose(*(p + t for p, t in zip(a, self.tool, strict=True)))
 

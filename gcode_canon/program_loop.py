@@ -16,8 +16,9 @@ from gcode_canon.commands import (
     Pose,
     SetFeedRate,
     SetMotionControlMode,
-    StraightFeed,
-    StraightTraverse,
+    new_comment,
+    new_straight_feed,
+    new_straight_traverse,
 )
 from gcode_canon.dialect import GRBL_JUNCTION_DEVIATION_MM, Dialect
 from gcode_canon.errors import GCodeError
@@ -67,7 +68,9 @@ class ProgramLoopMixin:
         """Read and execute lines from ``self.source`` until the program ends (``main``) or, for an
         MDI call, until the call stack is back to ``depth`` frames."""
         fast_match = FAST_LINE.match
-        fast = self._fast
+        fast = self._fast_values
+        fast_block = self._fast_block
+        parse = self._lines.parse
         flow = self.flow
         self._tail = None
         settings = self.settings
@@ -83,7 +86,10 @@ class ProgramLoopMixin:
                 if self._fast_ok:
                     m = fast_match(raw)
                     if m is not None:
-                        cmds = fast(m)
+                        g, xs, ys, zs, fs = m.groups()
+                        cmds = fast(None if g is None else 0 if g == "0" else 10,
+                                    None if xs is None else float(xs), None if ys is None else float(ys),
+                                    None if zs is None else float(zs), None if fs is None else float(fs))
                         if cmds is not None:
                             seen_content = seen_fast = True
                             yield from cmds
@@ -110,7 +116,10 @@ class ProgramLoopMixin:
                 if seen_fast:
                     self.seen_code = True
                 try:
-                    out = self._execute_line(raw)
+                    block = parse(raw)
+                    cmds = fast_block(block) if block.plain is not None and self._fast_ok else None
+                    if cmds is None:
+                        out = self._execute_block(block)
                 except GCodeError as exc:
                     raise exc.located(self.file, self.line) from None
                 except RecursionError:
@@ -118,6 +127,10 @@ class ProgramLoopMixin:
                 except Exception as exc:
                     log.exception("internal error")
                     raise GCodeError(f"internal error: {exc!r}", self.file, self.line) from exc
+                if cmds is not None:
+                    self.seen_code = True
+                    yield from cmds
+                    continue
                 for item in out:
                     if type(item) is Resume:
                         try:
@@ -165,21 +178,33 @@ class ProgramLoopMixin:
             else:
                 yield item
 
-    def _fast(self, m) -> tuple[Canon, ...] | None:
-        """A plain G0/G1 line of literal X Y Z F words; None sends the line the general way."""
-        g, xs, ys, zs, fs = m.groups()
-        has_axes = xs is not None or ys is not None or zs is not None
+    def _fast_block(self, block: Block) -> tuple[Canon, ...] | None:
+        """The fast path for a parsed line of the same shape (:attr:`Block.plain`: an optional G0/G1,
+        X Y Z F words whatever their values are written as, a comment that is not active): the
+        general path's commands, or None to send it there."""
+        motion, comment = block.plain  # type: ignore[misc]
+        w = block.words
+        cmds = self._fast_values(motion, w.get("x"), w.get("y"), w.get("z"), w.get("f"))
+        if cmds is None or comment is None:
+            return cmds
+        return (new_comment(comment, self.file, self.line), *cmds)  # _step_comment runs first
+
+    def _fast_values(self, g: int | None, xv: float | None, yv: float | None, zv: float | None,
+                     fv: float | None) -> tuple[Canon, ...] | None:
+        """The fast path (FAST_LINE's lines, and :meth:`_fast_block`): motion code (None, 0, 10) and the
+        words' values; None sends the line the general way."""
+        has_axes = xv is not None or yv is not None or zv is not None
         if g is None:
-            if not has_axes and fs is None:
+            if not has_axes and fv is None:
                 return None
             motion = self.motion
         else:
-            motion = 0 if g == "0" else 10
+            motion = g
         scale = self.scale
         feed = self.feed
-        if fs is not None:
-            feed = float(fs) * scale
-            if feed < 0.0 or not math.isfinite(feed):
+        if fv is not None:
+            feed = fv * scale
+            if feed < 0.0 or not _isfinite(feed):
                 return None
         if has_axes and ((motion == 10 and feed == 0.0) or motion not in (0, 10)):
             return None
@@ -189,19 +214,19 @@ class ProgramLoopMixin:
             prog = self.prog
             x, y, z = prog[0], prog[1], prog[2]
             if self.absolute:
-                if xs is not None:
-                    x = float(xs) * scale
-                if ys is not None:
-                    y = float(ys) * scale
-                if zs is not None:
-                    z = float(zs) * scale
+                if xv is not None:
+                    x = xv * scale
+                if yv is not None:
+                    y = yv * scale
+                if zv is not None:
+                    z = zv * scale
             else:
-                if xs is not None:
-                    x += float(xs) * scale
-                if ys is not None:
-                    y += float(ys) * scale
-                if zs is not None:
-                    z += float(zs) * scale
+                if xv is not None:
+                    x += xv * scale
+                if yv is not None:
+                    y += yv * scale
+                if zv is not None:
+                    z += zv * scale
             s = self.frames.sum
             mx, my, mz = x + s[0], y + s[1], z + s[2]
             if not (_isfinite(mx) and _isfinite(my) and _isfinite(mz)):
@@ -214,9 +239,9 @@ class ProgramLoopMixin:
             end = _new_pose(Pose, (mx, my, mz, *tail))
             self.pos = end
             if motion:
-                cmd: Canon = StraightFeed(end, file=file, line=line)
+                cmd: Canon = new_straight_feed(end, file, line)
             else:
-                cmd = StraightTraverse(end, file=file, line=line)
+                cmd = new_straight_traverse(end, file, line)
             self.motion = motion
             if feed != self.feed:
                 self.feed = feed
@@ -236,8 +261,10 @@ class ProgramLoopMixin:
         self._out.append(cmd)
 
     def _execute_line(self, raw: str) -> list[Canon | Resume]:
+        return self._execute_block(self._lines.parse(raw))
+
+    def _execute_block(self, block: Block) -> list[Canon | Resume]:
         self._out = []
-        block = self._lines.parse(raw)
         if block.deleted and self.settings.block_delete:
             return []
         if block.o_text is not None:
@@ -245,16 +272,13 @@ class ProgramLoopMixin:
             return self._drain_list()
         if block.g or block.m or block.words or block.assigns:
             self.seen_code = True
-        codes = (tuple(block.g), tuple(block.m))
-        ml = self._modal_lines.get(codes)
-        if ml is None:  # sort_codes depends on the codes only; a line in error is not kept
-            ml = sort_codes(block, self.settings.user_mcodes)
-            if len(self._modal_lines) >= 4096:
-                self._modal_lines.clear()
-            self._modal_lines[codes] = ml
+        shape = block.shape
+        if shape is None:
+            shape = self._shape(block)
+        ml = shape[0]
         capture = self._g7x is not None  # reading a G70-G72 profile: no checks, nothing executed
         if not capture:
-            self._check_block(block, ml, codes)
+            self._check_block(block, ml, shape[1])
         for key, _ in block.assigns:
             self.params.check_assignable(key)
         for key, value in block.assigns:
@@ -270,23 +294,46 @@ class ProgramLoopMixin:
         if capture:
             self._profile_line(block, ml)
             return self._drain_list()
-        words = block.words
-        key = (codes, "f" in words, "s" in words, "t" in words, bool(block.comments))
-        steps = self._step_cache.get(key)
+        steps = self._step_cache.get(shape)
         if steps is None or len(self.steps) != self._step_cache_len:
-            steps = self._steps_for(key, ml)
+            steps = self._steps_for(shape, block, ml)
         for step in steps:
             step(block, ml)
         self._fast_ok = self.fast_path_allowed()
         return self._drain_list()
-    def _steps_for(self, key: tuple, ml: ModalLine) -> list[Callable[[Block, ModalLine], None]]:
+    def _shape(self, block: Block) -> tuple[ModalLine, int]:
+        """What the line's execution depends on besides its values, computed once per line text
+        (:attr:`Block.shape`): its codes sorted by group (``sort_codes``, remembered per codes) and a
+        number for its codes, word letters and comments, which keys the checks passed and the step
+        lists. A line in error is not kept."""
+        codes = (tuple(block.g), tuple(block.m))
+        ml = self._modal_lines.get(codes)
+        if ml is None:  # sort_codes depends on the codes only
+            ml = sort_codes(block, self.settings.user_mcodes)
+            if len(self._modal_lines) >= 4096:
+                self._modal_lines.clear()
+            self._modal_lines[codes] = ml
+        key = (codes, tuple(block.words), bool(block.comments))
+        ids = self._shape_ids
+        number = ids.get(key)
+        if number is None:
+            if len(ids) >= 4096:
+                ids.clear()  # numbers are never given twice (the count goes on): old keys stay apart
+            number = ids[key] = next(self._shape_count)
+        shape = (ml, number)
+        block.keep_shape(shape)
+        return shape
+
+    def _steps_for(self, shape: tuple, block: Block,
+                   ml: ModalLine) -> list[Callable[[Block, ModalLine], None]]:
         if self._step_cache_for != self.steps:  # a module inserted or removed steps: start again
             self._step_cache = {}
             self._step_cache_for = list(self.steps)
             self._step_cache_len = len(self.steps)
-        _, f, s, t, comments = key
+        words = block.words
+        comments = bool(block.comments)
         g_groups, m_groups = ml.g, ml.m
-        present = {"f": f, "s": s, "t": t}
+        present = {"f": "f" in words, "s": "s" in words, "t": "t" in words}
         chosen = []
         for step in self.steps:
             trigger = self._STEP_TRIGGERS.get(getattr(step, "__name__", ""))
@@ -297,7 +344,9 @@ class ProgramLoopMixin:
             if (any(g in g_groups for g in gs) or any(m in m_groups for m in ms)
                     or any(present[c] for c in letters) or (wants_comments and comments)):
                 chosen.append(step)
-        self._step_cache[key] = chosen
+        if len(self._step_cache) >= 4096:
+            self._step_cache.clear()
+        self._step_cache[shape] = chosen
         return chosen
 
     def fast_path_allowed(self) -> bool:

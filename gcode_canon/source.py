@@ -36,23 +36,30 @@ class LineSource:
         return cls(io.StringIO(text, newline=None), name, max_line_length, owned=True)
 
     def __iter__(self) -> Iterator[str]:
-        return self
+        """The lines from here on: :meth:`__next__`'s, as a generator (cheaper per line than a method
+        call); it reads the stream and the line count afresh at each line, so ``jump`` and ``next``
+        between its lines are seen."""
+        readline = self.stream.readline
+        limit = self.max_line_length + 2
+        while True:
+            try:
+                text = readline(limit)
+            except OSError as exc:
+                raise GCodeError(f"Cannot read program: {exc}", self.name, self.line + 1) from None
+            if not text:
+                return
+            self.line += 1
+            if text[-1] == "\n":
+                text = text[:-1]
+            if len(text) > limit - 2:
+                raise GCodeError(f"Line too long (more than {limit - 2} characters)", self.name, self.line)
+            yield text
 
     def __next__(self) -> str:
-        try:
-            text = self.stream.readline(self.max_line_length + 2)
-        except OSError as exc:
-            raise GCodeError(f"Cannot read program: {exc}", self.name, self.line + 1) from None
-        if not text:
-            raise StopIteration
-        self.line += 1
-        if text[-1] == "\n":
-            text = text[:-1]
-        if len(text) > self.max_line_length:
-            raise GCodeError(
-                f"Line too long (more than {self.max_line_length} characters)", self.name, self.line
-            )
-        return text
+        """The next line (:meth:`__iter__`'s reading, one line of it)."""
+        for text in self:
+            return text
+        raise StopIteration
 
     def mark(self) -> tuple[int, int]:
         """A place to come back to: the start of the next line."""

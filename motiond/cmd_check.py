@@ -64,16 +64,28 @@ def _write(interp: Any, args: argparse.Namespace, write: Callable[[str], Any],
         for cmd in commands:
             write(dumps(to_json(cmd)) + "\n")
     else:
+        from gcode_canon.commands import StraightFeed, StraightTraverse
+
         main = args.file
         lines: list[str] = []
         add = lines.append
+        straight = {StraightFeed: "%6d STRAIGHT_FEED(%.4f, %.4f, %.4f, 0.0000, 0.0000, 0.0000)\n",
+                    StraightTraverse: "%6d STRAIGHT_TRAVERSE(%.4f, %.4f, %.4f, 0.0000, 0.0000, 0.0000)\n"}
+        zeros = (0.0,) * 6
         try:
             for cmd in commands:
                 file = cmd.file
                 if file and file != main:  # a subroutine's file: FILE:LINE where the number stands
                     add(f"{file}:{cmd.line} {format_text(cmd)}\n")
-                else:
-                    add(f"{cmd.line:>6} {format_text(cmd)}\n")
+                    continue
+                form = straight.get(cmd.__class__)
+                if form is not None:
+                    e = cmd.end
+                    if e[3:] == zeros:  # the bulk: format_text's text in one formatting
+                        text = form % (cmd.line, e[0], e[1], e[2])
+                        add(text.replace("-0.0000", "0.0000") if "-0.0000" in text else text)
+                        continue
+                add(f"{cmd.line:>6} {format_text(cmd)}\n")
                 if len(lines) >= 256:  # one write per block of lines: a write call per line costs more
                     write("".join(lines))
                     lines.clear()
@@ -115,10 +127,6 @@ def format_text(cmd) -> str:
     """``NAME(args)``: moves give x, y, z, a, b, c (u, v, w when used); ARC_FEED as LinuxCNC orders
     its arguments (first end, second end, first centre, second centre, rotation, normal end, a, b, c:
     the plane is the last SELECT_PLANE's); units, planes, path modes and texts as rs274 writes them."""
-    import dataclasses
-
-    from gcode_canon.commands import ArcFeed
-
     name = cmd.NAME
     if name == "STRAIGHT_FEED" or name == "STRAIGHT_TRAVERSE":  # the bulk: no introspection
         e = cmd.end
@@ -132,20 +140,26 @@ def format_text(cmd) -> str:
         if "-0.0000" in text:
             text = text.replace("-0.0000", "0.0000")
         return text + tail
-    if isinstance(cmd, ArcFeed):
+    if name == "ARC_FEED":  # (no import statement here: it costs a microsecond per call)
         f, s, n = cmd.plane._value_  # Enum's value property is Python code: read per arc
         e, c = cmd.end, cmd.center
-        text = (f"{_num(e[f])}, {_num(e[s])}, {_num(c[f])}, {_num(c[s])}, {cmd.turns}, {_num(e[n])}, "
-                f"{_num(e[3])}, {_num(e[4])}, {_num(e[5])}")
+        # one formatting, then _num's "0.0000" for "-0.0000" (see the straight moves above)
+        text = _ARC_TEXT % (e[f], e[s], c[f], c[s], cmd.turns, e[n], e[3], e[4], e[5])
+        if "-0.0000" in text:
+            text = text.replace("-0.0000", "0.0000")
         if e[6] or e[7] or e[8]:
             text += ", " + ", ".join(_num(v) for v in e[6:])
         return f"{cmd.NAME}({text})"
     special = _LINUXCNC_STYLE.get(cmd.NAME)
     if special is not None:
         return f"{cmd.NAME}({special(cmd)})"
+    import dataclasses
+
     fields = [fl.name for fl in dataclasses.fields(cmd) if fl.name not in ("file", "line")]
     return f"{cmd.NAME}({', '.join(_value_text(getattr(cmd, name)) for name in fields)})"
 
+
+_ARC_TEXT = "%.4f, %.4f, %.4f, %.4f, %s, %.4f, %.4f, %.4f, %.4f"
 
 # Arguments written as LinuxCNC's rs274 writes them, where canon's command carries the same thing.
 _LINUXCNC_STYLE = {

@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 from fieldbus.modbus.config import Conversion, ModbusConfig, NamedPoint, ValueType, WordOrder
 from motiond.configkit import ConfigError, Table, in_range, non_negative, one_of, positive
+from motiond.mcodes import DEMO_MCODES, MCODE_RE
 
 if TYPE_CHECKING:
     from motiond.config import MachineConfig
@@ -58,7 +59,6 @@ AXIS_FUNCTIONS = {
     "home_{}": "home switch (shown in the status)",
 }
 _AXIS_RE = re.compile(r"^(limit_([a-z])_(min|max)|home_([a-z]))$")
-MCODE_RE = re.compile(r"^M(1\d\d)$")
 ADDRESS_KEYS = ("coil", "discrete_input", "input_register", "holding_register")
 BIT_TABLES = ("coil", "discrete_input")
 OUTPUT_TABLES = ("coil", "holding_register")
@@ -160,19 +160,6 @@ def io_for(machine: MachineConfig, modbus: ModbusConfig | None) -> IoMap:
     if machine.path is None or machine.root is None:
         return demo_io(modbus) if modbus is not None else IoMap()
     return read_io(machine.root, modbus, machine.limits.names, _drive_axes(machine))
-
-
-def bound_mcodes(machine: MachineConfig) -> frozenset[int]:
-    """The user M codes the machine binds, for the interpreter (the keys of ``[io.mcodes]``; the
-    tables themselves are checked by :func:`read_io`)."""
-    if machine.path is None or machine.root is None:
-        data: Any = DEMO_MCODES
-    else:
-        io = machine.root.data.get("io")
-        data = io.get("mcodes") if isinstance(io, dict) else None
-    if not isinstance(data, dict):
-        return frozenset()
-    return frozenset(int(m.group(1)) for k in data if (m := MCODE_RE.match(k)) is not None)
 
 
 def modbus_with_io(modbus: ModbusConfig | None, io: IoMap) -> ModbusConfig | None:
@@ -481,12 +468,6 @@ DEMO_FUNCTIONS: dict[str, dict[str, Any]] = {
     "limit_y_min": {"discrete_input": 18}, "limit_y_max": {"discrete_input": 19},
     "limit_z_min": {"discrete_input": 20}, "limit_z_max": {"discrete_input": 21},
 }
-DEMO_MCODES: dict[str, dict[str, Any]] = {
-    "M101": {"set": [{"coil": 14, "value": 1}], "wait": {"discrete_input": 15}, "timeout_s": 5.0},
-    "M102": {"set": [{"coil": 14, "value": 0}]},
-}
-
-
 def demo_io(modbus: ModbusConfig) -> IoMap:
     """The demo machine's wiring on its simulated module (coils 8-14, discrete inputs 8-21, holding
     register 8): what examples/canon.toml shows (docs/wiring.md)."""

@@ -63,7 +63,7 @@ def build_settings(config: Any, *, var: str | None = None, tool_table: str | Non
         for directory in subroutine_path:
             if not Path(directory).is_dir():
                 raise UserError(f"--subroutine-path {directory}: no such directory")
-    from motiond.config_io import bound_mcodes
+    from motiond.mcodes import bound_mcodes
 
     axes = None
     if config.path is not None:  # words for axes the machine does not have are errors

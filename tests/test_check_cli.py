@@ -123,3 +123,49 @@ def test_dialect_and_subroutine_path_options(tmp_path: Path, capsys: pytest.Capt
     assert main(["check", "--dialect", "gcode-canon", str(labels)]) == 0
     assert main(["check", str(labels)]) != 0  # LinuxCNC: O5 reached in the flow of the main program
     assert "main program must end" in capsys.readouterr().err
+
+
+def test_straight_moves_are_written_as_format_text_writes_them(tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """The bulk of the text (straight moves with A B C U V W at zero) is formatted in one go: the same
+    text as :func:`motiond.cmd_check.format_text`, "-0.0000" written "0.0000" included."""
+    from gcode_canon.interpreter import Interpreter
+    from gcode_canon.settings import InterpreterSettings
+    from motiond.cmd_check import format_text
+
+    values = ["0", "-0.00004", "0.00004", "-0.00005", "-0.00006", "-10", "12.34565", "-0.000049999", "1e3"]
+    body = [f"G{k % 2} X{values[k % 9]} Y{values[(k * 4) % 9]} Z{values[(k * 7 + 1) % 9]}" for k in range(81)]
+    body += ["G0 A-0.00004 X1", "G1 A0 B0.5", "G0 X-0.00001 Y2"]
+    text = "G21 F100\n" + "\n".join(body).replace("e3", "000") + "\nM2\n"
+    path = write(tmp_path, text)
+    assert main(["check", str(path)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    expected = [f"{cmd.line:>6} {format_text(cmd)}"
+                for cmd in Interpreter(InterpreterSettings(dry_run=True)).run_file(path)]
+    assert out == expected
+    assert any("STRAIGHT_FEED(0.0000, 0.0000, 0.0000" in line for line in out)
+
+
+def test_arcs_are_written_with_four_decimals_and_no_negative_zero(tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """ARC_FEED as LinuxCNC orders its arguments, each number as ``_num`` writes it."""
+    from gcode_canon.commands import ArcFeed
+    from gcode_canon.interpreter import Interpreter
+    from gcode_canon.settings import InterpreterSettings
+    from motiond.cmd_check import _num
+
+    text = ("G21 G17 F100\nG0 X0 Y0 Z-0.00004\nG2 X-0.00004 Y10 I0 J5\nG3 X0.00004 Y0 J-5 Z-0.00006\n"
+            "G18\nG2 Z-0.00004 X4 K0 I2\nG19 G3 Y0 Z-3 J-0.00003 K-1.5 P2\nM2\n")
+    path = write(tmp_path, text)
+    assert main(["check", str(path)]) == 0
+    arcs = [line.split(None, 1)[1] for line in capsys.readouterr().out.splitlines() if "ARC_FEED" in line]
+    expected = []
+    for cmd in Interpreter(InterpreterSettings(dry_run=True)).run_file(path):
+        if isinstance(cmd, ArcFeed):
+            f, s, n = cmd.plane.value
+            e, c = cmd.end, cmd.center
+            values = [_num(e[f]), _num(e[s]), _num(c[f]), _num(c[s]), str(cmd.turns), _num(e[n]),
+                      _num(e[3]), _num(e[4]), _num(e[5])]
+            expected.append(f"ARC_FEED({', '.join(values)})")
+    assert arcs == expected and len(arcs) == 4
+    assert not any("-0.0000" in line for line in arcs)

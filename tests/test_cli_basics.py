@@ -61,6 +61,13 @@ def test_check_imports_only_its_own_sub_command(tmp_path: Path) -> None:
                        cwd=ROOT)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip().splitlines()[-1] == "['motiond.cmd_check']"
+    # nor the Modbus stack (pymodbus imports asyncio: a quarter of a second), nor the fieldbus layer
+    code = ("import sys; from motiond.cli import main; main(['check', sys.argv[1]]); "
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'pymodbus', 'asyncio', 'fieldbus'}))")
+    r = subprocess.run([sys.executable, "-c", code, str(program)], capture_output=True, text=True, timeout=60,
+                       cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().splitlines()[-1] == "[]"
     r = subprocess.run([sys.executable, "-m", "motiond.cli", "--help"], capture_output=True, text=True,
                        timeout=60, cwd=ROOT)
     assert all(name in r.stdout for name in ("check", "plan", "run", "daemon", "status"))

@@ -1,0 +1,131 @@
+"""Lines read again whose shape is the fast path's (an optional G0/G1, X Y Z F words, a comment that
+is not active) but whose values are expressions or parameters run the fast path on their cached or
+compiled Block (``Block.plain``, ``_fast_block``): the same commands and the same errors, at the same
+line, as the general path, with the parameter values in force at each reading."""
+
+from __future__ import annotations
+
+import random
+
+import pytest
+
+from gcode_canon.errors import GCodeError
+from gcode_canon.interpreter import Interpreter
+from gcode_canon.settings import InterpreterSettings
+
+
+def _interp() -> Interpreter:
+    return Interpreter(InterpreterSettings(dry_run=True))
+
+
+def _outcome(text: str) -> tuple[list, str | None]:
+    """The commands (without file and line) with their lines, and the error, if any."""
+    out: list = []
+    try:
+        for cmd in _interp().run_string(text, "t.ngc"):
+            out.append((cmd.line, repr(cmd)))
+    except GCodeError as exc:
+        return out, str(exc)
+    return out, None
+
+
+def _general(text: str) -> str:
+    """The same program with an N word on each G-code line: the fast paths take no line with an N
+    word, and the N word changes nothing else."""
+    lines = []
+    for line in text.splitlines():
+        lines.append(line if line.startswith(("o", "#", "%")) or not line else f"N1 {line}")
+    return "\n".join(lines) + "\n"
+
+
+PLAIN_LINES = [
+    "G1 X[#1 * 2] Y#<v> F[#2 * 100]",
+    "X[#1 + 1] (a note)",
+    "G0 Z[#1 - 3]",
+    "Y#<v> Z-#1",
+    "G1 F#2",
+    "G1 X[10 / #2] (MSG, active: the general path)",
+    "X[SIN[#1 * 30]] Y[COS[#1 * 30]] Z[#1 MOD 2]",
+    "G0 X#1 ; end note",
+    "G1 Z[#<v> * 0.5]",
+]
+MODES = ["G20", "G21", "G90", "G91", "G92 X1 Y-2", "G92.1", "G55", "G54", "G17", "G93", "G94 F300"]
+
+
+def _program(seed: int) -> str:
+    rng = random.Random(seed)
+    body = [rng.choice(PLAIN_LINES if rng.random() < 0.8 else MODES) for _ in range(12)]
+    return "\n".join([
+        "G21 G90 G94 F500", "G10 L2 P2 X3 Y4 Z5", "#1 = 1", "#2 = 4", "#<v> = 2",
+        "o100 repeat [4]", *body,
+        "#1 = [#1 + 1.5] #2 = [#2 - 1] #<v> = [#<v> * -1]",
+        "o100 endrepeat", "M2"])
+
+
+@pytest.mark.parametrize("seed", range(60))
+def test_plain_lines_read_again_give_what_the_general_path_gives(seed: int) -> None:
+    text = _program(seed)
+    assert _outcome(text) == _outcome(_general(text))
+
+
+def test_plain_lines_with_expressions_do_not_take_the_general_path(monkeypatch) -> None:
+    interp = _interp()
+    general = []
+    execute = interp._execute_block
+
+    def counted(block):
+        general.append(interp.line)
+        return execute(block)
+
+    monkeypatch.setattr(interp, "_execute_block", counted)
+    text = ("G21 G90 F600\n#1 = 0\no1 repeat [5]\n#1 = [#1 + 1]\nG1 X[#1 * 2] Y#1 (note)\nG0 Z[#1]\n"
+            "o1 endrepeat\nM2\n")
+    ends = [(c.line, c.end[0], c.end[1], c.end[2]) for c in interp.run_string(text) if hasattr(c, "end")]
+    # each reading sees the value of #1 set just before it (Z stays where line 6 left it)
+    assert ends == [item for k in range(1, 6) for item in ((5, 2.0 * k, float(k), k - 1.0),
+                                                            (6, 2.0 * k, float(k), float(k)))]
+    # read once by the reader (a line with parameters is compiled when it is read again), then fast
+    assert general.count(5) == 1 and general.count(6) == 1 and general.count(4) == 5
+
+
+@pytest.mark.parametrize(
+    ("line", "message"),
+    [
+        ("G1 X1 F[#1 - 0.5]", "Negative F word used: F-0.5"),  # the fast path declines, the general reports
+        ("G1 X[1 / [#1 + 1]] (note)", "Attempt to divide by zero"),  # the reader's own error
+        ("G1 Y[SQRT[#1 - 0.5]] Z1", "Negative argument to SQRT"),
+    ],
+)
+def test_errors_on_plain_lines_read_again_name_their_line(line: str, message: str) -> None:
+    # #1 counts down 2, 1, 0, -1: the fourth reading of line 5 is the one in error
+    text = f"G21 G90 F600\n#1 = 3\no1 while [1]\n#1 = [#1 - 1]\n{line}\no1 endwhile\nM2\n"
+    cmds, error = _outcome(text)
+    assert error is not None and error.startswith("t.ngc:5: ") and message in error, error
+    assert [n for n, _ in cmds].count(5) >= 2  # the readings before it ran
+    assert (cmds, error) == _outcome(_general(text))
+
+
+# --- the shape a line keeps (Block.shape: its sorted codes, checks and steps, computed once) ---------
+
+def test_a_g_code_from_a_parameter_is_sorted_again_at_each_reading() -> None:
+    looped = ("G21 G90 F100\n#3 = 0 #1 = 1\no1 repeat [4]\nG#3 X#1 Y[#1 * 2]\n"
+              "#3 = [1 - #3] #1 = [#1 + 1]\no1 endrepeat\nM2\n")
+    unrolled = "G21 G90 F100\nG0 X1 Y2\nG1 X2 Y4\nG0 X3 Y6\nG1 X4 Y8\nM2\n"
+
+    def moves(text: str) -> list:
+        return [(c.NAME, c.end) for c in _interp().run_string(text) if hasattr(c, "end")]
+
+    assert moves(looped) == moves(unrolled)
+    assert [name for name, _ in moves(looped)] == ["STRAIGHT_TRAVERSE", "STRAIGHT_FEED"] * 2
+
+
+def test_a_line_read_again_is_checked_again_in_the_modal_state_of_then() -> None:
+    # line 4 passes its checks in G1 and is refused at its second reading, after G80
+    text = "G21 G90 F100\n#1 = 1\no1 repeat [2]\nX#1 Y[#1 + 1]\nG80\n#1 = 2\no1 endrepeat\nM2\n"
+    cmds, error = _outcome(text)
+    assert error == "t.ngc:4: Cannot use axis values without a G code that uses them"
+    assert [n for n, _ in cmds].count(4) == 0  # G80 from the start: refused at the first reading too
+    text = "G21 G90 F100 G1\n#1 = 1\no1 repeat [2]\nX#1 Y[#1 + 1] (n)\nG80\n#1 = 2\no1 endrepeat\nM2\n"
+    cmds, error = _outcome(text)
+    assert error == "t.ngc:4: Cannot use axis values without a G code that uses them"
+    assert [n for n, _ in cmds].count(4) == 2  # the comment and the move of the first reading
