@@ -201,6 +201,31 @@ def test_a_program_runs_with_the_motion_and_the_drives_in_processes_of_their_own
     assert readers_alive_at_close == [False, False], readers_alive_at_close
 
 
+def test_a_homed_axis_shows_its_new_coordinate_with_the_motion_in_its_own_process(tmp_path: Path) -> None:
+    """Homing ("set": here is 0) rebases the commanded position in the motion process; when home()
+    returns, the task's state already shows it. Before, the newest state here had been built before the
+    new planner, and a status taken then showed the axis homed at its old coordinate."""
+    path = write(tmp_path, machine_text("canon_local", f"home-{os.getpid()}", simulate=True))
+    with own_machine(path) as m:
+        m.bring_up()
+        seen: list[tuple[bool, float]] = []  # (homed, commanded X) as a status would take them
+        event = m.event
+
+        def homed_event(*args: object, **kw: object) -> None:  # right after the axis is marked homed
+            if kw.get("kind") == "homed":
+                seen.append((m.homed[0], m.motion.commanded[0]))
+            event(*args, **kw)
+
+        m.event = homed_event  # type: ignore[method-assign]
+        for x in (3.0, 5.0, 7.0):
+            done = m.wait_job(m.mdi(f"G0 X{x:g}"), 30.0)
+            assert done is not None and done.ok, done
+            wait_for(lambda: m.states.state.value == "idle", 10.0, "IDLE after the MDI line")
+            assert m.motion.commanded[0] == pytest.approx(x, abs=1e-9)
+            m.home(["x"])
+        assert seen == [(True, 0.0)] * 3, seen
+
+
 def test_the_liveness_timeouts_default_and_are_checked_with_their_key(tmp_path: Path) -> None:
     from motiond.config import load_machine
     from motiond.config_motion import Watch, motion_settings

@@ -421,6 +421,7 @@ class MotionServer:
         self.late_sent = core.late_cycles
         st = core.stream
         return {
+            "at": time.monotonic(),  # begun: all below is of this time or later (MotionProxy.new_planner)
             "snapshot": core.snapshot(), "cycle": core.cycle, "late_cycles": core.late_cycles,
             "worst_late_s": core.worst_late_s, "late_new": late, "first_setpoint_t": core.first_setpoint_t,
             "commanded": tuple(core.commanded), "actual": tuple(core.actual), "place": core.place,

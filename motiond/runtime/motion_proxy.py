@@ -45,6 +45,7 @@ import concurrent.futures
 import contextlib
 import itertools
 import logging
+import math
 import multiprocessing
 import multiprocessing.connection
 import queue
@@ -64,6 +65,10 @@ from motiond.runtime.records import Stream, deferred
 from motiond.states import CommandRefused
 
 log = logging.getLogger(__name__)
+
+STATE_WAIT_S = 0.5
+"""How long a call that needs the motion process's state of after it (:meth:`MotionProxy.new_planner`)
+waits for one: a hundred state periods, the motion watch's default."""
 
 OPEN_TIMEOUT_S = 60.0
 """The motion process's start: spawn, imports, the drives booted."""
@@ -534,6 +539,21 @@ class MotionProxy:
         if unless is not None and unless():
             return
         self.request("new_planner", self.hooks.planner_prime(), self.hooks.planner_waits(), self._estops)
+        self._state_since(time.monotonic(), STATE_WAIT_S)
+
+    def _state_since(self, since: float, timeout: float) -> None:
+        """Wait, at most ``timeout``, for a state the motion process began building at ``since`` or
+        later. After a new planner (a homed axis rebased, a reset) the newest state here was built before
+        it: a status taken from it showed the axis homed at its old coordinate (X -2.52 right after
+        "x homed"), which one process never showed. The state comes every 5 ms; a hung motion process
+        is the watch's to report, not this wait's."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while self._state.get("at", math.inf) < since and not (self.dead or self.silent):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return
+                self._cond.wait(left)
 
     def drop_planner(self, *, wait: bool = True) -> None:
         self.request("drop_planner", wait=wait, dead=lambda: None)
