@@ -292,15 +292,7 @@ class CompiledLine:
     def _run_simple(self) -> Block:
         """Constant codes (shared by every run: a Block is never changed), then the words' values or
         the parameter settings."""
-        block = Block()
-        block.comments = self.comments
-        block.deleted = self.deleted
-        block.line_number = self.line_number
-        block.plain = self.plain
-        if self.shape is not None:
-            block.shape = self.shape
-        else:
-            block.origin = self
+        block = self._new_block()
         block.g = self.g
         block.m = self.m
         block.axes = self.axes
@@ -314,7 +306,9 @@ class CompiledLine:
                 assigns.append((key() if callable(key) else key, value))
         return block
 
-    def _run_items(self) -> Block:
+    def _new_block(self) -> Block:
+        """A Block with what every run of this line shares: comments, block delete, N number, the fast
+        path's shape, and the line's shape once known (else, constant codes, this line to learn it)."""
         block = Block()
         block.comments = self.comments
         block.deleted = self.deleted
@@ -324,6 +318,10 @@ class CompiledLine:
             block.shape = self.shape
         elif self.static:
             block.origin = self
+        return block
+
+    def _run_items(self) -> Block:
+        block = self._new_block()
         words = block.words
         for kind, letter, node, key in self.items:
             value = node() if callable(node) else node
