@@ -40,8 +40,8 @@ class IoLoop:
         self._thread: threading.Thread | None = None
 
     def start(self) -> None:
-        run = self.m.motion.ranked(self._run) if hasattr(self.m.motion, "ranked") else self._run
-        self._thread = threading.Thread(target=run, name="canon-io", daemon=True)
+        # on the stop path (the E-stop input): ranked as the proxy's own threads (own mode only)
+        self._thread = threading.Thread(target=self.m.motion.ranked(self._run), name="canon-io", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
