@@ -249,6 +249,7 @@ def test_master_and_drives_in_two_processes(setup, bus, layout):
     assert all(abs(e) < 1.0 for e in fb.following_errors)
     master.shutdown()
     report = drives.stop()
+    print(f"the master's SYNCs: {master.cycles}\n{report}")  # with -s: how close a run came to the limit
     # every SYNC reached the drives' process with its targets, but for the odd frame lost (a burst of
     # losses is a bug)
     assert "node 1: syncs" in report

@@ -309,3 +309,18 @@ def test_the_socketcan_bench_runs_on_vcan0():
     assert row is not None, res.stdout
     assert int(row.group(1)) >= 10, res.stdout  # 50 SYNCs at 20 ms in a second: at least a fifth seen
     print(res.stdout)
+
+
+def test_a_socketcan_bus_gets_a_receive_buffer_for_seconds_of_traffic():
+    """A SocketCAN socket is charged about 1 KiB a frame: at the default buffer a drive process that
+    read late lost SYNCs and targets here. Opened by canon, it gets seconds' worth (root may pass
+    net.core.rmem_max; the kernel reports twice what it granted)."""
+    import socket
+
+    from fieldbus.canopen.busopen import UDP_RECEIVE_BUFFER, open_bus
+
+    bus = open_bus(CanBusConfig("socketcan", "vcan0"))
+    try:
+        assert bus.socket.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) >= UDP_RECEIVE_BUFFER
+    finally:
+        bus.shutdown()
