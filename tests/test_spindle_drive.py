@@ -543,6 +543,53 @@ def test_a_stalled_cycle_mid_tap_is_a_fault_naming_it_not_a_jump_of_the_axis(tmp
     assert emcys == []
 
 
+def runaway(when, factor: float):
+    """A disturbance for :func:`faulted_run`: from the first target velocity the spindle drive receives
+    once ``when(machine)`` holds, it turns ``factor`` times as fast as commanded (a spindle running away:
+    a wrong scaling or an override on the drive)."""
+
+    def disturb(machine) -> list[float]:
+        sp_sim = machine.sim_drives[2]
+        set_target = sp_sim._set_target_velocity
+        came: list[float] = []
+
+        def faster(value: int) -> None:
+            if not came and when(machine):
+                came.append(machine.motion.commanded[1])
+            set_target(round(value * factor) if came else value)
+
+        sp_sim._set_target_velocity = faster
+        return came
+
+    return disturb
+
+
+def test_a_spindle_running_away_mid_tap_stops_the_tap_naming_the_line_axis_and_rpm(tmp_path) -> None:
+    """G33.1 S1500 K6 has Z at its max_velocity (150 mm/s). Mid-tap the spindle drive turns 25 % faster
+    than commanded (1875 rpm): following it would carry Z into the part at 187 mm/s. As for G33 / G76,
+    once Z's speed over the last 20 ms is beyond 1.05 x its max_velocity the tap stops following: held
+    where it is, the spindle stopped, a fault naming the line, the axis and the measured rpm."""
+    import itertools
+
+    z, emcys, machine = faulted_run(
+        tmp_path, "G21 G18 G90\nM3 S1500\nG0 X0 Z2\nG33.1 Z-150 K6\nM2\n",
+        runaway(lambda m: m.motion.commanded[1] <= -90.0, 1.25))
+    error = machine.last_error
+    assert ":4: rigid tap: the spindle turns at" in error and "axis Z" in error, error
+    assert "max_velocity 150" in error and "spindle stopped, axes held" in error, error
+    rpm = float(error.split("the spindle turns at ")[1].split(" rpm")[0])
+    assert 1500 * 1.05 - 1 <= rpm <= 1875 * 1.01  # (printed to the rpm)
+    T, vmax = machine.T, machine.limits.axes[1].max_velocity
+    v = [abs(b - a) / T for a, b in itertools.pairwise(z)]
+    # Z never went 20 ms beyond 1.05 x its max_velocity (the 0.1 um targets: a count's noise)
+    window = round(0.02 / T)
+    fast = [sum(v[i:i + window]) / window for i in range(len(v) - window + 1)]
+    assert max(fast) <= 1.05 * vmax + 0.5e-4 / T
+    # held in the work where it stopped following (until the fault disabled the drives), short of the depth
+    assert z[-1] == z[-2] == min(z) and -150.0 + 1e-3 < z[-1] < -90.0
+    assert emcys == []
+
+
 @pytest.mark.parametrize("program, stall_when", [
     ("G21 G18 G90\nM3 S300\nG0 X5 Z2\nG33 Z-20 K1.5\nM2\n", lambda m: m.motion.commanded[1] <= -3.0),
     ("G21 G18 G90 G8\nM3 S450\nG0 X12 Z5\nG76 P2 Z-25 I-2 J0.4 K1.2 R1.5 H1\nG0 X20 Z5\nM2\n",
