@@ -57,9 +57,12 @@ import gcode_canon.commands as C
 from planner.machine import AxisLimits
 from planner.segments import OVR_FEED, PlannerError
 
-FOLLOW_STEP_MARGIN = 2.0
-"""Following the spindle moves an axis at most this many cycles' travel at its max_velocity in one cycle
-(one late cycle is ridden through); more is a stalled cycle the axis cannot follow (:func:`follow_jump`)."""
+FOLLOW_STEP_MARGIN = 1.25
+"""Following the spindle moves an axis at most this many cycles' travel at its max_velocity in one cycle;
+more is a step the axis cannot follow (:func:`follow_jump`). At most the drives' own limit: canon sets
+their max velocity 0x607F to max_velocity times ``CanopenConfig.velocity_margin`` (1.25), and a drive
+faults on a target further than that from the last one (EMCY 0x8400). (It was 2.0, "one late cycle
+ridden through": a step between 1.25 and 2 cycles' travel went out and faulted the drive.)"""
 
 
 def follow_jump(axes: Sequence[AxisLimits], T: float, last: Sequence[float], pos: Sequence[float]) -> str:
@@ -69,8 +72,8 @@ def follow_jump(axes: Sequence[AxisLimits], T: float, last: Sequence[float], pos
         most = FOLLOW_STEP_MARGIN * T * lim.max_velocity
         if abs(b - a) > most:
             return (f"axis {lim.name.upper()} would jump {abs(b - a):.3f} {lim.unit} in one cycle to follow "
-                    f"the spindle (at most {most:.3f}: the spindle turned while no setpoint went out, a "
-                    "stalled cycle)")
+                    f"the spindle (at most {most:.3f}, what its drive takes: the spindle turned while no "
+                    "setpoint went out, a stalled cycle, or its position came late)")
     return ""
 
 
