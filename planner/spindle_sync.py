@@ -35,12 +35,12 @@ Both are guarded by :func:`follow_jump`: a spindle that turned on while no setpo
 cycle) would have the axes catch up in one step, a target jump the drive faults on (EMCY 0x8400)
 mid-thread. Following stops there instead: G33 / G76 run on at their planned pace (the machine's fault
 then stops them on their quick-stop ramp), the tap holds where it is; the fault names the line and the
-jump. G33 / G76 are guarded by :func:`follow_overspeed` as well: a spindle measured faster than planned
-(an override on the drive, an overshoot) carries the axes faster on its clock; an axis beyond
-:data:`FOLLOW_SPEED_MARGIN` times its max_velocity over :data:`FOLLOW_SPEED_WINDOW_S` stops following
-in the same way, the fault naming the line, the axis and the measured rpm. (The plan-time checks,
-``_synced_speed``, cover the commanded rpm: S under G97, the G96 rpm along the move.) A stop on the
-path (hold, abort, quick stop) runs on the wall clock, never on the spindle's.
+jump. Both are guarded by :func:`follow_overspeed` as well: a spindle measured faster than planned
+(an override on the drive, an overshoot, a spindle running away) carries the axes faster on its clock;
+an axis beyond :data:`FOLLOW_SPEED_MARGIN` times its max_velocity over :data:`FOLLOW_SPEED_WINDOW_S`
+stops following in the same way, the fault naming the line, the axis and the measured rpm. (The
+plan-time checks, ``_synced_speed``, cover the commanded rpm: S under G97, the G96 rpm along the
+move.) A stop on the path (hold, abort, quick stop) runs on the wall clock, never on the spindle's.
 """
 
 from __future__ import annotations
@@ -57,9 +57,12 @@ import gcode_canon.commands as C
 from planner.machine import AxisLimits
 from planner.segments import OVR_FEED, PlannerError
 
-FOLLOW_STEP_MARGIN = 2.0
-"""Following the spindle moves an axis at most this many cycles' travel at its max_velocity in one cycle
-(one late cycle is ridden through); more is a stalled cycle the axis cannot follow (:func:`follow_jump`)."""
+FOLLOW_STEP_MARGIN = 1.25
+"""Following the spindle moves an axis at most this many cycles' travel at its max_velocity in one cycle;
+more is a step the axis cannot follow (:func:`follow_jump`). At most the drives' own limit: canon sets
+their max velocity 0x607F to max_velocity times ``CanopenConfig.velocity_margin`` (1.25), and a drive
+faults on a target further than that from the last one (EMCY 0x8400). (It was 2.0, "one late cycle
+ridden through": a step between 1.25 and 2 cycles' travel went out and faulted the drive.)"""
 
 
 def follow_jump(axes: Sequence[AxisLimits], T: float, last: Sequence[float], pos: Sequence[float]) -> str:
@@ -69,8 +72,8 @@ def follow_jump(axes: Sequence[AxisLimits], T: float, last: Sequence[float], pos
         most = FOLLOW_STEP_MARGIN * T * lim.max_velocity
         if abs(b - a) > most:
             return (f"axis {lim.name.upper()} would jump {abs(b - a):.3f} {lim.unit} in one cycle to follow "
-                    f"the spindle (at most {most:.3f}: the spindle turned while no setpoint went out, a "
-                    "stalled cycle)")
+                    f"the spindle (at most {most:.3f}, what its drive takes: the spindle turned while no "
+                    "setpoint went out, a stalled cycle, or its position came late)")
     return ""
 
 
@@ -82,6 +85,12 @@ through); beyond, the spindle turns too fast for the pitch (:func:`follow_oversp
 FOLLOW_SPEED_WINDOW_S = 0.02
 """The time over which a followed axis's speed is taken for :data:`FOLLOW_SPEED_MARGIN` (a cycle's
 speed carries the spindle position's prediction error)."""
+
+
+def follow_window(T: float) -> deque[tuple[float, Sequence[float]]]:
+    """An empty window of (revolutions, axis position) for :func:`follow_overspeed`: the cycles of
+    :data:`FOLLOW_SPEED_WINDOW_S` at the cycle time ``T`` (at least two)."""
+    return deque(maxlen=1 + max(1, round(FOLLOW_SPEED_WINDOW_S / T)))
 
 
 def follow_overspeed(axes: Sequence[AxisLimits], window: Sequence[tuple[float, Sequence[float]]],
@@ -152,7 +161,7 @@ class SpindleSyncMixin:
     _sp_index: float | None = None
     _sp_act: Any = None  # the running profile followed (a replan of the same move makes a new one)
     _sp_broken = False  # a jump was refused: no following until the planner is made again
-    _sp_window: deque[tuple[float, list[float]]] | None = None  # (revolutions, axes) of the last cycles
+    _sp_window: deque[tuple[float, Sequence[float]]] | None = None  # (revolutions, axes) of the last cycles
 
     def _spindle_sync(self, cmd: C.Canon) -> None:
         if isinstance(cmd, C.RigidTap):
@@ -295,7 +304,7 @@ class SpindleSyncMixin:
         t_next = (self._k + 1) * self.T
         if act.seg is not self._sp_seg:  # a synchronized move began with the last setpoint
             self._sp_seg = act.seg
-            self._sp_window = deque(maxlen=1 + max(1, round(FOLLOW_SPEED_WINDOW_S / self.T)))
+            self._sp_window = follow_window(self.T)
             from_rest = abs(act.traj.at_time(0.0)[1][0]) < 1e-12 and act.s_off <= act.seg.s0 + 1e-12
             self._sp_tau = max(0.0, t_next - self.T - act.t0)  # its time so far (one cycle's at most)
             self._sp_index = None

@@ -21,7 +21,10 @@ nothing waits on the network: the speed goes to the master, which sends it with 
   at the depth the spindle is reversed (I times as fast) and the axes follow it through its stop
   (the tap goes as deep as the spindle overshoots, as with LinuxCNC) and back out; at the start the
   axes stand and the spindle is restored to S in its direction. The tap is refused (a fault naming the
-  line) when the pitch times the spindle's speed or acceleration exceeds an axis's limits.
+  line) when the pitch times the spindle's speed or acceleration exceeds an axis's limits. Mid-tap a
+  step the axes cannot make (``follow_jump``: a stalled cycle) or an axis beyond 1.05 x its max_velocity
+  over 20 ms (``follow_overspeed``: the spindle running away) holds the tap where it is, the spindle
+  stopped, a fault naming the line and the cause.
 * M19 R P Q: the spindle stops, then turns at up to ``orient_rpm`` (P1 clockwise, P2
   counter-clockwise, P0 the shorter way) toward R degrees of its position since boot, slowing in
   proportion to the angle left; done when within ``orient_tolerance_deg`` and still (three positions
@@ -35,11 +38,13 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections import deque
+from collections.abc import Sequence
 from typing import Any
 
 from gcode_canon import commands as C
 from planner.setpoints import Setpoint
-from planner.spindle_sync import FollowedTap, follow_jump
+from planner.spindle_sync import FollowedTap, follow_jump, follow_overspeed, follow_window
 
 #: orientation's position loop: speed (rev/s) per revolution left, i.e. 1 / time constant (s)
 ORIENT_GAIN = 4.0
@@ -145,7 +150,7 @@ class SpindleDriveControl:
                         f"beyond its max_acceleration {lim.max_acceleration:g}")
         turns = length / w.pitch
         self._tap = _Tap(w, [t / length for t in travel], length,
-                         1 if w.direction is C.SpindleDirection.CW else -1, self.c.planner)
+                         1 if w.direction is C.SpindleDirection.CW else -1, self.c.planner, self.c.T)
         self._tap.deadline = time.monotonic() + 2 * self.cfg.at_speed_timeout_s + 4.0 * turns * 60.0 / max(
             1e-9, min(w.rpm, w.rpm * w.scale))
         self._command(0.0)
@@ -179,9 +184,12 @@ class SpindleDriveControl:
         d = max(0.0, d)
         pos = tuple(s + u * d for s, u in zip(w.start, t.unit, strict=True))
         why = follow_jump(self.c.limits.axes, self.c.T, t.last, pos)
+        if not why:  # a spindle running away (faster than the pitch allows the axes) is not followed
+            t.window.append((revs, pos))
+            why = follow_overspeed(self.c.limits.axes, t.window, self.c.T)
         if why:
-            # following it now is a jump no axis can make (a drive faults on it, 0x8400, mid-thread):
-            # stop here as on an interrupted tap, naming the cause
+            # following it now is a jump no axis can make (a drive faults on it, 0x8400, mid-thread), or
+            # beyond the axes' max_velocity: stop here as on an interrupted tap, naming the cause
             self._hold_tap(t, f"rigid tap: {why}")
             return t.last
         t.last = pos
@@ -372,7 +380,8 @@ class _Tap:
     """A followed rigid tap in progress: ``phase`` "stop" (the spindle comes to a stand), "in", "out",
     "held" (interrupted: the axes stay at ``last``)."""
 
-    def __init__(self, cmd: FollowedTap, unit: list[float], length: float, sign: int, planner: Any) -> None:
+    def __init__(self, cmd: FollowedTap, unit: list[float], length: float, sign: int, planner: Any,
+                 T: float) -> None:
         self.cmd = cmd
         self.planner = planner
         self.last = tuple(cmd.start)
@@ -382,3 +391,5 @@ class _Tap:
         self.phase = "stop"
         self.r0 = 0.0
         self.deadline = math.inf
+        #: (revolutions, axes) of the last cycles followed, for :func:`~planner.spindle_sync.follow_overspeed`
+        self.window: deque[tuple[float, Sequence[float]]] = follow_window(T)
