@@ -192,14 +192,18 @@ class _Compiler:
 
 
 _PLAIN_WORDS = frozenset("xyzf")
+_ARC_WORDS = frozenset("xyzijkrf")
 
 
 def plain_shape(g: list[int], m: list[int], letters, comments: list[str], deleted: bool,
                 line_number: float | None) -> tuple[int | None, str | None] | None:
     """:attr:`Block.plain` of a line with these codes, word letters and comments."""
-    if m or deleted or line_number is not None or not _PLAIN_WORDS.issuperset(letters):
+    if m or deleted or line_number is not None or len(g) > 1:
         return None
-    if len(g) > 1 or (g and g[0] not in (0, 10)):
+    if g and g[0] in (20, 30):
+        if not _ARC_WORDS.issuperset(letters):
+            return None
+    elif (g and g[0] not in (0, 10)) or not _PLAIN_WORDS.issuperset(letters):
         return None
     comment = None
     if comments:

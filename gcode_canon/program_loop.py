@@ -180,11 +180,15 @@ class ProgramLoopMixin:
 
     def _fast_block(self, block: Block) -> tuple[Canon, ...] | None:
         """The fast path for a parsed line of the same shape (:attr:`Block.plain`: an optional G0/G1,
-        X Y Z F words whatever their values are written as, a comment that is not active): the
-        general path's commands, or None to send it there."""
+        X Y Z F words whatever their values are written as, a comment that is not active; or G2/G3
+        with X Y Z I J K R F words, ``_fast_arc``): the general path's commands, or None to send it
+        there."""
         motion, comment = block.plain  # type: ignore[misc]
         w = block.words
-        cmds = self._fast_values(motion, w.get("x"), w.get("y"), w.get("z"), w.get("f"))
+        if motion is not None and motion >= 20:
+            cmds = self._fast_arc(block, motion)  # type: ignore[attr-defined]
+        else:
+            cmds = self._fast_values(motion, w.get("x"), w.get("y"), w.get("z"), w.get("f"))
         if cmds is None or comment is None:
             return cmds
         return (new_comment(comment, self.file, self.line), *cmds)  # _step_comment runs first
