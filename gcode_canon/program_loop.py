@@ -276,6 +276,12 @@ class ProgramLoopMixin:
             return self._drain_list()
         if block.g or block.m or block.words or block.assigns:
             self.seen_code = True
+            if (not block.words and not block.g and not block.m and not block.comments and self._fast_ok
+                    and self.cycle_state.initial_level is None):
+                # parameter settings alone: no check and no step has anything to do (the motion step
+                # would only cancel a canned cycle's level), nor does the fast path's state change
+                self._assign(block.assigns)
+                return []
         shape = block.shape
         if shape is None:
             shape = self._shape(block)
@@ -283,10 +289,8 @@ class ProgramLoopMixin:
         capture = self._g7x is not None  # reading a G70-G72 profile: no checks, nothing executed
         if not capture:
             self._check_block(block, ml, shape[1])
-        for key, _ in block.assigns:
-            self.params.check_assignable(key)
-        for key, value in block.assigns:
-            self.params.assign(key, value)
+        if block.assigns:
+            self._assign(block.assigns)
         units = ml.g.get(6)
         if units is not None:
             self.scale = MM_PER_INCH if units == 200 else 1.0
@@ -305,6 +309,14 @@ class ProgramLoopMixin:
             step(block, ml)
         self._fast_ok = self.fast_path_allowed()
         return self._drain_list()
+    def _assign(self, assigns: list[tuple[int | str, float]]) -> None:
+        """A line's parameter settings: all refused if one is, else made in their order."""
+        params = self.params
+        for key, _ in assigns:
+            params.check_assignable(key)
+        for key, value in assigns:
+            params.assign(key, value)
+
     def _shape(self, block: Block) -> tuple[ModalLine, int]:
         """What the line's execution depends on besides its values, computed once per line text
         (:attr:`Block.shape`): its codes sorted by group (``sort_codes``, remembered per codes) and a

@@ -105,6 +105,8 @@ ARC_LINES = [
     "G2 I[#1] J[#<v> / 2]",  # full circles and helixes: the end on the circle whatever the start
     "G3 I[-#2] J1 Z[#1 * 0.1]",
     "G2 X[#1 + 2] Y#<v> Z1 R150",
+    "G3 X5 Y-5 R100 (no parameter: one Block for every reading)",
+    "G2 X-4 Y3 Z-1 R-90 F450",
 ]
 PLANE_ARC_LINES = ["G2 I1 K#1", "G3 J[#1 / 3] K1 Y[#1 - 1] F#2"]  # G18 / G19 arcs; elsewhere refused
 WRONG_ARC_LINES = [
@@ -188,3 +190,50 @@ def test_a_line_read_again_is_checked_again_in_the_modal_state_of_then() -> None
     cmds, error = _outcome(text)
     assert error == "t.ngc:4: Cannot use axis values without a G code that uses them"
     assert [n for n, _ in cmds].count(4) == 2  # the comment and the move of the first reading
+
+
+# --- lines of parameter settings alone -------------------------------------------------------------
+
+SETTINGS = ["#1 = [#1 + 0.5]", "#<v> = [-[#1 MOD 3] * 0.25] #2 = [#2 + 1]", "#3 = #1 #1 = #3",
+            "#[#2 + 10] = #1", "#<_g> = [#<_g> + 1]"]
+WRONG_SETTINGS = ["#1 = 2 #<_x> = 1", "#5400 = 1", "#2 = [1 / 0]"]  # read-only: none of them set
+
+
+def _commented(text: str) -> str:
+    """The program with a comment on each parameter setting line: the general way for them."""
+    return "\n".join(f"{line} (c)" if line.startswith("#") else line for line in text.splitlines()) + "\n"
+
+
+def _without_c(outcome: tuple[list, str | None]) -> tuple[list, str | None]:
+    cmds, error = outcome
+    return [(n, r) for n, r in cmds if r != f"Comment(file='t.ngc', line={n}, text='c')"], error
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_parameter_settings_alone_give_what_the_general_path_gives(seed: int) -> None:
+    rng = random.Random(seed)
+    body = []
+    for _ in range(14):
+        r = rng.random()
+        lines = (SETTINGS if r < 0.5 else MOVES + ARC_LINES if r < 0.8 else
+                 [*MODES, "G81 X1 Y1 Z-1 R2", "G80", "G41 D0", "G40"] if r < 0.985 else WRONG_SETTINGS)
+        body.append(rng.choice(lines))
+    text = _looped(["#<_g> = 0", *body, "G1 Z[#<_g> + #1 + #2 + #<v>]"], "G21 G90 G17 G94 F500")
+    outcome = _outcome(text)
+    assert outcome == _without_c(_outcome(_commented(text)))
+
+
+def test_parameter_settings_alone_run_no_check_and_no_step(monkeypatch) -> None:
+    interp = _interp()
+    checked: list[int] = []
+    check = interp._check_block
+
+    def counted(block, ml, shape):
+        checked.append(interp.line)
+        return check(block, ml, shape)
+
+    monkeypatch.setattr(interp, "_check_block", counted)
+    text = "G21 G90 F600\n#1 = 0\no1 repeat [3]\n#1 = [#1 + 1] #<d> = [#1 * 2]\nG1 X#<d>\no1 endrepeat\nM2\n"
+    # the settings of a line read the values of before the line (LinuxCNC): #<d> is twice the old #1
+    assert [c.end[0] for c in interp.run_string(text) if c.NAME == "STRAIGHT_FEED"] == [0.0, 2.0, 4.0]
+    assert 2 not in checked and 4 not in checked and 1 in checked
