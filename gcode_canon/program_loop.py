@@ -277,9 +277,10 @@ class ProgramLoopMixin:
         if block.g or block.m or block.words or block.assigns:
             self.seen_code = True
             if (not block.words and not block.g and not block.m and not block.comments and self._fast_ok
-                    and self.cycle_state.initial_level is None):
-                # parameter settings alone: no check and no step has anything to do (the motion step
-                # would only cancel a canned cycle's level), nor does the fast path's state change
+                    and self.cycle_state.initial_level is None and len(self.steps) == self._builtin_steps):
+                # parameter settings alone: no check and no built-in step has anything to do (the
+                # motion step would only cancel a canned cycle's level), nor does the fast path's state
+                # change; a step a module added runs on every line: the general way then
                 self._assign(block.assigns)
                 return []
         shape = block.shape
