@@ -21,6 +21,7 @@ The cache holds at most ``size`` lines (cleared when full): its memory does not 
 from __future__ import annotations
 
 import math
+import operator
 from collections.abc import Callable
 
 from gcode_canon.errors import GCodeError
@@ -61,6 +62,43 @@ Node = float | Callable[[], float]
 _SEEN = object()  # read once: compiled when read again
 _NOT_COMPILED = object()  # the compiler refused it: parse_line every time
 _G, _M, _WORD, _ASSIGN = range(4)
+
+
+_Op = Callable[[float, float], float]
+
+
+def _right_constant(fn: _Op, a: Callable[[], float], b: float) -> Callable[[], float]:
+    def node() -> float:
+        v = fn(a(), b)
+        return v if v - v == 0.0 else _finite(v)  # v - v is 0 for a finite v only: _finite's error
+    return node
+
+
+def _left_constant(fn: _Op, a: float, b: Callable[[], float]) -> Callable[[], float]:
+    def node() -> float:
+        v = fn(a, b())
+        return v if v - v == 0.0 else _finite(v)
+    return node
+
+
+def _neither_constant(fn: _Op, a: Callable[[], float], b: Callable[[], float]) -> Callable[[], float]:
+    def node() -> float:
+        v = fn(a(), b())
+        return v if v - v == 0.0 else _finite(v)
+    return node
+
+
+_ARITHMETIC = {"+": operator.add, "-": operator.sub, "*": operator.mul}
+"""``_apply``'s + - *, whose only check is the result's being finite."""
+
+_radians = math.radians
+_DIRECT_FUNCTIONS: dict[str, Callable[[Callable[[], float]], Callable[[], float]]] = {
+    # _unary's own expressions for these, without its chain of name tests
+    "sin": lambda arg: lambda: math.sin(_radians(arg())),
+    "cos": lambda arg: lambda: math.cos(_radians(arg())),
+    "tan": lambda arg: lambda: math.tan(_radians(arg())),
+    "abs": lambda arg: lambda: abs(arg()),
+}
 
 
 class _Compiler:
@@ -152,14 +190,15 @@ class _Compiler:
         tolerant = self.tolerant
         if not callable(a) and not callable(b):
             return _apply(op, a, b, tolerant)  # an error here: the line is not compiled
+        fn = _ARITHMETIC.get(op)
+        if fn is not None:  # + - * with the finite check inline, a constant side read as it is
+            if not callable(b):
+                return _right_constant(fn, a, b)  # type: ignore[arg-type]
+            if not callable(a):
+                return _left_constant(fn, a, b)
+            return _neither_constant(fn, a, b)
         fa = a if callable(a) else (lambda: a)
         fb = b if callable(b) else (lambda: b)
-        if op == "+":
-            return lambda: _finite(fa() + fb())
-        if op == "-":
-            return lambda: _finite(fa() - fb())
-        if op == "*":
-            return lambda: _finite(fa() * fb())
         return lambda: _apply(op, fa(), fb(), tolerant)
 
     def function(self, s: str, i: int, depth: int) -> tuple[Node, int]:
@@ -176,6 +215,9 @@ class _Compiler:
             return (lambda: math.degrees(math.atan2(fy(), fx()))), j
         if not callable(arg):
             return _unary(name, arg), j
+        direct = _DIRECT_FUNCTIONS.get(name)
+        if direct is not None:
+            return direct(arg), j
         return (lambda: _unary(name, arg())), j
 
     def _exists(self, s: str, j: int, depth: int) -> tuple[Node, int]:
@@ -192,14 +234,18 @@ class _Compiler:
 
 
 _PLAIN_WORDS = frozenset("xyzf")
+_ARC_WORDS = frozenset("xyzijkrf")
 
 
 def plain_shape(g: list[int], m: list[int], letters, comments: list[str], deleted: bool,
                 line_number: float | None) -> tuple[int | None, str | None] | None:
     """:attr:`Block.plain` of a line with these codes, word letters and comments."""
-    if m or deleted or line_number is not None or not _PLAIN_WORDS.issuperset(letters):
+    if m or deleted or line_number is not None or len(g) > 1:
         return None
-    if len(g) > 1 or (g and g[0] not in (0, 10)):
+    if g and g[0] in (20, 30):
+        if not _ARC_WORDS.issuperset(letters):
+            return None
+    elif (g and g[0] not in (0, 10)) or not _PLAIN_WORDS.issuperset(letters):
         return None
     comment = None
     if comments:

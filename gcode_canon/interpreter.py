@@ -183,6 +183,7 @@ class Interpreter(ProgramLoopMixin, BlockChecksMixin, ModeStepsMixin, ToolSpindl
         self._step_cache: dict[tuple, list[Callable[[Block, ModalLine], None]]] = {}
         self._step_cache_for: list[Callable[[Block, ModalLine], None]] = []
         self._step_cache_len = -1
+        self._builtin_steps = len(self.steps)  # another count: a module's step, which runs on every line
 
 
     # What each built-in step acts on: G groups, M groups, words, comments; a step not listed (one a

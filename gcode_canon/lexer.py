@@ -54,8 +54,8 @@ class Block:
         self.axes = False  # any of X Y Z A B C U V W @ ^
         self.plain: tuple[int | None, str | None] | None = None
         """Set by :mod:`gcode_canon.compiled` on a line read again that the fast path can run (an
-        optional G0/G1, X Y Z F words only, no active comment): (motion code or None, the text of
-        its comment or None); None: the general path."""
+        optional G0/G1 with X Y Z F words only, or G2/G3 with X Y Z I J K R F words; no active
+        comment): (motion code or None, the text of its comment or None); None: the general path."""
         self.shape: tuple | None = None
         """What its execution depends on besides its values (the interpreter's ``_shape``), kept
         with the line once computed; None: not yet."""

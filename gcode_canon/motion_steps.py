@@ -19,6 +19,7 @@ from gcode_canon.commands import (
     Probe,
     ProbeMode,
     ProgramStop,
+    SetFeedRate,
     SetMotionControlMode,
     SetOverrides,
     SpindleDirection,
@@ -351,19 +352,9 @@ class MotionMixin:
         target = self._target(block)
         s2 = (start[first], start[second])
         e2 = (target[first], target[second])
-        inch = self.inch
-        if radius is not None:
-            cx, cy, rot = centre_r(clockwise, s2, e2, radius * self.scale, turns)
-        elif has_ijk:
-            off1 = (words.get(first_letter) or 0.0) * self.scale
-            off2 = (words.get(second_letter) or 0.0) * self.scale
-            if self.ijk_absolute:
-                centre = (off1, off2)
-            else:
-                centre = (s2[0] + off1, s2[1] + off2)
-            cx, cy, rot = centre_ijk(clockwise, s2, e2, centre, turns, inch)
-        else:
+        if radius is None and not has_ijk:
             raise GCodeError(f"R, I, J or K words missing for arc ({name})")
+        cx, cy, rot = self._arc_centre(words, clockwise, s2, e2, turns)
         if self._after_comp:
             raise GCodeError("The move just after exiting cutter compensation mode must be straight, "
                              "not an arc")
@@ -385,10 +376,31 @@ class MotionMixin:
             return
         self._arc_out(start, target, cx, cy, clockwise, rot)
 
+    def _arc_centre(self, words: dict[str, float], clockwise: bool, s2: tuple[float, float],
+                    e2: tuple[float, float], turns: int) -> tuple[float, float, int]:
+        """Centre and LinuxCNC's rotation of an arc from (start ``s2``) to ``e2`` in the plane, from its
+        R word or, without one, its I J K words (one of them given)."""
+        radius = words.get("r")
+        if radius is not None:
+            return centre_r(clockwise, s2, e2, radius * self.scale, turns)
+        first, second, _ = self.plane._value_
+        off1 = (words.get(_IJK[first]) or 0.0) * self.scale
+        off2 = (words.get(_IJK[second]) or 0.0) * self.scale
+        centre = (off1, off2) if self.ijk_absolute else (s2[0] + off1, s2[1] + off2)
+        return centre_ijk(clockwise, s2, e2, centre, turns, self.inch)
+
     def _arc_out(self, start: list[float], target: list[float], cx: float, cy: float, clockwise: bool,
                  rot: int) -> None:
         """Emit the arc from ``start`` to ``target`` (program frame, mm) around (cx, cy) in the plane,
         ``rot`` LinuxCNC's rotation (its sign the sense, as ``clockwise``)."""
+        cmd = self._arc_command(start, target, cx, cy, clockwise, rot)
+        self.prog = target
+        self.pos = cmd.end
+        self._emit(cmd)
+
+    def _arc_command(self, start: list[float], target: list[float], cx: float, cy: float, clockwise: bool,
+                     rot: int) -> ArcFeed:
+        """:meth:`_arc_out`'s command, nothing changed."""
         first, second, _ = self.plane._value_
         centre_prog = list(start)
         centre_prog[first] = cx
@@ -410,8 +422,38 @@ class MotionMixin:
             centre_pose = self.frames.to_machine(centre_prog)
         if not (_isfinite(sum(end_pose)) and _isfinite(sum(centre_pose))):
             raise GCodeError("Coordinate out of range")
+        return new_arc_feed(end_pose, centre_pose, self.plane, rot, self.frames.arc_rotation(self.plane),
+                            self.file, self.line)
+
+    def _fast_arc(self, block: Block, motion: int) -> tuple[Canon, ...] | None:
+        """The fast path of a G2/G3 line read again (:attr:`Block.plain`: X Y Z I J K R F words, taken
+        where :meth:`fast_path_allowed` holds): the commands of the general path (its F step, then
+        :meth:`_step_motion`'s arc), or None to send the line there, with nothing changed (every
+        error is the general path's, said in its place)."""
+        words = block.words
+        first, second, normal = self.plane._value_
+        if normal > 2 or _IJK[normal] in words:
+            return None
+        has_ijk = _IJK[first] in words or _IJK[second] in words
+        fv = words.get("f")
+        feed = self.feed if fv is None else fv * self.scale
+        if (("r" in words) == has_ijk or not (feed > 0.0 and _isfinite(feed))
+                or self.cycle_state.initial_level is not None):
+            return None
+        start = self.prog
+        target = self._target(block)
+        clockwise = motion == 20
+        try:
+            cx, cy, rot = self._arc_centre(words, clockwise, (start[first], start[second]),
+                                           (target[first], target[second]), 1)
+            cmd = self._arc_command(start, target, cx, cy, clockwise, rot)
+        except GCodeError:
+            return None
+        self.motion = motion
         self.prog = target
-        self.pos = end_pose
-        self._emit(new_arc_feed(end_pose, centre_pose, self.plane, rot, self.frames.arc_rotation(self.plane),
-                                self.file, self.line))
+        self.pos = cmd.end
+        if feed != self.feed:
+            self.feed = feed
+            return (SetFeedRate(feed, file=self.file, line=self.line), cmd)
+        return (cmd,)
 

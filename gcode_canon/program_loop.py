@@ -180,11 +180,15 @@ class ProgramLoopMixin:
 
     def _fast_block(self, block: Block) -> tuple[Canon, ...] | None:
         """The fast path for a parsed line of the same shape (:attr:`Block.plain`: an optional G0/G1,
-        X Y Z F words whatever their values are written as, a comment that is not active): the
-        general path's commands, or None to send it there."""
+        X Y Z F words whatever their values are written as, a comment that is not active; or G2/G3
+        with X Y Z I J K R F words, ``_fast_arc``): the general path's commands, or None to send it
+        there."""
         motion, comment = block.plain  # type: ignore[misc]
         w = block.words
-        cmds = self._fast_values(motion, w.get("x"), w.get("y"), w.get("z"), w.get("f"))
+        if motion is not None and motion >= 20:
+            cmds = self._fast_arc(block, motion)  # type: ignore[attr-defined]
+        else:
+            cmds = self._fast_values(motion, w.get("x"), w.get("y"), w.get("z"), w.get("f"))
         if cmds is None or comment is None:
             return cmds
         return (new_comment(comment, self.file, self.line), *cmds)  # _step_comment runs first
@@ -272,6 +276,13 @@ class ProgramLoopMixin:
             return self._drain_list()
         if block.g or block.m or block.words or block.assigns:
             self.seen_code = True
+            if (not block.words and not block.g and not block.m and not block.comments and self._fast_ok
+                    and self.cycle_state.initial_level is None and len(self.steps) == self._builtin_steps):
+                # parameter settings alone: no check and no built-in step has anything to do (the
+                # motion step would only cancel a canned cycle's level), nor does the fast path's state
+                # change; a step a module added runs on every line: the general way then
+                self._assign(block.assigns)
+                return []
         shape = block.shape
         if shape is None:
             shape = self._shape(block)
@@ -279,10 +290,8 @@ class ProgramLoopMixin:
         capture = self._g7x is not None  # reading a G70-G72 profile: no checks, nothing executed
         if not capture:
             self._check_block(block, ml, shape[1])
-        for key, _ in block.assigns:
-            self.params.check_assignable(key)
-        for key, value in block.assigns:
-            self.params.assign(key, value)
+        if block.assigns:
+            self._assign(block.assigns)
         units = ml.g.get(6)
         if units is not None:
             self.scale = MM_PER_INCH if units == 200 else 1.0
@@ -301,6 +310,14 @@ class ProgramLoopMixin:
             step(block, ml)
         self._fast_ok = self.fast_path_allowed()
         return self._drain_list()
+    def _assign(self, assigns: list[tuple[int | str, float]]) -> None:
+        """A line's parameter settings: all refused if one is, else made in their order."""
+        params = self.params
+        for key, _ in assigns:
+            params.check_assignable(key)
+        for key, value in assigns:
+            params.assign(key, value)
+
     def _shape(self, block: Block) -> tuple[ModalLine, int]:
         """What the line's execution depends on besides its values, computed once per line text
         (:attr:`Block.shape`): its codes sorted by group (``sort_codes``, remembered per codes) and a

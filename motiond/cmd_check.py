@@ -64,7 +64,7 @@ def _write(interp: Any, args: argparse.Namespace, write: Callable[[str], Any],
         for cmd in commands:
             write(dumps(to_json(cmd)) + "\n")
     else:
-        from gcode_canon.commands import StraightFeed, StraightTraverse
+        from gcode_canon.commands import ArcFeed, Comment, StraightFeed, StraightTraverse
 
         main = args.file
         lines: list[str] = []
@@ -74,21 +74,34 @@ def _write(interp: Any, args: argparse.Namespace, write: Callable[[str], Any],
         zeros = (0.0,) * 6
         try:
             for cmd in commands:
+                if len(lines) >= 256:  # one write per block of lines: a write call per line costs more
+                    write("".join(lines))
+                    lines.clear()
                 file = cmd.file
                 if file and file != main:  # a subroutine's file: FILE:LINE where the number stands
                     add(f"{file}:{cmd.line} {format_text(cmd)}\n")
                     continue
-                form = straight.get(cmd.__class__)
+                cls = cmd.__class__
+                form = straight.get(cls)
                 if form is not None:
                     e = cmd.end
                     if e[3:] == zeros:  # the bulk: format_text's text in one formatting
                         text = form % (cmd.line, e[0], e[1], e[2])
                         add(text.replace("-0.0000", "0.0000") if "-0.0000" in text else text)
                         continue
+                elif cls is ArcFeed:
+                    e = cmd.end
+                    if not (e[6] or e[7] or e[8]):  # format_text's arc text in one formatting
+                        f, s, n = cmd.plane._value_
+                        c = cmd.center
+                        text = _ARC_LINE % (cmd.line, e[f], e[s], c[f], c[s], cmd.turns, e[n], e[3], e[4],
+                                            e[5])
+                        add(text.replace("-0.0000", "0.0000") if "-0.0000" in text else text)
+                        continue
+                elif cls is Comment:
+                    add(f'{cmd.line:>6} COMMENT("{cmd.text}")\n')
+                    continue
                 add(f"{cmd.line:>6} {format_text(cmd)}\n")
-                if len(lines) >= 256:  # one write per block of lines: a write call per line costs more
-                    write("".join(lines))
-                    lines.clear()
         finally:  # the commands before an error are printed before it
             write("".join(lines))
 
@@ -160,6 +173,7 @@ def format_text(cmd) -> str:
 
 
 _ARC_TEXT = "%.4f, %.4f, %.4f, %.4f, %s, %.4f, %.4f, %.4f, %.4f"
+_ARC_LINE = f"%6d ARC_FEED({_ARC_TEXT})\n"
 
 # Arguments written as LinuxCNC's rs274 writes them, where canon's command carries the same thing.
 _LINUXCNC_STYLE = {

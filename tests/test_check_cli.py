@@ -125,24 +125,30 @@ def test_dialect_and_subroutine_path_options(tmp_path: Path, capsys: pytest.Capt
     assert "main program must end" in capsys.readouterr().err
 
 
-def test_straight_moves_are_written_as_format_text_writes_them(tmp_path: Path,
-                                                               capsys: pytest.CaptureFixture[str]) -> None:
-    """The bulk of the text (straight moves with A B C U V W at zero) is formatted in one go: the same
-    text as :func:`motiond.cmd_check.format_text`, "-0.0000" written "0.0000" included."""
+def checked_as_format_text(path: Path, capsys: pytest.CaptureFixture[str]) -> list[str]:
+    """``canon check``'s text lines for ``path``, checked equal to :func:`format_text`'s for the same
+    commands."""
     from gcode_canon.interpreter import Interpreter
     from gcode_canon.settings import InterpreterSettings
     from motiond.cmd_check import format_text
 
-    values = ["0", "-0.00004", "0.00004", "-0.00005", "-0.00006", "-10", "12.34565", "-0.000049999", "1e3"]
-    body = [f"G{k % 2} X{values[k % 9]} Y{values[(k * 4) % 9]} Z{values[(k * 7 + 1) % 9]}" for k in range(81)]
-    body += ["G0 A-0.00004 X1", "G1 A0 B0.5", "G0 X-0.00001 Y2"]
-    text = "G21 F100\n" + "\n".join(body).replace("e3", "000") + "\nM2\n"
-    path = write(tmp_path, text)
     assert main(["check", str(path)]) == 0
     out = capsys.readouterr().out.splitlines()
     expected = [f"{cmd.line:>6} {format_text(cmd)}"
                 for cmd in Interpreter(InterpreterSettings(dry_run=True)).run_file(path)]
     assert out == expected
+    return out
+
+
+def test_straight_moves_are_written_as_format_text_writes_them(tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """The bulk of the text (straight moves with A B C U V W at zero) is formatted in one go: the same
+    text as :func:`motiond.cmd_check.format_text`, "-0.0000" written "0.0000" included."""
+    values = ["0", "-0.00004", "0.00004", "-0.00005", "-0.00006", "-10", "12.34565", "-0.000049999", "1e3"]
+    body = [f"G{k % 2} X{values[k % 9]} Y{values[(k * 4) % 9]} Z{values[(k * 7 + 1) % 9]}" for k in range(81)]
+    body += ["G0 A-0.00004 X1", "G1 A0 B0.5", "G0 X-0.00001 Y2"]
+    text = "G21 F100\n" + "\n".join(body).replace("e3", "000") + "\nM2\n"
+    out = checked_as_format_text(write(tmp_path, text), capsys)
     assert any("STRAIGHT_FEED(0.0000, 0.0000, 0.0000" in line for line in out)
 
 
@@ -169,3 +175,31 @@ def test_arcs_are_written_with_four_decimals_and_no_negative_zero(tmp_path: Path
             expected.append(f"ARC_FEED({', '.join(values)})")
     assert arcs == expected and len(arcs) == 4
     assert not any("-0.0000" in line for line in arcs)
+
+
+def test_every_command_is_written_as_format_text_writes_it(tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """Arcs in the three planes (U V W in use or not) and comments, written in one formatting by
+    ``canon check``, give :func:`motiond.cmd_check.format_text`'s text."""
+    text = ("G21 G17 F100\nG0 X0 Y0 Z-0.00004 (start here)\nG2 X-0.00004 Y10 I0 J5 A-0.00003\n"
+            "G3 X0.00004 Y0 J-5 Z-0.00006 (a \"quoted\" comment)\nG18\nG2 Z-0.00004 X4 K0 I2 B1.5\n"
+            "G19 G3 Y0 Z-3 J-0.00003 K-1.5 P2\nG17 G2 X1 Y1 R3 U0.00004 V2\nG3 X0 Y0 R-3 W-0.00002\nM2\n")
+    out = checked_as_format_text(write(tmp_path, text), capsys)
+    assert sum("ARC_FEED" in line for line in out) == 6 and sum("COMMENT" in line for line in out) == 2
+
+
+def test_text_is_written_in_blocks_whatever_the_commands(tmp_path: Path) -> None:
+    """The text goes out in blocks of at most 256 lines, also for a program of straight moves only
+    (whose lines once piled up until the end)."""
+    import argparse
+
+    from gcode_canon.interpreter import Interpreter
+    from gcode_canon.settings import InterpreterSettings
+    from motiond.cmd_check import _write
+
+    path = write(tmp_path, "G21 F100\n" + "".join(f"G1 X{k} Y{k % 7}\n" for k in range(2000)) + "M2\n")
+    writes: list[str] = []
+    _write(Interpreter(InterpreterSettings(dry_run=True)), argparse.Namespace(file=str(path), json=False),
+           writes.append, None)
+    assert max(chunk.count("\n") for chunk in writes) <= 256
+    assert sum(chunk.count("STRAIGHT_FEED") for chunk in writes) == 2000

@@ -34,6 +34,9 @@ LINES = [
     "X#[#1]",  # out of range or a non-integer index, depending on #1
     "G1 X1 X#1",  # repeated word: the compiler refuses, parse_line says which error comes first
     "X[#1 + 1",  # unclosed: not compiled
+    "X[#1 * 10] Y[10 * #2] Z[#3 * #4]",  # overflow with a constant on either side or none (1e308)
+    "X[#1 + #2] Y[-1 - #3 - #4] Z[#5 - 1 + [2 - #6]]",
+    "X[TAN[#1] + ABS[-#2]] Y[SIN[#3] * COS[#4 * 10]] Z[ABS[#5 * #6]]",
 ]
 
 VALUES = [0.0, 1.0, 2.0, -1.0, 0.5, 3.0, 1000.0, 2.5, 1e308, 5601.0, 5602.0, 0.99999]
@@ -104,3 +107,28 @@ def test_a_g_code_too_large_to_round_is_out_of_range() -> None:
     for _ in range(3):
         with pytest.raises(GCodeError, match="G code out of range"):
             cache.parse("G#3")
+
+
+def test_compiled_arithmetic_and_trigonometry_call_no_helper(monkeypatch) -> None:
+    """+ - * check their result inline (``_finite`` only to say the error) and SIN COS TAN ABS are
+    computed directly, not through ``_unary``'s chain of name tests."""
+    import gcode_canon.compiled as compiled
+
+    calls: list[str] = []
+    finite, unary = compiled._finite, compiled._unary
+    monkeypatch.setattr(compiled, "_finite", lambda *a: calls.append("finite") or finite(*a))
+    monkeypatch.setattr(compiled, "_unary", lambda *a: calls.append("unary") or unary(*a))
+    reader, params = _reader(3)
+    params.numbered[1], params.numbered[2], params.numbered[3] = 30.0, 1.0, 0.5
+    cache = LineCache(reader)
+    raw = "X[[#1 + 1] * [2 - #2] * #3 - 4] Y[SIN[#1] + COS[#2] + TAN[#3] + ABS[-#1]]"
+    cache.parse(raw)  # read by the reader, compiled at the next reading
+    cache.parse(raw)
+    calls.clear()
+    words = cache.parse(raw).words
+    assert calls == []
+    assert words == parse_line(raw, reader).words
+    params.numbered[3] = 1e308
+    with pytest.raises(GCodeError, match="Result out of range"):
+        cache.parse("X[[#1 + 1] * [2 - #2] * #3 * 10]")
+        cache.parse("X[[#1 + 1] * [2 - #2] * #3 * 10]")

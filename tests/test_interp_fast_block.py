@@ -55,8 +55,13 @@ MODES = ["G20", "G21", "G90", "G91", "G92 X1 Y-2", "G92.1", "G55", "G54", "G17",
 def _program(seed: int) -> str:
     rng = random.Random(seed)
     body = [rng.choice(PLAIN_LINES if rng.random() < 0.8 else MODES) for _ in range(12)]
+    return _looped(body, "G21 G90 G94 F500")
+
+
+def _looped(body: list[str], first: str) -> str:
+    """``body`` four times, the parameters it reads changed after each time."""
     return "\n".join([
-        "G21 G90 G94 F500", "G10 L2 P2 X3 Y4 Z5", "#1 = 1", "#2 = 4", "#<v> = 2",
+        first, "G10 L2 P2 X3 Y4 Z5", "#1 = 1", "#2 = 4", "#<v> = 2",
         "o100 repeat [4]", *body,
         "#1 = [#1 + 1.5] #2 = [#2 - 1] #<v> = [#<v> * -1]",
         "o100 endrepeat", "M2"])
@@ -68,9 +73,10 @@ def test_plain_lines_read_again_give_what_the_general_path_gives(seed: int) -> N
     assert _outcome(text) == _outcome(_general(text))
 
 
-def test_plain_lines_with_expressions_do_not_take_the_general_path(monkeypatch) -> None:
+def _counting_general_lines(monkeypatch) -> tuple[Interpreter, list[int]]:
+    """An interpreter, and the list it fills with the number of each line it runs the general way."""
     interp = _interp()
-    general = []
+    general: list[int] = []
     execute = interp._execute_block
 
     def counted(block):
@@ -78,6 +84,11 @@ def test_plain_lines_with_expressions_do_not_take_the_general_path(monkeypatch) 
         return execute(block)
 
     monkeypatch.setattr(interp, "_execute_block", counted)
+    return interp, general
+
+
+def test_plain_lines_with_expressions_do_not_take_the_general_path(monkeypatch) -> None:
+    interp, general = _counting_general_lines(monkeypatch)
     text = ("G21 G90 F600\n#1 = 0\no1 repeat [5]\n#1 = [#1 + 1]\nG1 X[#1 * 2] Y#1 (note)\nG0 Z[#1]\n"
             "o1 endrepeat\nM2\n")
     ends = [(c.line, c.end[0], c.end[1], c.end[2]) for c in interp.run_string(text) if hasattr(c, "end")]
@@ -86,6 +97,56 @@ def test_plain_lines_with_expressions_do_not_take_the_general_path(monkeypatch) 
                                                             (6, 2.0 * k, float(k), float(k)))]
     # read once by the reader (a line with parameters is compiled when it is read again), then fast
     assert general.count(5) == 1 and general.count(6) == 1 and general.count(4) == 5
+
+
+ARC_LINES = [
+    "G2 X[#1 * 2] Y#<v> R[100 + #2] F[#2 * 100]",
+    "G3 X#1 Y[#1 - 3] R-[120 + #2] (a note)",
+    "G2 I[#1] J[#<v> / 2]",  # full circles and helixes: the end on the circle whatever the start
+    "G3 I[-#2] J1 Z[#1 * 0.1]",
+    "G2 X[#1 + 2] Y#<v> Z1 R150",
+    "G3 X5 Y-5 R100 (no parameter: one Block for every reading)",
+    "G2 X-4 Y3 Z-1 R-90 F450",
+]
+PLANE_ARC_LINES = ["G2 I1 K#1", "G3 J[#1 / 3] K1 Y[#1 - 1] F#2"]  # G18 / G19 arcs; elsewhere refused
+WRONG_ARC_LINES = [
+    "G2 X#1 Y[#1 + 1] R[#2 - 4]",  # R 0 when #2 is 4: the general path's error
+    "G3 X1 Y1 R10 I1",  # mixed R and IJK
+    "G2 X[#1 * 3] Y1 R[#1 / 10] (MSG, active: the general path)",
+    "G3 X#1 Y#2 R50 F0",  # zero feed
+    "G2 X[#1 + 1] Y#<v> I1 J1",  # radius to the end differs
+]
+
+
+MOVES = [line for line in PLAIN_LINES if line.startswith("G")]  # in G2/G3 mode X Y alone are arcs
+
+
+def _arc_program(seed: int) -> str:
+    """Mostly arcs that run (the loop runs on), some lines in error and modes now and then."""
+    rng = random.Random(seed)
+    body = []
+    for _ in range(14):
+        r = rng.random()
+        lines = (ARC_LINES if r < 0.55 else MOVES if r < 0.8 else MODES if r < 0.9
+                 else ["G18", "G19", "G17", "G90.1", "G91.1", "G81 X1 Y1 Z-1 R2", "G80", *PLANE_ARC_LINES]
+                 if r < 0.97 else WRONG_ARC_LINES)
+        body.append(rng.choice(lines))
+    return _looped(body, "G21 G90 G17 G94 F500")
+
+
+@pytest.mark.parametrize("seed", range(80))
+def test_arcs_read_again_give_what_the_general_path_gives(seed: int) -> None:
+    text = _arc_program(seed)
+    assert _outcome(text) == _outcome(_general(text))
+
+
+def test_arcs_read_again_do_not_take_the_general_path(monkeypatch) -> None:
+    interp, general = _counting_general_lines(monkeypatch)
+    text = ("G21 G90 G17 F600\n#1 = 0\no1 repeat [4]\n#1 = [#1 + 1]\nG0 X0 Y0\nG2 X[#1 * 2] Y0 R#1 (n)\n"
+            "G3 X0 Y0 I[-#1] J0 F[600 + #1]\no1 endrepeat\nM2\n")
+    arcs = [(c.line, c.end[0], c.center[0], c.turns) for c in interp.run_string(text) if c.NAME == "ARC_FEED"]
+    assert arcs == [item for k in range(1, 5) for item in ((6, 2.0 * k, float(k), -1), (7, 0.0, float(k), 1))]
+    assert general.count(6) == 1 and general.count(7) == 1  # compiled at the second reading: then fast
 
 
 @pytest.mark.parametrize(
@@ -129,3 +190,50 @@ def test_a_line_read_again_is_checked_again_in_the_modal_state_of_then() -> None
     cmds, error = _outcome(text)
     assert error == "t.ngc:4: Cannot use axis values without a G code that uses them"
     assert [n for n, _ in cmds].count(4) == 2  # the comment and the move of the first reading
+
+
+# --- lines of parameter settings alone -------------------------------------------------------------
+
+SETTINGS = ["#1 = [#1 + 0.5]", "#<v> = [-[#1 MOD 3] * 0.25] #2 = [#2 + 1]", "#3 = #1 #1 = #3",
+            "#[#2 + 10] = #1", "#<_g> = [#<_g> + 1]"]
+WRONG_SETTINGS = ["#1 = 2 #<_x> = 1", "#5400 = 1", "#2 = [1 / 0]"]  # read-only: none of them set
+
+
+def _commented(text: str) -> str:
+    """The program with a comment on each parameter setting line: the general way for them."""
+    return "\n".join(f"{line} (c)" if line.startswith("#") else line for line in text.splitlines()) + "\n"
+
+
+def _without_c(outcome: tuple[list, str | None]) -> tuple[list, str | None]:
+    cmds, error = outcome
+    return [(n, r) for n, r in cmds if r != f"Comment(file='t.ngc', line={n}, text='c')"], error
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_parameter_settings_alone_give_what_the_general_path_gives(seed: int) -> None:
+    rng = random.Random(seed)
+    body = []
+    for _ in range(14):
+        r = rng.random()
+        lines = (SETTINGS if r < 0.5 else MOVES + ARC_LINES if r < 0.8 else
+                 [*MODES, "G81 X1 Y1 Z-1 R2", "G80", "G41 D0", "G40"] if r < 0.985 else WRONG_SETTINGS)
+        body.append(rng.choice(lines))
+    text = _looped(["#<_g> = 0", *body, "G1 Z[#<_g> + #1 + #2 + #<v>]"], "G21 G90 G17 G94 F500")
+    outcome = _outcome(text)
+    assert outcome == _without_c(_outcome(_commented(text)))
+
+
+def test_parameter_settings_alone_run_no_check_and_no_step(monkeypatch) -> None:
+    interp = _interp()
+    checked: list[int] = []
+    check = interp._check_block
+
+    def counted(block, ml, shape):
+        checked.append(interp.line)
+        return check(block, ml, shape)
+
+    monkeypatch.setattr(interp, "_check_block", counted)
+    text = "G21 G90 F600\n#1 = 0\no1 repeat [3]\n#1 = [#1 + 1] #<d> = [#1 * 2]\nG1 X#<d>\no1 endrepeat\nM2\n"
+    # the settings of a line read the values of before the line (LinuxCNC): #<d> is twice the old #1
+    assert [c.end[0] for c in interp.run_string(text) if c.NAME == "STRAIGHT_FEED"] == [0.0, 2.0, 4.0]
+    assert 2 not in checked and 4 not in checked and 1 in checked
