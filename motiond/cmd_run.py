@@ -136,6 +136,10 @@ def _tolerances(machine: Any) -> tuple[float, int, float]:
     return max(10 * machine.T, 0.050), hb, configured.drive_setpoint_timeout_ms
 
 
+#: where the motion side ran, by ``[motion] process`` mode (docs/daemon.md)
+_WHERE = {"own": "in its own process", "thread": "in a thread of this process"}
+
+
 def summary_dict(machine: Any, result: Any) -> dict[str, Any]:
     """The run's figures as plain data (``--json`` prints it)."""
     axes = {}
@@ -162,6 +166,7 @@ def summary_dict(machine: Any, result: Any) -> dict[str, Any]:
         "ok": result.ok,
         "error": result.error,
         "machine": machine.limits.name,
+        "motion_process": machine.motion_mode,
         "duration_s": result.duration_s,
         "cycle_s": result.cycle_s,
         "cycles": result.cycles,
@@ -189,7 +194,8 @@ def print_summary(machine: Any, result: Any, console: Any) -> None:
     d = summary_dict(machine, result)
     console.print(f"[bold]{result.program}[/] on {d['machine']}: ran in {d['duration_s']:.2f} s, motion "
                   f"{d['cycle_s']:.3f} s ({d['cycles']} cycles of {d['period_ms']:g} ms), "
-                  f"{d['late_cycles']} late cycles (worst {d['worst_late_ms']:.1f} ms)", highlight=False)
+                  f"{d['late_cycles']} late cycles (worst {d['worst_late_ms']:.1f} ms), motion side "
+                  f"{_WHERE[d['motion_process']]}", highlight=False)
     console.print(f"timing: {d['timing']['text']}", highlight=False)
     tb = d["time"]
     if tb["total_s"] > 1.05 * tb["moving_s"] + 0.5:

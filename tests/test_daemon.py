@@ -1,9 +1,9 @@
 """The daemon in this process on ``memq://``: commands through ``send_command``, status through LCM.
 
-Each test starts the demo machine (simulated drives on a private virtual bus, the simulated I/O module
-on a free loopback port) with its :class:`CommandServer`, and drives it as an HMI would: commands and
-their replies, the ``canon.status`` stream, events. Faults are injected in the simulated drives and
-the I/O module.
+Each test starts the demo machine (simulated drives on a private bus, the simulated I/O module on a
+free loopback port) with its :class:`CommandServer`, and drives it as an HMI would: commands and their
+replies, the ``canon.status`` stream, events. Faults are injected in the simulated drives (by SDO on
+their bus, as a test bench does) and the I/O module.
 """
 
 from __future__ import annotations
@@ -47,6 +47,37 @@ G0 X0
 M2
 %
 """
+
+
+def demo_with_motion(process: str) -> Any:
+    """The built-in demo machine with ``[motion] process`` set (the demo has no file to write it in)."""
+    import dataclasses
+
+    from motiond.configkit import Table
+
+    return dataclasses.replace(load_machine(None), root=Table({"motion": {"process": process}}, ""))
+
+
+def inject_emcy(machine: Any, node_id: int, code: int) -> None:
+    """Make simulated drive ``node_id`` fault with EMCY ``code`` as ``canon sim inject`` does: an SDO
+    write to its simulation-only 0x2F00 from a CANopen client of this test's own on the machine's bus
+    (the drives run in a process of their own, or beside a thread-mode motion)."""
+    import struct
+
+    import canopen
+
+    from fieldbus.canopen.drive_sim import SIM_INJECT, SIM_INJECT_CODE, SIM_INJECT_DELAY_MS
+
+    network = canopen.Network()
+    network.connect(**machine.canopen.bus.bus_kwargs())
+    try:
+        node = network.add_node(canopen.RemoteNode(node_id, canopen.ObjectDictionary()))
+        node.sdo.MAX_RETRIES = 3
+        node.sdo.RESPONSE_TIMEOUT = 1.0  # the drives' process may wait for a CPU on the loaded test PC
+        node.sdo.download(SIM_INJECT, SIM_INJECT_DELAY_MS, struct.pack("<I", 0))
+        node.sdo.download(SIM_INJECT, SIM_INJECT_CODE, struct.pack("<H", code))
+    finally:
+        network.disconnect()
 
 
 class Daemon:
@@ -299,7 +330,7 @@ def test_drive_emcy_faults_and_reset_recovers(daemon: Daemon) -> None:
     daemon.ready()
     daemon.ok("run", [daemon.program(LONG)])
     daemon.wait_status(lambda s: s.commanded[0] > 5, what="moving")
-    daemon.machine.sim_drives[1].inject_fault(0x2310)
+    inject_emcy(daemon.machine, node_id=2, code=0x2310)  # axis y
     s = daemon.wait_status(lambda s: s.state == "fault", what="fault")
     assert "EMCY 0x2310" in s.last_error and "axis y" in s.last_error
     assert not s.enabled
@@ -349,7 +380,10 @@ def test_gcode_error_mid_program_faults_with_file_and_line(daemon: Daemon) -> No
 
 
 def test_late_cycle_is_a_fault(tmp_path: Path) -> None:
-    d = Daemon(tmp_path, late_fault_s=0.1)
+    # the cycle thread is stalled from within its process (_on_cycle): the demo machine's motion in a
+    # thread of this process, where the test can reach it, whatever "auto" picks (a motion process of
+    # its own is hung by SIGSTOP in tests/test_motion_process.py)
+    d = Daemon(tmp_path, late_fault_s=0.1, config=demo_with_motion("thread"))
     try:
         d.ready()
         d.machine._on_cycle(lambda: time.sleep(0.3), wait=False)  # a stalled cycle thread

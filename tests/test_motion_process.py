@@ -505,10 +505,11 @@ def test_every_thread_of_the_motion_process_runs_fifo_below_a_realtime_cycle(tmp
     assert task[threading.current_thread().name] == (os.SCHED_OTHER, 0), task
 
 
-def test_the_simulated_drives_process_runs_fifo_below_a_realtime_cycle(tmp_path: Path) -> None:
+def test_the_simulated_drives_process_runs_fifo_above_a_realtime_cycle(tmp_path: Path) -> None:
     """With ``realtime_priority`` the simulated drives' process (own mode) runs every thread at
-    SCHED_FIFO one below the cycle: they stand in for hardware, and at ordinary priority two CPU hogs
-    stalled them past their heartbeat watch (EMCY 0x8130 at enable)."""
+    SCHED_FIFO one above the cycle: they stand in for hardware, which the PC never holds off; at
+    ordinary priority two CPU hogs stalled them past their heartbeat watch (EMCY 0x8130 at enable),
+    one below (level with the motion process's other threads) they missed TPDOs for 101 ms."""
     if not fifo_allowed():
         pytest.skip("SCHED_FIFO needs root or CAP_SYS_NICE")
     from motiond.config import load_machine
@@ -524,7 +525,7 @@ def test_the_simulated_drives_process_runs_fifo_below_a_realtime_cycle(tmp_path:
     finally:
         sim.close()
     assert len(policies) >= 2, policies  # the main thread and the bus's reader at least
-    assert all(p == (os.SCHED_FIFO, 19) for p in policies), policies
+    assert all(p == (os.SCHED_FIFO, 21) for p in policies), policies
 
 
 def test_the_motion_process_leaves_even_with_a_worker_thread_stuck() -> None:
@@ -674,7 +675,8 @@ def test_the_daemon_with_the_motion_process_answers_as_with_the_thread(tmp_path:
         d.wait_status(lambda s: s.state == "running" and s.commanded[0] > x + 1, what="resumed")
         d.ok("estop")
         s = d.wait_status(lambda s: s.state == "estop", what="estop")
-        assert not s.enabled and any(e.kind == "estop" for e in d.events)
+        assert not s.enabled
+        d.wait_event(lambda e: e.kind == "estop", what="estop")  # on its own channel: may come after
         d.ready()
         d.ok("mdi", ["G0 X1"])
         d.wait_status(lambda s: s.state == "idle" and s.commanded[0] == 1.0, what="moving after reset")
