@@ -406,6 +406,29 @@ def test_a_program_right_after_an_mdi_line_runs_to_its_end(rig, tmp_path: Path) 
 
 @pytest.mark.multicast
 @pytest.mark.timeout(120)
+def test_an_mdi_line_after_a_fault_while_idle_and_a_reset_runs(rig, tmp_path: Path) -> None:
+    """A fault the motion process handles with no job running (as the I/O module's death while idle)
+    fences its commands there; the task's next ones, after the reset, must still run (they were all
+    discarded: the MDI line stayed "running" for ever)."""
+    path, _channel, _bench = rig
+    prog = tmp_path / "short.ngc"
+    prog.write_text(SHORT)
+    with own_machine(path) as m:
+        m.bring_up()
+        result = m.wait_job(m.run(str(prog)), 60.0)
+        assert result is not None and result.ok, result
+        wait_for(lambda: m.states.state.value == "idle", 10.0, "IDLE after the program")
+        m.motion.post_fault("a test fault while idle", "test")
+        wait_for(lambda: m.states.state.value == "faulted", 10.0, "the fault")
+        m.reset()
+        m.enable()
+        done = m.wait_job(m.mdi("G0 X1"), 30.0)
+        assert done is not None and done.ok, done
+        assert done.final_commanded[0] == pytest.approx(1.0, abs=1e-6)
+
+
+@pytest.mark.multicast
+@pytest.mark.timeout(120)
 def test_estop_on_the_urgent_pipe_stops_the_drives_mid_move(rig, tmp_path: Path) -> None:
     path, _channel, bench = rig
     prog = tmp_path / "long.ngc"

@@ -69,6 +69,9 @@ END_MARK = "__canon_end__"
 """:data:`END` on the command pipe (an ``object()`` does not survive pickling as itself)."""
 SYNC_TYPES = (C.WaitInput, C.Probe)
 """Commands the job thread waits at (``wait_sync_point``): their sequence number is reported back."""
+FENCING_HOOKS = frozenset({"fault", "cancel_stream"})
+"""Hooks posted after this process fenced its commands by itself (:meth:`MotionServer.fence`: it
+accepts only a newer generation from then on): the task starts one as it reads them."""
 MASTER_METHODS = frozenset({"enable", "disable", "home", "boot", "reset_faults", "not_operational",
                             "positions"})
 MASTER_ATTRS = frozenset({"streaming", "fault", "sync_mode"})

@@ -60,7 +60,7 @@ from gcode_canon.errors import GCodeError
 from motiond.config_motion import Watch
 from motiond.runtime.cycle import END, LATE_LOG, QUEUE_MAX
 from motiond.runtime.motion import MotionHooks, MotionSnapshot
-from motiond.runtime.motion_proc import END_MARK, SYNC_TYPES
+from motiond.runtime.motion_proc import END_MARK, FENCING_HOOKS, SYNC_TYPES
 from motiond.runtime.records import Stream, deferred
 from motiond.states import CommandRefused
 
@@ -335,6 +335,8 @@ class MotionProxy:
                     self._take_state(body)
                 else:
                     name, args, kw = body
+                    if name in FENCING_HOOKS:
+                        self._next_generation()
                     self._dispatch.put(lambda n=name, a=args, k=kw: self._hook(n, a, k))
 
     def _hook(self, name: str, args: tuple[Any, ...], kw: dict[str, Any]) -> None:
@@ -481,12 +483,20 @@ class MotionProxy:
 
     def drop_commands(self) -> None:
         """A new generation: what is still on the pipe is discarded over there."""
+        gen = self._next_generation()
+        self.request("fence", gen, dead=lambda: None)
+        self.wake_waiters()
+
+    def _next_generation(self) -> int:
+        """Commands sent from now on are of a new generation. Also taken when the motion process
+        fenced by itself (:data:`FENCING_HOOKS`): it then accepts only a generation newer than any it
+        has seen, and a task that went on sending the old one, with no job to cancel (a fault while
+        idle), had every later command discarded there: an MDI line after the reset stayed "running"
+        for ever (found with the I/O module killed while idle)."""
         with self._cmd_lock:
             self._gen += 1
             self._seq_of.clear()
-            gen = self._gen
-        self.request("fence", gen, dead=lambda: None)
-        self.wake_waiters()
+            return self._gen
 
     def wake_waiters(self) -> None:
         with self._cond:
