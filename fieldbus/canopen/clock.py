@@ -138,11 +138,12 @@ def helper_priority(cycle_priority: int) -> int:
 def rank_below_cycle(cycle_priority: int, who: str, logger: logging.Logger, below: int = 1) -> bool:
     """With a SCHED_FIFO cycle at ``cycle_priority`` (``[canopen] realtime_priority``; 0: none), the
     calling thread, and so every thread it starts afterwards, at SCHED_FIFO ``below`` under it (1:
-    :func:`helper_priority`, the threads of the cycle's own process), at least 1. A refusal (not root,
-    no CAP_SYS_NICE) is a warning naming ``who``: they run at normal priority. True when ranked."""
+    :func:`helper_priority`, the threads of the cycle's own process; negative: above it, as simulated
+    drives standing in for hardware), within SCHED_FIFO's 1-99. A refusal (not root, no CAP_SYS_NICE)
+    is a warning naming ``who``: they run at normal priority. True when ranked."""
     if cycle_priority <= 0:
         return False
-    priority = max(1, cycle_priority - below)
+    priority = min(99, max(1, cycle_priority - below))
     refused = set_fifo(priority)
     if refused:
         logger.warning("%s stay at normal priority (SCHED_FIFO %d refused: %s)", who, priority, refused)

@@ -41,15 +41,9 @@ def _rank_like_hardware(cycle_priority: int) -> None:
     preempted by one of its own level), they missed TPDOs for just over 100 ms ("no TPDO for 101 ms",
     a real drive's limit) in 3 of 7 runs of the example programs in "own" mode on the loaded
     2-core test PC. Refused (not root): logged, they run as they are."""
-    from fieldbus.canopen.clock import set_fifo
+    from fieldbus.canopen.clock import rank_below_cycle
 
-    if cycle_priority <= 0:
-        return
-    priority = min(99, cycle_priority + 1)  # 99: SCHED_FIFO's highest
-    refused = set_fifo(priority)
-    if refused:
-        logging.getLogger(__name__).warning("the simulated drives stay at normal priority (SCHED_FIFO %d "
-                                            "refused: %s)", priority, refused)
+    rank_below_cycle(cycle_priority, "the simulated drives", logging.getLogger(__name__), below=-1)
 
 
 class SimDrivesProcess:
