@@ -310,6 +310,7 @@ class ProgramLoopMixin:
             step(block, ml)
         self._fast_ok = self.fast_path_allowed()
         return self._drain_list()
+
     def _assign(self, assigns: list[tuple[int | str, float]]) -> None:
         """A line's parameter settings: all refused if one is, else made in their order."""
         params = self.params
