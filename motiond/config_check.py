@@ -41,6 +41,10 @@ class CheckedMachine:
     motion: Any = None  # motiond.config_motion.MotionChoice
 
 
+
+#: who sends the SYNC (``CanopenConfig.sync_source``), as ``canon config check`` says it
+_SYNC_BY = {"kernel": "the kernel", "process": "a SYNC process", "master": "the master"}
+
 def validate_machine(path: str | None) -> CheckedMachine:
     """Every table of the machine file (None: the demo machine); raises
     :class:`~motiond.configkit.ConfigErrors` naming each bad key found."""
@@ -223,7 +227,7 @@ def describe(m: CheckedMachine) -> list[Any]:
           if c.heartbeat_producer_ms else "no heartbeat")
     out.append(f"CAN: {c.bus.interface} {c.bus.channel} at {c.bus.bitrate / 1000:g} kbit/s"
                f"{', drives simulated' if c.simulate else ''}; {c.pdo_layout} PDO layout; {hb}; "
-               f"SYNC timed by {'the kernel' if c.kernel_sync else 'the master'}; bus load "
+               f"SYNC timed by {_SYNC_BY[c.sync_source]}; bus load "
                f"{100 * m.bus_load.fraction:.1f} % of {100 * c.max_bus_load:.0f} % allowed "
                f"({m.bus_load.describe()})")
     if m.motion is not None:

@@ -54,7 +54,7 @@ def test_the_sync_key_is_read_with_master_as_default():
 
 @pytest.mark.parametrize("canopen, words", [
     ({"sync": "kernel"}, r'"kernel" needs interface = "socketcan".*on \'virtual\'.*got \'kernel\''),
-    ({"sync": "bcm"}, r"must be one of auto, kernel, master, got 'bcm'"),
+    ({"sync": "bcm"}, r"must be one of auto, kernel, process, master, got 'bcm'"),
     ({"sync": 1}, r"must be str"),
 ])
 def test_a_bad_sync_names_the_key(canopen, words):

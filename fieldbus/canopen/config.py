@@ -223,7 +223,8 @@ class CanopenConfig:
     #: summary judges late cycles against it
     drive_setpoint_timeout_ms: float = 0.0
     #: who times the SYNC (:mod:`fieldbus.canopen.sync`): "master" (the master's cycle, the default),
-    #: "kernel" (SocketCAN's broadcast manager) or "auto" (kernel on socketcan, else master)
+    #: "kernel" (SocketCAN's broadcast manager), "process" (a SYNC process of its own, for buses without
+    #: the kernel's: :mod:`fieldbus.canopen.sync_process`) or "auto" (kernel on socketcan, else master)
     sync: str = "master"
     #: the spindle as a drive on this bus (None: none; the I/O map may still drive a spindle)
     spindle: SpindleDriveConfig | None = None
@@ -237,6 +238,14 @@ class CanopenConfig:
         """True when the kernel times the SYNC (``sync`` "kernel", or "auto" on SocketCAN)."""
         return self.sync == "kernel" or (self.sync == "auto" and self.bus.interface in KERNEL_SYNC_INTERFACES)
 
+    @property
+    def sync_source(self) -> str:
+        """Who sends the SYNC: "kernel" (SocketCAN's broadcast manager), "process" (a SYNC process of
+        its own, :mod:`fieldbus.canopen.sync_process`) or "master" (the master's cycle)."""
+        if self.kernel_sync:
+            return "kernel"
+        return "process" if self.sync == "process" else "master"
+
     def drive(self, axis: str) -> DriveConfig:
         for d in self.drives:
             if d.axis == axis:
@@ -245,7 +254,7 @@ class CanopenConfig:
 
 
 #: ``[canopen] sync`` values
-SYNC_MODES = ("auto", "kernel", "master")
+SYNC_MODES = ("auto", "kernel", "process", "master")
 #: canon's own bus between the processes of one computer (fieldbus.canopen.localbus): simulated drives
 #: in another process, no network
 LOCAL_INTERFACE = "canon_local"
@@ -264,6 +273,9 @@ def sync_problem(sync: str, interface: str) -> str | None:
     if sync == "kernel" and interface not in KERNEL_SYNC_INTERFACES:
         return (f"\"kernel\" needs interface = \"socketcan\" (the kernel's broadcast manager sends the "
                 f"SYNC; on {interface!r} only the master's cycle can): use \"master\" or \"auto\"")
+    if sync == "process" and interface not in CROSS_PROCESS_INTERFACES:
+        return (f"\"process\" needs a bus that crosses processes (interface = \"canon_local\", "
+                f"\"udp_multicast\" or \"socketcan\"; the SYNC process cannot reach a {interface!r} bus)")
     return None
 
 

@@ -152,10 +152,13 @@ class LocalBus(can.BusABC):
     """python-can bus ``canon_local`` (module docstring). ``channel``: a name or a directory;
     ``receive_own_messages``: this bus receives what it sends; ``send_buffer``: bytes asked for on
     each connection (:data:`SEND_BUFFER`). Other keyword arguments (``bitrate`` ...) are accepted and
-    ignored: the bus has no bit timing."""
+    ignored: the bus has no bit timing. ``send_only``: no socket file of its own, so no peer sends to
+    it (a SYNC process, :mod:`fieldbus.canopen.sync_process`, that never reads: peers would fill its
+    queue and log it); it receives nothing."""
 
     def __init__(self, channel: Any = "canon", receive_own_messages: bool = False,
-                 send_buffer: int = SEND_BUFFER, can_filters: Any = None, **kwargs: Any) -> None:
+                 send_buffer: int = SEND_BUFFER, can_filters: Any = None, send_only: bool = False,
+                 **kwargs: Any) -> None:
         self.channel = str(channel)
         self.dir = channel_dir(self.channel)
         self._dir_path = str(self.dir)  # looked at on every send
@@ -170,9 +173,10 @@ class LocalBus(can.BusABC):
         self._send_lock = threading.Lock()
         self._recv_lock = threading.Lock()
         self._heads: dict[socket.socket, can.Message] = {}  # one frame read ahead per connection
-        self._listener = self._listen()
+        self._listener = None if send_only else self._listen()
         self._selector = selectors.DefaultSelector()
-        self._selector.register(self._listener, selectors.EVENT_READ)
+        if self._listener is not None:
+            self._selector.register(self._listener, selectors.EVENT_READ)
         self._wake, self._waker = socket.socketpair()  # shutdown wakes a recv waiting meanwhile
         self._selector.register(self._wake, selectors.EVENT_READ)
         super().__init__(channel=self.channel, can_filters=can_filters, **kwargs)
@@ -326,7 +330,7 @@ class LocalBus(can.BusABC):
         took = False
         while True:
             try:
-                conn, _ = self._listener.accept()
+                conn, _ = self._listener.accept()  # type: ignore[union-attr]  (only when listening)
             except (BlockingIOError, InterruptedError):
                 return took
             took = True

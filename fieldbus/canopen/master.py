@@ -83,6 +83,7 @@ from fieldbus.canopen.master_spindle import SpindleBook, SpindleFeedback, Spindl
 from fieldbus.canopen.master_states import StateMachineMixin
 from fieldbus.canopen.master_supervision import ErrorFrameListener, SupervisionMixin
 from fieldbus.canopen.sync import SYNC_COB_ID, KernelSync, SyncError
+from fieldbus.canopen.sync_process import SyncProcess, SyncProcessError
 
 __all__ = ["INPUT_BITS", "NEGATIVE_LIMIT", "POSITIVE_LIMIT", "BusBudgetError", "CanopenError",
            "CanopenMaster", "DriveFeedback", "DriveState", "Fault", "SpindleFeedback", "input_names"]
@@ -132,8 +133,10 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin
         self._synced = False  # this cycle's SYNC is out (or, kernel SYNC, counted): :meth:`sync`
         self._sync_at = 0.0  # when the master last sent a SYNC
         self._reader_sync_at = 0.0
-        #: who times the SYNC: "kernel" (the broadcast manager, :mod:`fieldbus.canopen.sync`) or "master"
-        self.sync_mode = "kernel" if config.kernel_sync else "master"
+        #: who times the SYNC: "kernel" (the broadcast manager, :mod:`fieldbus.canopen.sync`), "process"
+        #: (a SYNC process, :mod:`fieldbus.canopen.sync_process`: the kernel's structure on buses without
+        #: it) or "master"
+        self.sync_mode = config.sync_source
         self._kernel_sync: KernelSync | None = None
         #: kernel SYNC: SYNCs that found no new RPDO since the previous one while streaming (the drives
         #: held their last target); with the master's SYNC a stalled cycle delays the SYNC instead
@@ -153,7 +156,7 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin
         net.listeners.append(ErrorFrameListener(self))
         net.NOTIFIER_SHUTDOWN_TIMEOUT = 2.0
         net.connect()
-        if self.sync_mode == "kernel":
+        if self.sync_mode != "master":
             try:
                 self._start_kernel_sync(net, bus)
             except CanopenError:
@@ -189,11 +192,20 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin
         runs until :meth:`shutdown`. The bus reader notes each SYNC it sees (TPDO ages count in SYNCs
         the reader has seen: a stall of the reader is not a drive's silence)."""
         net.subscribe(SYNC_COB_ID, self._on_sync)
-        ks = KernelSync(bus, self.config.bus.bus_kwargs(), self.config.cycle_s)
+        c = self.config
+        timer = None
         try:
+            if self.sync_mode == "process":
+                b = c.bus
+                timer = SyncProcess({"interface": b.interface, "channel": b.channel, "bitrate": b.bitrate,
+                                     "options": dict(b.options)}, c.cycle_s, SYNC_COB_ID,
+                                    c.realtime_priority, tuple(c.cpu_affinity))
+            ks = KernelSync(bus, c.bus.bus_kwargs(), c.cycle_s, timer=timer)
             ks.open()
-        except SyncError as exc:
-            raise CanopenError(f"[canopen] sync = \"{self.config.sync}\": {exc}") from None
+        except (SyncError, SyncProcessError) as exc:
+            if timer is not None:
+                timer.stop()
+            raise CanopenError(f"[canopen] sync = \"{c.sync}\": {exc}") from None
         self._kernel_sync = ks
 
     def _stop_kernel_sync(self) -> None:

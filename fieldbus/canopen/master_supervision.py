@@ -185,22 +185,25 @@ class SupervisionMixin(MasterCore):
         the interface down) or the RPDOs (the cycle stalled while the SYNC went on)."""
         limit = self.config.feedback_timeout_s
         gap = now - self._last_sent if self._last_sent else 0.0
-        if self._kernel_sync is None:
+        ks = self._kernel_sync
+        if ks is None:
             if gap > limit:
                 self.raise_fault(0, f"the master sent no SYNC for {1000 * gap:.0f} ms (limit "
                                     f"{1000 * limit:g} ms): its cycle stalled, the drives got no setpoint")
                 return True
             return False
         quiet = now - max(self._reader_sync_at, self._stream_t0)
+        process = getattr(ks, "timer", None) is not None
         if quiet > limit:
+            why = ("the SYNC process stopped (killed?)" if process else
+                   "the kernel's periodic SYNC stopped (its task removed, the interface down?)")
             self.raise_fault(0, f"no SYNC on the bus for {1000 * quiet:.0f} ms (limit {1000 * limit:g} ms): "
-                                "the kernel's periodic SYNC stopped (its task removed, the interface "
-                                "down?) or the master's bus reader stalled")
+                                f"{why} or the master's bus reader stalled")
             return True
         if gap > limit:
             self.raise_fault(0, f"the master sent no setpoint for {1000 * gap:.0f} ms (limit "
-                                f"{1000 * limit:g} ms) while the kernel's SYNC went on: its cycle stalled, "
-                                "the drives held their last target")
+                                f"{1000 * limit:g} ms) while the {'SYNC process' if process else 'kernel'}'s "
+                                "SYNC went on: its cycle stalled, the drives held their last target")
             return True
         return False
 

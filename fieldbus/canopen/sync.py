@@ -13,7 +13,11 @@
   (:class:`KernelSync`, filtered to the SYNC's COB-ID) and sends each drive's RPDO for the *next*
   SYNC right after it. A stall shorter than a period (less the time the RPDOs take) costs nothing on
   the bus; a longer one costs setpoints (the drives hold the last target), never a SYNC.
-* ``"auto"`` (the default): ``"kernel"`` on socketcan, else ``"master"``.
+* ``"process"``: the same structure on buses without the kernel's timer (``canon_local``,
+  ``udp_multicast``): a SYNC process of its own sends it and reports each one on a pipe
+  (:mod:`fieldbus.canopen.sync_process`, :attr:`KernelSync.timer`), which the master reads in place
+  of the listening socket.
+* ``"auto"``: ``"kernel"`` on socketcan, else ``"master"``.
 
 With the kernel's SYNC the cycle thread is paced by the SYNCs it sees (:meth:`KernelSync.wait`, the
 ``tick`` of :class:`~fieldbus.canopen.clock.PeriodicRunner`), not by a clock of its own: the BCM re-arms
@@ -35,6 +39,8 @@ import time
 
 import can
 
+from fieldbus.canopen.sync_process import SyncProcess, SyncProcessError
+
 log = logging.getLogger(__name__)
 
 SYNC_COB_ID = 0x80
@@ -54,11 +60,14 @@ class KernelSync:
     kernel's receive time stamp)."""
 
     def __init__(self, bus: can.BusABC, bus_kwargs: dict[str, object], period_s: float,
-                 cob_id: int = SYNC_COB_ID) -> None:
+                 cob_id: int = SYNC_COB_ID, timer: SyncProcess | None = None) -> None:
         self.bus = bus
         self.bus_kwargs = bus_kwargs
         self.period_s = period_s
         self.cob_id = cob_id
+        #: ``[canopen] sync = "process"``: the process that sends the SYNC in place of the kernel's
+        #: broadcast manager (:mod:`fieldbus.canopen.sync_process`), already started and waiting
+        self.timer = timer
         self.seen = 0
         self.last_at = 0.0
         self._task: can.broadcastmanager.RestartableCyclicTaskABC | None = None
@@ -75,6 +84,9 @@ class KernelSync:
         (:meth:`start`). :class:`SyncError` when the bus's periodic send is not the kernel's (python-can
         falls back to a Python thread there)."""
         if self._task is not None:
+            return
+        if self.timer is not None:  # the SYNC process sends it and reports each one on its pipe
+            self._task = self.timer  # type: ignore[assignment]
             return
         from can.interfaces.socketcan import CyclicSendTask
 
@@ -101,22 +113,34 @@ class KernelSync:
             return
         try:
             self._task.start()
-        except (can.CanError, OSError) as exc:
-            raise SyncError(f"the kernel's periodic SYNC did not start: {exc}") from None
+        except (can.CanError, OSError, SyncProcessError) as exc:
+            raise SyncError(f"the {self.source}'s periodic SYNC did not start: {exc}") from None
         self._started = True
-        log.info("SYNC every %g ms by the kernel's broadcast manager", 1000 * self.period_s)
+        by = "kernel's broadcast manager" if self.timer is None else f"SYNC process (pid {self.timer.pid})"
+        log.info("SYNC every %g ms by the %s", 1000 * self.period_s, by)
+
+    @property
+    def source(self) -> str:
+        """Who sends the SYNC: "kernel" (SocketCAN's broadcast manager) or "process" (the SYNC
+        process)."""
+        return "kernel" if self.timer is None else "process"
 
     def stop(self) -> None:
         """Stop the SYNC (the BCM task's TX_DELETE), then close the listening socket. Safe twice."""
         task, self._task = self._task, None
         started, self._started = self._started, False
-        if task is not None and started:
+        if self.timer is not None:  # also never started or opened: the process ends here
+            self.timer.end()  # no SYNC from now on; its pipe is closed below, once no wait reads it
+        elif task is not None and started:
             try:
                 task.stop()
             except (can.CanError, OSError) as exc:
                 log.error("stopping the kernel's SYNC: %s (it ends with the bus or the process)", exc)
         with self._lock:
             self._close_listener()
+            timer, self.timer = self.timer, None
+            if timer is not None:
+                timer.stop()
 
     def _close_listener(self) -> None:
         listener, self._listener = self._listener, None
@@ -129,7 +153,14 @@ class KernelSync:
         return msg.timestamp - (time.time() - time.monotonic())
 
     def _read(self, timeout: float) -> float | None:
-        """One SYNC from the listening socket within ``timeout`` (0: only one already there): its time."""
+        """One SYNC from the listening socket (or the SYNC process's report) within ``timeout`` (0: only
+        one already there): its time."""
+        if self.timer is not None:
+            t = self.timer.read(timeout)
+            if t is not None:
+                self.seen += 1
+                self.last_at = t
+            return t
         listener = self._listener
         if listener is None:
             return None

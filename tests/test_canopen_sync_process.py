@@ -1,0 +1,248 @@
+"""The SYNC timed by a process of its own (``[canopen] sync = "process"``) on canon's local bus: the
+cycle paced by it with each RPDO after a SYNC, the SYNC going on while the master's process is held
+up, no SYNC outliving the master (shut down or killed), and the key checked with its name."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from canopen_helpers import Rig, make_config, unique_channel
+
+from fieldbus.canopen.clock import PeriodicRunner
+from fieldbus.canopen.config import CanBusConfig
+from fieldbus.canopen.localbus import LocalBus
+from fieldbus.canopen.master import CanopenMaster
+from fieldbus.canopen.sync_process import SyncProcess, SyncProcessError
+from motiond.config_canopen import read_canopen
+from motiond.configkit import ConfigError, Table
+
+ROOT = Path(__file__).resolve().parent.parent
+SYNC, RPDO1 = 0x80, 0x200
+
+
+class Listener:
+    """Every frame on the channel, with the sender's time stamp (canon_local carries it)."""
+
+    def __init__(self, channel: str) -> None:
+        self.bus = LocalBus(channel=channel)
+        self.frames: list[tuple[float, int]] = []
+
+    def drain(self, quiet_s: float = 0.2) -> None:
+        """Read what was sent until now: until a frame sent after the call, or nothing for ``quiet_s``
+        (bounded: 100,000 frames)."""
+        now = time.time()
+        for _ in range(100_000):
+            msg = self.bus.recv(quiet_s)
+            if msg is None:
+                return
+            self.frames.append((msg.timestamp, msg.arbitration_id))
+            if msg.timestamp > now:
+                return
+
+    def syncs(self, t0: float = 0.0, t1: float = float("inf")) -> list[float]:
+        return [t for t, cob in self.frames if cob == SYNC and t0 <= t <= t1]
+
+    def close(self) -> None:
+        self.bus.shutdown()
+
+
+@pytest.fixture
+def local_rig():
+    made: list[tuple[Rig, Listener]] = []
+
+    def make(n: int, **kw: object) -> tuple[Rig, Listener]:
+        channel = unique_channel()
+        config = make_config(n, bus=CanBusConfig("canon_local", channel), sync="process", **kw)
+        listener = Listener(channel)
+        rig = Rig(config, check_budget=False)
+        made.append((rig, listener))
+        return rig, listener
+
+    yield make
+    for rig, listener in made:
+        try:
+            rig.close()
+        finally:
+            listener.close()
+
+
+def run_on_sync(master: CanopenMaster, cycles: int) -> PeriodicRunner:
+    n = len(master.drives)
+    runner = PeriodicRunner(master.config.cycle_s, lambda k, t: master.cycle([0.001 * k] * n),
+                            cycles=cycles, tick=master.sync_tick).start()
+    assert runner.join(60.0), "the cycle did not end"
+    assert runner.error is None
+    return runner
+
+
+def test_the_sync_process_paces_the_cycle_and_each_rpdo_follows_a_sync(local_rig):
+    rig, listener = local_rig(2, cycle_s=0.004, feedback_timeout_s=2.0)
+    rig.up()
+    master = rig.master
+    assert master.sync_mode == "process" and master.sync_tick is not None
+    t0 = time.time()
+    run_on_sync(master, 150)
+    t1 = time.time()
+    assert master.fault is None, master.fault
+    listener.drain()
+    syncs = listener.syncs(t0, t1)
+    assert len(syncs) >= 120, len(syncs)
+    # the SYNC process's own clock: its median period is the configured one
+    gaps = [b - a for a, b in itertools.pairwise(syncs)]
+    assert statistics.median(gaps) == pytest.approx(0.004, rel=0.2)
+    # each drive's RPDO goes out after a SYNC, early in the period (for the next SYNC)
+    after: dict[int, list[float]] = {1: [], 2: []}
+    last = None
+    for t, cob in sorted(f for f in listener.frames if t0 <= f[0] <= t1):
+        if cob == SYNC:
+            last = t
+        elif cob in (RPDO1 + 1, RPDO1 + 2) and last is not None:
+            after[cob - RPDO1].append(t - last)
+    for node, delays in after.items():
+        assert len(delays) >= 100, (node, len(delays))
+        assert statistics.median(delays) < 0.5 * 0.004, (node, statistics.median(delays))
+    # the drives latched the targets: they followed the stream
+    assert rig.sim(1).target != 0 and rig.sim(1).syncs >= 120
+
+
+def test_the_sync_goes_on_while_the_masters_process_holds_its_interpreter_lock(local_rig):
+    """The point of the SYNC process: whatever holds the motion process's interpreter lock, the SYNC
+    keeps its period (with the master's own SYNC none goes out while the cycle cannot run)."""
+    rig, listener = local_rig(1, cycle_s=0.002, feedback_timeout_s=5.0)
+    rig.up()
+    run_on_sync(rig.master, 20)  # the SYNC process started with the first tick
+    before = sys.getswitchinterval()
+    sys.setswitchinterval(1.0)  # no other thread of this process runs until the loop below ends
+    try:
+        t0 = time.time()
+        n = 0
+        while time.time() - t0 < 0.3:
+            n += 1
+        t1 = time.time()
+    finally:
+        sys.setswitchinterval(before)
+    listener.drain()
+    held = listener.syncs(t0, t1)
+    # 150 periods in 0.3 s; at least half of them on a loaded machine
+    assert len(held) >= 75, (len(held), t1 - t0)
+
+
+def test_no_sync_outlives_the_master_shut_down(local_rig):
+    rig, listener = local_rig(1, cycle_s=0.002)
+    rig.up()
+    run_on_sync(rig.master, 10)
+    timer = rig.master._kernel_sync.timer  # type: ignore[union-attr]
+    assert timer is not None
+    rig.master.shutdown()
+    after = time.time()
+    assert timer._proc.poll() is not None  # reaped by the shutdown
+    time.sleep(0.1)
+    listener.drain()
+    assert listener.syncs(after + 0.01) == []
+    assert listener.syncs(0.0, after)  # it did send before
+
+
+def test_a_killed_sync_process_is_a_fault_of_the_master_naming_it(local_rig):
+    rig, _listener = local_rig(1, cycle_s=0.002, feedback_timeout_s=0.3)
+    rig.up()
+    master = rig.master
+    pid = master._kernel_sync.timer.pid  # type: ignore[union-attr]
+    done = [0]
+
+    def step(k: int, t: float) -> bool:
+        done[0] += 1
+        if done[0] == 50:
+            os.kill(pid, signal.SIGKILL)
+        master.cycle([0.0])
+        return master.fault is None
+
+    runner = PeriodicRunner(0.002, step, cycles=3000, tick=master.sync_tick).start()
+    assert runner.join(60.0)
+    assert master.fault is not None and master.fault.node == 0, master.fault
+    assert "no SYNC on the bus" in master.fault.reason and "the SYNC process stopped" in master.fault.reason
+
+
+KILLED = """
+import sys, time
+from fieldbus.canopen.sync_process import SyncProcess
+t = SyncProcess({{"interface": "canon_local", "channel": {channel!r}}}, 0.002)
+t.start()
+print(t.pid, flush=True)
+time.sleep(60)
+"""
+
+
+def test_no_sync_outlives_a_killed_parent():
+    """SIGKILL gives the parent no chance to stop its SYNC process: the process sees its input end
+    (the kernel closed the dead parent's files) and stops, as the kernel ends a BCM task with its
+    socket."""
+    channel = unique_channel()
+    listener = Listener(channel)
+    parent = subprocess.Popen([sys.executable, "-c", KILLED.format(channel=channel)], cwd=ROOT,
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        line = parent.stdout.readline() if parent.stdout else ""
+        child = int(line)
+        deadline = time.monotonic() + 20
+        while not listener.syncs() and time.monotonic() < deadline:
+            listener.drain(0.05)
+        assert listener.syncs(), "no SYNC before the kill"
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(10)
+        killed = time.time()
+        gone = False
+        for _ in range(200):  # bounded: 10 s
+            try:
+                os.kill(child, 0)
+            except ProcessLookupError:
+                gone = True
+                break
+            with open(f"/proc/{child}/stat") as f:  # a zombie has sent its last SYNC
+                if f.read().split(")")[-1].split()[0] == "Z":
+                    gone = True
+                    break
+            time.sleep(0.05)
+        assert gone, "the SYNC process outlived its parent"
+        listener.drain()
+        assert not listener.syncs(killed + 0.05), "SYNCs after the parent was killed"
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+            parent.wait(10)
+        listener.close()
+
+
+def test_a_sync_process_whose_bus_does_not_open_says_why():
+    with pytest.raises(SyncProcessError, match=r"did not open the bus: .*nosuch"):
+        SyncProcess({"interface": "nosuch", "channel": "x"}, 0.01)
+
+
+def canopen_table(**canopen: object) -> Table:
+    return Table({"canopen": {"axes": {"x": {"node_id": 1}}, **canopen}}, "m.toml")
+
+
+def test_the_sync_key_takes_process_on_a_bus_that_crosses_processes():
+    for interface, channel in (("canon_local", "a"), ("udp_multicast", "239.74.163.9")):
+        c = read_canopen(canopen_table(interface=interface, channel=channel, sync="process"), ["x"], 0.002)
+        assert c.sync_source == "process" and not c.kernel_sync
+    with pytest.raises(ConfigError, match=r'^m\.toml: canopen\.sync: "process" needs a bus that crosses '
+                                          r"processes .*'virtual'"):
+        read_canopen(canopen_table(sync="process"), ["x"], 0.002)
+
+
+def test_config_check_says_a_sync_process_times_the_sync(tmp_path):
+    text = (ROOT / "examples" / "canon.toml").read_text()
+    cfg = tmp_path / "m.toml"
+    cfg.write_text(text.replace('sync = "master"', 'sync = "process"', 1))
+    r = subprocess.run([sys.executable, "-m", "motiond.cli", "config", "check", "--config", str(cfg)],
+                       capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    assert "SYNC timed by a SYNC process" in " ".join(r.stdout.split())
