@@ -100,9 +100,10 @@ class Ticks:
         self.cond = threading.Condition()
         self.pending: list[float] = []
 
-    def put(self, n: int = 1) -> None:
+    def put(self, n: int = 1, at: float | None = None) -> None:
+        """``n`` ticks, stamped now (or ``at``: a tick that was out earlier and is seen only now)."""
         with self.cond:
-            self.pending.extend([time.monotonic()] * n)
+            self.pending.extend([time.monotonic() if at is None else at] * n)
             self.cond.notify_all()
 
     def wait(self, until: float) -> tuple[float, float, int] | None:
@@ -141,6 +142,40 @@ def test_ticks_pace_the_runner_and_missed_ones_are_late_and_skipped():
         assert stepped.acquire(timeout=10.0)
         assert time.monotonic() - t >= period
         assert steps[-1] == 7 and runner.stats.skipped == 3 and late == [5, 7]
+    finally:
+        runner.stop()
+        ticks.put()
+        assert runner.join(5.0)
+    assert runner.error is None
+
+
+def test_a_tick_seen_only_after_the_step_that_ran_on_the_clock_brings_no_second_step():
+    """A SYNC that was on the bus before a step began but reached the master only after it (its reader
+    held up, so the step ran on the clock): that step's setpoints already wait for the next SYNC. A
+    step for the late one would put two setpoints between two SYNCs: two periods' travel in one."""
+    ticks = Ticks()
+    period = 1.0
+    steps: list[tuple[int, float]] = []
+    stepped = threading.Semaphore(0)
+
+    def step(k: int, t: float) -> None:
+        steps.append((k, time.monotonic()))
+        stepped.release()
+
+    runner = PeriodicRunner(period, step, tick=ticks.wait)
+    runner.start()
+    try:
+        ticks.put()
+        assert stepped.acquire(timeout=10.0)
+        sync_out = time.monotonic() + period  # the next SYNC goes out on time, but is not seen
+        assert stepped.acquire(timeout=10.0)  # a period later the runner steps on its clock
+        assert steps[-1][1] > sync_out
+        ticks.put(at=sync_out)  # now the SYNC reaches the master, stamped before that step began
+        assert not stepped.acquire(timeout=0.3)  # no step for it
+        assert len(steps) == 2
+        ticks.put()  # the SYNC after it: one step
+        assert stepped.acquire(timeout=10.0)
+        assert len(steps) == 3 and runner.stats.skipped == 1  # the clock step's tick only
     finally:
         runner.stop()
         ticks.put()

@@ -323,13 +323,17 @@ class PeriodicRunner:
         next tick, its deadline the tick's time. Ticks that came while a step ran count as skipped (the
         step is late), as does a tick that does not come within a period of when it was due: then the
         step runs on the clock, so that a stopped tick source is noticed by the step (the master faults)
-        and the loop goes on."""
+        and the loop goes on. A tick from before the last step began, seen only after it (its reader held
+        up), brings no step: that step's setpoints already wait for the tick after it, and a second
+        step would send two setpoints between two SYNCs (the drive takes the later: two periods' travel
+        in one, a velocity step past its limit at speed, EMCY 0x8400)."""
         st = self.stats
         period = self.period_s
         tick(0.0)  # ticks from before the start (queued while nothing waited) are not this loop's
         due = time.monotonic() + period  # the next tick, at the latest
         st.started = due
         prev: float | None = None  # the time of the last tick taken
+        stepped = 0.0  # when the last step began
         k = 0
         while not self._stop.is_set() and (self.cycles is None or st.cycles < self.cycles):
             got = tick(due + period)
@@ -337,6 +341,12 @@ class PeriodicRunner:
             if got is None:
                 deadline, missed = due, 1
                 prev, due = due, due + period
+            elif got[1] < stepped:
+                # ticks that were out before the last step began, seen only now (their reader was held
+                # up, so that step ran on the clock or late): what it sent is for the tick after them. A
+                # step now would put a second setpoint before that one tick, two periods' travel in one
+                prev, due = got[1], got[1] + period
+                continue
             else:
                 deadline, last, n = got
                 # by the ticks' times too: the step may take ticks itself (the master's cycle counts the
@@ -344,6 +354,7 @@ class PeriodicRunner:
                 missed = n - 1 if prev is None else max(n - 1, round((last - prev) / period) - 1)
                 prev, due = last, last + period
             k += missed
+            stepped = now
             if not self._step_at(k, deadline, now, missed):
                 break
             k += 1
