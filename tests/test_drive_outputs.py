@@ -61,7 +61,10 @@ def machine(tmp_path: Path) -> Iterator[Machine]:
     old = 'coolant_mist = { device = "io", coil = 12 }'
     assert old in text
     f = tmp_path / "m.toml"
-    f.write_text(text.replace(old, f'coolant_mist = {{ drive = "z", bit = {MIST} }}'))
+    # the motion pinned to a thread: these tests read the simulated drive's outputs in this process
+    # (the own-mode path is test_a_drive_output_is_written_from_the_task_with_the_motion_in_its_own_process)
+    f.write_text(text.replace(old, f'coolant_mist = {{ drive = "z", bit = {MIST} }}')
+                 + '\n[motion]\nprocess = "thread"\n')
     with started(f, tmp_path) as m:
         yield m
 
