@@ -10,9 +10,11 @@ The ref (``--vs-ref``, default ``HEAD``) is extracted with ``git archive`` into 
 and run with ``PYTHONPATH`` pointing at it (it comes before the editable install on ``sys.path``;
 each child prints where it imported ``gcode_canon`` from and the bench checks it). Both ways are
 timed: in process (a child that times ``Interpreter.run_file`` only, as ``bench/interpreter.py``
-does) and ``canon check`` (the whole child: start-up, interpretation and text to /dev/null,
-byte-compiled as in ``bench/interpreter.py``). The programs are ``bench/interpreter.py``'s plain and
-mixed ones.
+does, three times with a new Interpreter each, keeping the least) and ``canon check`` (the whole
+child: start-up, interpretation and text to /dev/null, byte-compiled as in ``bench/interpreter.py``).
+Every canon child gets the same ``PYTHONHASHSEED`` (``--hash-seed``), so that dict layouts do not
+differ between the two sides: with random seeds and one run per child, the same code on both sides
+once came out 15 % apart. The programs are ``bench/interpreter.py``'s plain and mixed ones.
 
 Usage: ``python bench/interpreter_ab.py [LINES] [--vs-ref REF] [--rounds N] [--only plain|mixed]
 [--way process|check]`` (100,000 lines, 6 rounds, both programs and both ways by default).
@@ -37,12 +39,16 @@ IN_PROCESS = """
 import sys, time, gcode_canon
 from gcode_canon.interpreter import Interpreter
 from gcode_canon.settings import InterpreterSettings
-interp = Interpreter(InterpreterSettings(dry_run=True))
-c0 = time.process_time()
-n = 0
-for _ in interp.run_file(sys.argv[1]):
-    n += 1
-print(time.process_time() - c0, n, gcode_canon.__file__)
+best = None
+for _ in range(int(sys.argv[2])):
+    interp = Interpreter(InterpreterSettings(dry_run=True))
+    c0 = time.process_time()
+    n = 0
+    for _ in interp.run_file(sys.argv[1]):
+        n += 1
+    cpu = time.process_time() - c0
+    best = cpu if best is None else min(best, cpu)
+print(best, n, gcode_canon.__file__)
 """
 
 # ``canon check`` as the installed entry script runs it (``canon = motiond.cli:main``).
@@ -64,8 +70,13 @@ def env_for(tree: Path, base: dict[str, str]) -> dict[str, str]:
     return env
 
 
+INNER_RUNS = 3
+"""Runs of the program inside each in-process child (a new Interpreter each), the least CPU kept."""
+
+
 def in_process(tree: Path, program: Path, env: dict[str, str]) -> float:
-    out = subprocess.run([sys.executable, "-c", IN_PROCESS, str(program)], env=env_for(tree, env),
+    out = subprocess.run([sys.executable, "-c", IN_PROCESS, str(program), str(INNER_RUNS)],
+                         env=env_for(tree, env),
                          capture_output=True, text=True, check=True, cwd=tree).stdout.split()
     if not Path(out[2]).resolve().is_relative_to(tree.resolve()):
         raise SystemExit(f"the child imported gcode_canon from {out[2]}, not from {tree}")
@@ -81,6 +92,8 @@ def main() -> None:
     parser.add_argument("lines", nargs="?", type=int, default=100_000, help="lines per program (100,000)")
     parser.add_argument("--vs-ref", default="HEAD", metavar="REF", help="the git ref to compare with (HEAD)")
     parser.add_argument("--rounds", type=int, default=6, metavar="N", help="rounds; least CPU time kept (6)")
+    parser.add_argument("--hash-seed", type=int, default=0, metavar="N",
+                        help="PYTHONHASHSEED of every canon child (0)")
     parser.add_argument("--only", choices=("plain", "mixed"), help="one program only")
     parser.add_argument("--way", choices=("process", "check"), help="one way only")
     args = parser.parse_args()
@@ -93,6 +106,7 @@ def main() -> None:
         ini = tmp / "mm.ini"
         ini.write_text("[TRAJ]\nLINEAR_UNITS = mm\n")
         env = compiled_env(tmp)
+        env["PYTHONHASHSEED"] = str(args.hash_seed)  # the same str hashes (dict layouts) on both sides
         one = tmp / "one.ngc"
         one.write_text("G0 X1\nM2\n")
         for tree in trees.values():
