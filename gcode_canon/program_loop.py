@@ -190,8 +190,8 @@ class ProgramLoopMixin:
         straight line gives its values to :meth:`_fast_values` without building a Block; a compiled
         line of parameter settings alone sets them as :meth:`_execute_block` would. The commands
         (``()`` when there are none), or None for the general way, with nothing changed: an
-        expression that fails here fails again there, which says it in its place."""
-        self._tail = None
+        expression that fails here fails again there, which says it in its place. The fast path's
+        A-W tail (``_tail``) stays: none of these lines moves those axes or changes an offset."""
         cls = entry.__class__
         if cls is Block:
             if entry.plain is None:  # type: ignore[attr-defined]
@@ -211,6 +211,7 @@ class ProgramLoopMixin:
         if plain is None:  # parameter settings alone
             if self.cycle_state.initial_level is not None or len(self.steps) != self._builtin_steps:
                 return None
+            self._tail = None  # as the general path: computed again at the next fast line
             try:
                 self._assign(values)
             except GCodeError as exc:
@@ -285,8 +286,8 @@ class ProgramLoopMixin:
                     z += zv * scale
             s = self.frames.sum
             mx, my, mz = x + s[0], y + s[1], z + s[2]
-            if not (_isfinite(mx) and _isfinite(my) and _isfinite(mz)):
-                return None  # the general path reports it
+            if not _isfinite(mx + my + mz):  # any of them not finite (or a sum too large to add)
+                return None  # the general path reports it (or takes it)
             prog[0], prog[1], prog[2] = x, y, z
             tail = self._tail
             if tail is None:  # A B C U V W do not change on fast lines: computed once per run of them
