@@ -265,8 +265,8 @@ def _with_plain(block: Block) -> Block:
 class CompiledLine:
     """One line's words in order, each a constant or a closure; :meth:`run` makes its Block."""
 
-    __slots__ = ("assigns", "axes", "comments", "deleted", "g", "items", "line_number", "m", "plain", "shape",
-                 "simple", "static", "values")
+    __slots__ = ("assigns", "axes", "comments", "deleted", "g", "items", "line_number", "m", "plain", "quick",
+                 "shape", "simple", "static", "values")
 
     def __init__(self, raw: str, compiler: _Compiler) -> None:
         s, self.comments = fold(raw)
@@ -328,6 +328,16 @@ class CompiledLine:
             self.plain = plain_shape([g_code(node) for kind, _, node, _ in items if kind == _G],  # type: ignore[arg-type]
                                      [], [letter for kind, letter, _, _ in items if kind == _WORD],
                                      self.comments, self.deleted, self.line_number)
+        self.quick: Callable[[], object] | None = None
+        """The program loop's shortcut (``_quick_line``), made of this line's own nodes: for a straight
+        fast-path line (:attr:`plain`, no G2/G3) a function giving its X Y Z F values (None where a word
+        is absent); for a line of parameter settings alone, the settings as :meth:`run`'s Block holds
+        them. Both evaluate in the line's order, as :meth:`run` does."""
+        if self.plain is not None and self.plain[0] in (None, 0, 10):
+            self.quick = _values_function(self.values)
+        elif (self.static and self.assigns and not self.values and not self.g and not self.m
+              and not self.comments and not self.deleted):
+            self.quick = _assigns_function(self.assigns)
 
     def run(self) -> Block:
         """The Block ``parse_line`` would give now (values from the parameters in force)."""
@@ -347,9 +357,9 @@ class CompiledLine:
             words[letter] = node() if callable(node) else node
         if self.assigns:
             assigns = block.assigns
-            for key, node in self.assigns:
-                value = node() if callable(node) else node
-                assigns.append((key() if callable(key) else key, value))
+            for key, node in self.assigns:  # the key (#[...] evaluated) before the value, as parse_line
+                key = key() if callable(key) else key
+                assigns.append((key, node() if callable(node) else node))
         return block
 
     def _new_block(self) -> Block:
@@ -385,6 +395,51 @@ class CompiledLine:
         return block
 
 
+_FACTORIES: dict[str, Callable[..., Callable[[], object]]] = {}
+"""Generated factories by their source: a line's shortcut is made by calling the factory of its
+shape (which words, which of them computed) with its own values, so ``compile`` runs once a shape."""
+
+
+def _generated(names: list[str], body: str, values: list[object]) -> Callable[[], object]:
+    """``quick()`` with ``body`` (indented source of its statements) over ``names`` bound to
+    ``values`` (closure cells, as fast to read as locals)."""
+    source = f"def make({', '.join(names)}):\n def quick():\n{body} return quick\n"
+    make = _FACTORIES.get(source)
+    if make is None:
+        namespace: dict[str, object] = {}
+        exec(compile(source, "<compiled line>", "exec"), namespace)
+        make = _FACTORIES[source] = namespace["make"]  # type: ignore[assignment]
+    return make(*values)
+
+
+def _values_function(values: tuple[tuple[str, Node], ...]) -> Callable[[], object]:
+    """``() -> (x, y, z, f)`` for a straight fast-path line: the words' values evaluated in the
+    line's order, None for an absent word."""
+    names, steps, slots = [], [], dict.fromkeys("xyzf", "None")
+    for k, (letter, node) in enumerate(values):
+        names.append(f"n{k}")
+        if callable(node):
+            steps.append(f"  v{k} = n{k}()\n")
+            slots[letter] = f"v{k}"
+        else:
+            slots[letter] = f"n{k}"
+    body = "".join(steps) + f"  return ({slots['x']}, {slots['y']}, {slots['z']}, {slots['f']})\n"
+    return _generated(names, body, [node for _, node in values])
+
+
+def _assigns_function(assigns: tuple[tuple[object, Node], ...]) -> Callable[[], object]:
+    """``() -> [(key, value), ...]`` for a line of parameter settings alone: each key (``#[...]``
+    evaluated) before its value, in the line's order, as ``parse_line`` reads them."""
+    names: list[str] = []
+    bound: list[object] = []
+    pairs = []
+    for k, (key, node) in enumerate(assigns):
+        names += [f"k{k}", f"n{k}"]
+        bound += [key, node]
+        pairs.append(f"(k{k}{'()' if callable(key) else ''}, n{k}{'()' if callable(node) else ''})")
+    return _generated(names, f"  return [{', '.join(pairs)}]\n", bound)
+
+
 class LineCache:
     """Text of a line to its Block (module docstring)."""
 
@@ -395,6 +450,12 @@ class LineCache:
         self.size = size
         self._entries: dict[str, object] = {}
         self._compiler: _Compiler | None = None
+
+    @property
+    def known(self) -> Callable[[str], object]:
+        """``known(raw)``: what the cache holds for a line text (a Block, a :class:`CompiledLine`, a
+        marker) or None; the function stays valid as the cache is cleared."""
+        return self._entries.get
 
     def parse(self, raw: str) -> Block:
         entry = self._entries.get(raw)

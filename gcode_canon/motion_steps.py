@@ -6,6 +6,7 @@ full circles G12/G13, from the axis words to canonical commands in machine coord
 from __future__ import annotations
 
 import math
+import operator
 
 from gcode_canon import cutter_comp, cycles, transforms
 from gcode_canon.arcs import centre_ijk, centre_r
@@ -47,6 +48,9 @@ _IJK = "ijk"
 _PLAIN_MOTIONS = frozenset((0, 10, 20, 30))
 _isfinite = math.isfinite
 _AXIS_INDEX = {letter: k for k, letter in enumerate(AXIS_LETTERS)}
+_XYZ_INDEX = {"x": 0, "y": 1, "z": 2}
+_new_pose = tuple.__new__
+_add = operator.add
 
 class MotionMixin:
     """Group 1 (motion) and G12/G13 (module docstring)."""
@@ -429,31 +433,64 @@ class MotionMixin:
         """The fast path of a G2/G3 line read again (:attr:`Block.plain`: X Y Z I J K R F words, taken
         where :meth:`fast_path_allowed` holds): the commands of the general path (its F step, then
         :meth:`_step_motion`'s arc), or None to send the line there, with nothing changed (every
-        error is the general path's, said in its place)."""
+        error is the general path's, said in its place).
+
+        :meth:`_target`, :meth:`_arc_centre` and :meth:`_arc_command` written out for what
+        :meth:`fast_path_allowed` leaves: no polar words, no rotation, scaling or mirroring (the frames'
+        sum is the whole transform, the arc's ``rotation`` 0)."""
         words = block.words
-        first, second, normal = self.plane._value_
+        plane = self.plane
+        first, second, normal = plane._value_
         if normal > 2 or _IJK[normal] in words:
             return None
-        has_ijk = _IJK[first] in words or _IJK[second] in words
+        i_first, i_second = _IJK[first], _IJK[second]
+        has_ijk = i_first in words or i_second in words
+        scale = self.scale
         fv = words.get("f")
-        feed = self.feed if fv is None else fv * self.scale
-        if (("r" in words) == has_ijk or not (feed > 0.0 and _isfinite(feed))
+        feed = self.feed if fv is None else fv * scale
+        radius = words.get("r")
+        if ((radius is not None) == has_ijk or not (feed > 0.0 and _isfinite(feed))
                 or self.cycle_state.initial_level is not None):
             return None
         start = self.prog
-        target = self._target(block)
+        target = list(start)
+        if self.absolute:
+            for letter, value in words.items():
+                k = _XYZ_INDEX.get(letter)
+                if k is not None:
+                    target[k] = value * scale
+        else:
+            for letter, value in words.items():
+                k = _XYZ_INDEX.get(letter)
+                if k is not None:
+                    target[k] += value * scale
         clockwise = motion == 20
+        s2 = (start[first], start[second])
+        e2 = (target[first], target[second])
         try:
-            cx, cy, rot = self._arc_centre(words, clockwise, (start[first], start[second]),
-                                           (target[first], target[second]), 1)
-            cmd = self._arc_command(start, target, cx, cy, clockwise, rot)
+            if radius is not None:
+                cx, cy, rot = centre_r(clockwise, s2, e2, radius * scale, 1)
+            else:
+                off1 = (words.get(i_first) or 0.0) * scale
+                off2 = (words.get(i_second) or 0.0) * scale
+                centre = (off1, off2) if self.ijk_absolute else (s2[0] + off1, s2[1] + off2)
+                cx, cy, rot = centre_ijk(clockwise, s2, e2, centre, 1, self.inch)
         except GCodeError:
             return None
+        sums = self.frames.sum
+        end = _new_pose(Pose, map(_add, target, sums))
+        centre_prog = list(start)
+        centre_prog[first] = cx
+        centre_prog[second] = cy
+        centre_pose = _new_pose(Pose, map(_add, centre_prog, sums))
+        if not (_isfinite(sum(end)) and _isfinite(sum(centre_pose))):
+            return None
+        file, line = self.file, self.line
+        cmd = new_arc_feed(end, centre_pose, plane, rot, 0.0, file, line)
         self.motion = motion
         self.prog = target
-        self.pos = cmd.end
+        self.pos = end
         if feed != self.feed:
             self.feed = feed
-            return (SetFeedRate(feed, file=self.file, line=self.line), cmd)
+            return (SetFeedRate(feed, file=file, line=line), cmd)
         return (cmd,)
-

@@ -20,6 +20,7 @@ from gcode_canon.commands import (
     new_straight_feed,
     new_straight_traverse,
 )
+from gcode_canon.compiled import CompiledLine
 from gcode_canon.dialect import GRBL_JUNCTION_DEVIATION_MM, Dialect
 from gcode_canon.errors import GCodeError
 from gcode_canon.lexer import FAST_LINE, Block
@@ -71,6 +72,8 @@ class ProgramLoopMixin:
         fast = self._fast_values
         fast_block = self._fast_block
         parse = self._lines.parse
+        known = self._lines.known
+        quick = self._quick_line
         flow = self.flow
         self._tail = None
         settings = self.settings
@@ -84,8 +87,15 @@ class ProgramLoopMixin:
                 if self.before_line is not None:
                     self.before_line()
                 if self._fast_ok:
-                    m = fast_match(raw)
-                    if m is not None:
+                    entry = known(raw)
+                    if entry is not None:  # a line read before: its Block or compiled line, no parsing
+                        cmds = quick(entry)
+                        if cmds is not None:
+                            seen_content = True
+                            self.seen_code = True
+                            yield from cmds
+                            continue
+                    elif (m := fast_match(raw)) is not None:
                         g, xs, ys, zs, fs = m.groups()
                         cmds = fast(None if g is None else 0 if g == "0" else 10,
                                     None if xs is None else float(xs), None if ys is None else float(ys),
@@ -120,13 +130,9 @@ class ProgramLoopMixin:
                     cmds = fast_block(block) if block.plain is not None and self._fast_ok else None
                     if cmds is None:
                         out = self._execute_block(block)
-                except GCodeError as exc:
-                    raise exc.located(self.file, self.line) from None
-                except RecursionError:
-                    raise GCodeError("Expression nested too deeply", self.file, self.line) from None
                 except Exception as exc:
-                    log.exception("internal error")
-                    raise GCodeError(f"internal error: {exc!r}", self.file, self.line) from exc
+                    err, cause = self._line_error(exc)
+                    raise err from cause
                 if cmds is not None:
                     self.seen_code = True
                     yield from cmds
@@ -177,6 +183,53 @@ class ProgramLoopMixin:
                 item.fn()
             else:
                 yield item
+
+    def _quick_line(self, entry: object) -> tuple[Canon, ...] | None:
+        """A line read before, where the fast path is allowed, from what the line cache holds for it
+        (``entry``): a parsed Block of the fast path's shape goes to :meth:`_fast_block`; a compiled
+        straight line gives its values to :meth:`_fast_values` without building a Block; a compiled
+        line of parameter settings alone sets them as :meth:`_execute_block` would. The commands
+        (``()`` when there are none), or None for the general way, with nothing changed: an
+        expression that fails here fails again there, which says it in its place. The fast path's
+        A-W tail (``_tail``) stays: none of these lines moves those axes or changes an offset."""
+        cls = entry.__class__
+        if cls is Block:
+            if entry.plain is None:  # type: ignore[attr-defined]
+                return None
+            try:
+                return self._fast_block(entry)  # type: ignore[arg-type]
+            except Exception as exc:
+                err, cause = self._line_error(exc)
+                raise err from cause
+        if cls is not CompiledLine or entry.quick is None:  # type: ignore[attr-defined]
+            return None
+        try:
+            values = entry.quick()  # type: ignore[attr-defined]
+        except (GCodeError, RecursionError, ArithmeticError, ValueError):
+            return None
+        plain = entry.plain  # type: ignore[attr-defined]
+        if plain is None:  # parameter settings alone
+            if self.cycle_state.initial_level is not None or len(self.steps) != self._builtin_steps:
+                return None
+            self._tail = None  # as the general path: computed again at the next fast line
+            try:
+                self._assign(values)
+            except GCodeError as exc:
+                raise exc.located(self.file, self.line) from None
+            return ()
+        cmds = self._fast_values(plain[0], *values)
+        if cmds is None or plain[1] is None:
+            return cmds
+        return (new_comment(plain[1], self.file, self.line), *cmds)  # _step_comment runs first
+
+    def _line_error(self, exc: Exception) -> tuple[GCodeError, Exception | None]:
+        """The error to raise for ``exc`` raised by the current line, located, and its cause."""
+        if isinstance(exc, GCodeError):
+            return exc.located(self.file, self.line), None
+        if isinstance(exc, RecursionError):
+            return GCodeError("Expression nested too deeply", self.file, self.line), None
+        log.exception("internal error")
+        return GCodeError(f"internal error: {exc!r}", self.file, self.line), exc
 
     def _fast_block(self, block: Block) -> tuple[Canon, ...] | None:
         """The fast path for a parsed line of the same shape (:attr:`Block.plain`: an optional G0/G1,
@@ -233,8 +286,8 @@ class ProgramLoopMixin:
                     z += zv * scale
             s = self.frames.sum
             mx, my, mz = x + s[0], y + s[1], z + s[2]
-            if not (_isfinite(mx) and _isfinite(my) and _isfinite(mz)):
-                return None  # the general path reports it
+            if not _isfinite(mx + my + mz):  # any of them not finite (or a sum too large to add)
+                return None  # the general path reports it (or takes it)
             prog[0], prog[1], prog[2] = x, y, z
             tail = self._tail
             if tail is None:  # A B C U V W do not change on fast lines: computed once per run of them

@@ -94,8 +94,11 @@ def _write(interp: Any, args: argparse.Namespace, write: Callable[[str], Any],
                     if not (e[6] or e[7] or e[8]):  # format_text's arc text in one formatting
                         f, s, n = cmd.plane._value_
                         c = cmd.center
-                        text = _ARC_LINE % (cmd.line, e[f], e[s], c[f], c[s], cmd.turns, e[n], e[3], e[4],
-                                            e[5])
+                        if e[3] or e[4] or e[5]:
+                            text = _ARC_LINE % (cmd.line, e[f], e[s], c[f], c[s], cmd.turns, e[n], e[3],
+                                                e[4], e[5])
+                        else:  # A B C at 0 (the bulk): written as _num writes them, not formatted
+                            text = _ARC_LINE_ABC0 % (cmd.line, e[f], e[s], c[f], c[s], cmd.turns, e[n])
                         add(text.replace("-0.0000", "0.0000") if "-0.0000" in text else text)
                         continue
                 elif cls is Comment:
@@ -174,6 +177,7 @@ def format_text(cmd) -> str:
 
 _ARC_TEXT = "%.4f, %.4f, %.4f, %.4f, %s, %.4f, %.4f, %.4f, %.4f"
 _ARC_LINE = f"%6d ARC_FEED({_ARC_TEXT})\n"
+_ARC_LINE_ABC0 = "%6d ARC_FEED(%.4f, %.4f, %.4f, %.4f, %s, %.4f, 0.0000, 0.0000, 0.0000)\n"
 
 # Arguments written as LinuxCNC's rs274 writes them, where canon's command carries the same thing.
 _LINUXCNC_STYLE = {

@@ -7,7 +7,7 @@ import random
 
 import pytest
 
-from gcode_canon.compiled import CompiledLine, LineCache
+from gcode_canon.compiled import CompiledLine, LineCache, _Compiler
 from gcode_canon.errors import GCodeError
 from gcode_canon.expressions import ExpressionReader
 from gcode_canon.lexer import Block, parse_line
@@ -132,3 +132,75 @@ def test_compiled_arithmetic_and_trigonometry_call_no_helper(monkeypatch) -> Non
     with pytest.raises(GCodeError, match="Result out of range"):
         cache.parse("X[[#1 + 1] * [2 - #2] * #3 * 10]")
         cache.parse("X[[#1 + 1] * [2 - #2] * #3 * 10]")
+
+
+# --- the program loop's shortcut (CompiledLine.quick): the values or settings run() would give ------
+
+QUICK_VALUES = ["#1", "[#1 + 0.5]", "-#2", "[#2 * COS[30]]", "[1 / #3]", "[SQRT[#4]]", "#<depth>", "2.5",
+                "[10 - 3]", "#<undefined>", "[#1 * 10]", "[ABS[#5] - #6]"]
+QUICK_KEYS = ["1", "2", "<depth>", "<_g>", "[#5 + 1]", "[#2]", "5400", "[1 / #3]"]
+
+
+def _quick_lines(rng: random.Random) -> list[str]:
+    """Random straight fast-path lines (X Y Z F in any order, an optional G0/G1 and comment) and lines
+    of parameter settings alone."""
+    lines = []
+    for _ in range(30):
+        letters = rng.sample("xyzf", rng.randint(1, 4))
+        words = " ".join(f"{c.upper()}{rng.choice(QUICK_VALUES)}" for c in letters)
+        lines.append(rng.choice(["", "G0 ", "G1 "]) + words + rng.choice(["", " (note)"]))
+        lines.append(" ".join(f"#{rng.choice(QUICK_KEYS)} = {rng.choice(QUICK_VALUES)}"
+                              for _ in range(rng.randint(1, 3))))
+    return lines
+
+
+def _quick_outcome(fn):
+    try:
+        return ("value", fn())
+    except GCodeError as exc:
+        return ("error", str(exc))
+
+
+@pytest.mark.parametrize("seed", range(30))
+def test_a_compiled_lines_shortcut_gives_what_its_block_holds(seed: int) -> None:
+    rng = random.Random(seed)
+    reader, params = _reader(seed)
+    for raw in _quick_lines(rng):
+        try:
+            line = CompiledLine(raw, _Compiler(reader))
+        except GCodeError:
+            continue
+        assert line.quick is not None, raw
+        for k in range(1, 8):  # the values change between readings: evaluated now, not kept
+            params.numbered[k] = rng.choice(VALUES)
+            quick = _quick_outcome(line.quick)
+            block = _quick_outcome(lambda raw=raw: parse_line(raw, reader))
+            assert _outcome(lambda raw=raw: parse_line(raw, reader)) == _outcome(line.run), raw
+            if block[0] == "error":
+                assert quick == block, raw
+            elif line.plain is None:
+                assert quick == ("value", block[1].assigns), raw
+            else:
+                w = block[1].words
+                assert quick == ("value", (w.get("x"), w.get("y"), w.get("z"), w.get("f"))), raw
+
+
+def test_compiled_straight_lines_and_settings_are_run_without_a_block(monkeypatch) -> None:
+    from gcode_canon.interpreter import Interpreter
+    from gcode_canon.settings import InterpreterSettings
+
+    runs: list[str] = []
+    run = CompiledLine.run
+
+    def counted(self):
+        runs.append("".join(kind_letter[1] for kind_letter in self.items) or "#")
+        return run(self)
+
+    monkeypatch.setattr(CompiledLine, "run", counted)
+    text = ("G21 G90 F600\n#1 = 0\no1 repeat [5]\n#1 = [#1 + 1]\nG1 X[#1 * 2] Y#1 (n)\n"
+            "G0 Z[#1]\no1 endrepeat\nM2\n")
+    interp = Interpreter(InterpreterSettings(dry_run=True))
+    ends = [c.end[:3] for c in interp.run_string(text) if hasattr(c, "end")]
+    assert ends == [e for k in range(1, 6) for e in ((2.0 * k, k, k - 1.0), (2.0 * k, k, k))]
+    # each line's Block is built once, at the reading that compiles it (the second); then its shortcut
+    assert sorted(runs) == ["#", "xy", "z"]
