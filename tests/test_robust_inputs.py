@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pytest
 
+from gcode_canon.commands import Plane
 from gcode_canon.errors import GCodeError
 from gcode_canon.interpreter import Interpreter
 from gcode_canon.settings import InterpreterSettings
@@ -118,6 +119,34 @@ def test_m98_repeat_count_is_bounded_by_max_loop_iterations() -> None:
     text = "G21 F100\nM98 P100 L3\nM2\nO100\nG91 G1 X1\nM99\n"
     out = Interpreter(InterpreterSettings(dry_run=True, max_loop_iterations=3)).run_string(text, "m98.ngc")
     assert [c.line for c in out if c.NAME == "STRAIGHT_FEED"] == [5, 5, 5]
+
+
+@pytest.mark.parametrize("dialect", DIALECTS)
+@pytest.mark.parametrize("plane", ["G17.1", "G18.1", "G19.1"])
+@pytest.mark.parametrize("arc", ["G2 X1 Y1 U1 V1 W1 R1", "G3 U1 I1 J1 K1", "G12 I2", "G83 U1 V1 W-1 R1 Q1",
+                                 "G41 D1 G2 U1 V1 R1", "G5 X1 Y1 I1 J1 P1 Q1", "G71 Q10 D1"])
+def test_arcs_in_uvw_planes_are_clean_errors(dialect: str, plane: str, arc: str) -> None:
+    """Every way into an arc, every UVW plane, every dialect: ``FILE:LINE`` (today the plane itself
+    is refused, on its own line or on the arc's)."""
+    for text in (f"G21 F100\n{plane}\n{arc}\nM2\n", f"G21 F100\n{plane} {arc}\nM2\n"):
+        interp = Interpreter(InterpreterSettings(dry_run=True, dialect=dialect))
+        with pytest.raises(GCodeError) as info:
+            list(interp.run_string(text, "uvw.ngc"))
+        assert (info.value.file, info.value.line) == ("uvw.ngc", 2)
+        assert f"{plane} " in info.value.message and "internal error" not in info.value.message
+
+
+@pytest.mark.parametrize("plane", [Plane.UV, Plane.WU, Plane.VW])
+@pytest.mark.parametrize("line", ["G2 X1 Y1 R1", "G3 X1 I1", "G12 I2", "G13 I2"])
+def test_an_arc_in_a_uvw_plane_is_refused_as_linuxcnc_does(plane: Plane, line: str) -> None:
+    """Should a UVW plane be selected (G17.1 is refused today, see above), an arc in it is LinuxCNC's
+    error, not an IndexError out of the arc code (``_IJK[normal]`` with normal > 2)."""
+    interp = Interpreter(InterpreterSettings(dry_run=True))
+    interp.plane = plane
+    with pytest.raises(GCodeError) as info:
+        interp.execute_mdi(f"{line} F100")
+    assert (info.value.file, info.value.line) == ("<mdi>", 1)
+    assert info.value.message == "Cannot do an arc in planes G17.1, G18.1, or G19.1"
 
 
 # ---- the command line, given files that are not programs (separate processes) ------------------------
