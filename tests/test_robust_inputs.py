@@ -183,6 +183,19 @@ def test_program_files_that_are_not_programs(command: str, bad_inputs: dict[str,
         assert len(lines) == 1 and str(path) + EXPECTED[kind] in lines[0], (kind, proc.stderr)
 
 
+def test_option_files_that_are_not_files(bad_inputs: dict[str, Path], tmp_path: Path,
+                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """--tool-table / --var naming a directory said "no such file"; they say what it is now."""
+    program_path = tmp_path / "ok.ngc"
+    program_path.write_text("G0 X1\nM2\n")
+    directory = bad_inputs["directory"]
+    for option in ("--tool-table", "--var"):
+        assert main(["check", option, str(directory), str(program_path)]) == 1
+        assert capsys.readouterr().err == f"canon check: {option} {directory}: is a directory, not a file\n"
+        assert main(["check", option, str(bad_inputs["missing"]), str(program_path)]) == 1
+        assert capsys.readouterr().err.endswith(": no such file\n")
+
+
 def test_config_files_that_are_not_configs(bad_inputs: dict[str, Path], tmp_path: Path) -> None:
     """``canon config check``: the file and what is wrong (a key's name for a wrong type), exit 1."""
     example = (ROOT / "examples" / "canon.toml").read_text()
