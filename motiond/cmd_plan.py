@@ -50,6 +50,10 @@ def run(args: argparse.Namespace) -> int:
     from planner import check_stream, plan_all
 
     program_file(args.file)
+    if args.plot:
+        from motiond.plan_plot import check_plot_path
+
+        check_plot_path(args.plot)
     config = load_checked(args.config)
     machine = config.limits
     settings = settings_from_args(config, args, dry_run=True)

@@ -196,6 +196,18 @@ def test_option_files_that_are_not_files(bad_inputs: dict[str, Path], tmp_path: 
         assert capsys.readouterr().err.endswith(": no such file\n")
 
 
+def test_plot_file_of_no_image_format_is_refused_before_planning(tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """``canon plan --plot out.txt`` planned the whole program, then died with matplotlib's ValueError."""
+    program_path = tmp_path / "ok.ngc"
+    program_path.write_text("G21 F600\nG1 X10 Y10\nM2\n")
+    plot = tmp_path / "out.txt"
+    assert main(["plan", "--plot", str(plot), str(program_path)]) == 1
+    captured = capsys.readouterr()
+    assert captured.err.startswith(f"canon plan: --plot {plot}: .txt is not an image format (one of: ")
+    assert captured.out == "" and not plot.exists()
+
+
 def test_config_files_that_are_not_configs(bad_inputs: dict[str, Path], tmp_path: Path) -> None:
     """``canon config check``: the file and what is wrong (a key's name for a wrong type), exit 1."""
     example = (ROOT / "examples" / "canon.toml").read_text()
