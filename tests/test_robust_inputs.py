@@ -208,6 +208,23 @@ def test_plot_file_of_no_image_format_is_refused_before_planning(tmp_path: Path,
     assert captured.out == "" and not plot.exists()
 
 
+def test_plan_of_a_feed_rate_slip_stops_at_its_time_bound(tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """``F0.0001`` over 10 mm is 69 days of machine time: canon plan kept every setpoint of it (it ran
+    for hours, then out of memory). Past ``--max-time`` (8 h by default) it stops at the line."""
+    program_path = tmp_path / "slip.ngc"
+    program_path.write_text("G21 F600\nG1 X5\nG1 X10 F0.0001\nM2\n")
+    with time_bound("canon plan F0.0001"):
+        rc = main(["plan", "--max-time", "30", str(program_path)])
+    assert rc == 1
+    assert capsys.readouterr().err == (f"{program_path}:3: the planned run passes 30 s of machine time "
+                                       "(--max-time) in this line: a feed rate too low?\n")
+    assert main(["plan", "--max-time", "-1", str(program_path)]) == 1
+    assert "--max-time must be a positive number" in capsys.readouterr().err
+    program_path.write_text("G21 F600\nG1 X5\nM2\n")  # 0.5 s: within any bound
+    assert main(["plan", "--max-time", "30", "--json", str(program_path)]) == 0
+
+
 def test_config_files_that_are_not_configs(bad_inputs: dict[str, Path], tmp_path: Path) -> None:
     """``canon config check``: the file and what is wrong (a key's name for a wrong type), exit 1."""
     example = (ROOT / "examples" / "canon.toml").read_text()
