@@ -173,14 +173,18 @@ EXPECTED = {"missing": ": no such file", "directory": ": is a directory", "binar
 
 
 @pytest.mark.parametrize("command", ["check", "plan"])
-def test_program_files_that_are_not_programs(command: str, bad_inputs: dict[str, Path]) -> None:
-    """One process per input: exit 1, one line naming the file (and the line), no traceback."""
+def test_program_files_that_are_not_programs(command: str, bad_inputs: dict[str, Path],
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    """Exit 1, one line naming the file (and the line), no traceback: in process for each input,
+    then as a process for one of them."""
     for kind, path in bad_inputs.items():
-        proc = run_canon(command, str(path))
-        assert proc.returncode == 1, (kind, proc.stderr)
-        assert "Traceback" not in proc.stderr, proc.stderr
-        lines = proc.stderr.strip().splitlines()
-        assert len(lines) == 1 and str(path) + EXPECTED[kind] in lines[0], (kind, proc.stderr)
+        assert main([command, str(path)]) == 1, kind
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and str(path) + EXPECTED[kind] in lines[0], (kind, lines)
+    kind = "binary" if command == "check" else "latin-1"
+    proc = run_canon(command, str(bad_inputs[kind]))
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.startswith(str(bad_inputs[kind]) + EXPECTED[kind]), proc.stderr
 
 
 def test_option_files_that_are_not_files(bad_inputs: dict[str, Path], tmp_path: Path,
@@ -225,7 +229,8 @@ def test_plan_of_a_feed_rate_slip_stops_at_its_time_bound(tmp_path: Path,
     assert main(["plan", "--max-time", "30", "--json", str(program_path)]) == 0
 
 
-def test_config_files_that_are_not_configs(bad_inputs: dict[str, Path], tmp_path: Path) -> None:
+def test_config_files_that_are_not_configs(bad_inputs: dict[str, Path], tmp_path: Path,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
     """``canon config check``: the file and what is wrong (a key's name for a wrong type), exit 1."""
     example = (ROOT / "examples" / "canon.toml").read_text()
     wrong = tmp_path / "wrong.toml"
@@ -233,10 +238,12 @@ def test_config_files_that_are_not_configs(bad_inputs: dict[str, Path], tmp_path
                      .replace("max_call_depth = 10", "max_call_depth = 1.5", 1))
     cases = {bad_inputs["missing"]: "no such file", bad_inputs["directory"]: "Is a directory",
              bad_inputs["binary"]: "not UTF-8 text", bad_inputs["latin-1"]: "not UTF-8 text",
-             wrong: "machine.cycle_ms: must be float, got str 'fast'"}
+             bad_inputs["empty"]: "axes: missing", wrong: "machine.cycle_ms: must be float, got str 'fast'"}
     for path, expected in cases.items():
-        proc = run_canon("config", "check", "--config", str(path))
-        assert proc.returncode == 1, proc.stderr
-        assert "Traceback" not in proc.stderr, proc.stderr
-        assert proc.stderr.startswith(f"{path}: ") and expected in proc.stderr, proc.stderr
-    assert "interpreter.max_call_depth: must be int" in proc.stderr  # every bad key is named
+        assert main(["config", "check", "--config", str(path)]) == 1, path
+        err = capsys.readouterr().err
+        assert err.startswith(f"{path}: ") and expected in err, err
+    assert "interpreter.max_call_depth: must be int" in err  # every bad key is named
+    proc = run_canon("config", "check", "--config", str(wrong))  # and as a process
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    assert proc.stderr.startswith(f"{wrong}: machine.cycle_ms: must be float"), proc.stderr
