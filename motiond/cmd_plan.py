@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
             src.append((sp.file, sp.line))
             if len(src) > max_cycles:
                 raise GCodeError(f"the planned run passes {args.max_time:g} s of machine time (--max-time) "
-                                 "in this line: a feed rate too low?", sp.file, sp.line)
+                                 "in this line: a feed rate too low, or a move too long?", sp.file, sp.line)
     planning_s = time.perf_counter() - started
     pts = np.frombuffer(flat, dtype=float).reshape(-1, n) if len(flat) else np.zeros((0, n))
     report = check_stream(pts, commands, machine)
