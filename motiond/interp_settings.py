@@ -48,7 +48,12 @@ def build_settings(config: Any, *, var: str | None = None, tool_table: str | Non
     from motiond.cli import UserError
 
     def not_a_file(option: str, name: str) -> UserError:
-        what = "is a directory, not a file" if Path(name).is_dir() else "no such file"
+        from motiond.configkit import special_file
+
+        p = Path(name)
+        kind = special_file(p.stat().st_mode) if p.exists() else None
+        what = ("is a directory, not a file" if p.is_dir() else f"is {kind} file, not a regular file" if kind
+                else "no such file")
         return UserError(f"{option} {name}: {what}")
 
     ic = config.interpreter

@@ -10,6 +10,7 @@ line given files that are not programs, as separate processes.
 
 from __future__ import annotations
 
+import os
 import re
 import signal
 import subprocess
@@ -153,7 +154,7 @@ def test_an_arc_in_a_uvw_plane_is_refused_as_linuxcnc_does(plane: Plane, line: s
 
 def run_canon(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "motiond.cli", *args], capture_output=True, text=True,
-                          timeout=120, cwd=ROOT)
+                          timeout=60, cwd=ROOT)
 
 
 @pytest.fixture(scope="module")
@@ -198,6 +199,28 @@ def test_option_files_that_are_not_files(bad_inputs: dict[str, Path], tmp_path: 
         assert capsys.readouterr().err == f"canon check: {option} {directory}: is a directory, not a file\n"
         assert main(["check", option, str(bad_inputs["missing"]), str(program_path)]) == 1
         assert capsys.readouterr().err.endswith(": no such file\n")
+        assert main(["check", option, "/dev/null", str(program_path)]) == 1
+        err = capsys.readouterr().err
+        assert err == f"canon check: {option} /dev/null: is a device file, not a regular file\n"
+
+
+def test_a_device_or_a_pipe_as_the_machine_file_is_refused_not_read_for_ever(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--config /dev/zero`` read for ever, its memory growing (a process here: a read() that never
+    returns is not stopped by a signal); a named pipe waited for a writer."""
+    proc = run_canon("config", "check", "--config", "/dev/zero")  # TimeoutExpired: the violation
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    assert proc.stderr == "/dev/zero: is a device file, not a machine file (a regular file is needed)\n"
+    pipe = tmp_path / "machine.toml"
+    os.mkfifo(pipe)
+    program_path = tmp_path / "ok.ngc"
+    program_path.write_text("G0 X1\nM2\n")
+    for argv in (["config", "check", "--config", str(pipe)],
+                 ["check", "--config", str(pipe), str(program_path)]):
+        with time_bound(" ".join(argv)):  # open() of a pipe is interrupted by the alarm
+            assert main(argv) == 1
+        err = capsys.readouterr().err
+        assert err == f"{pipe}: is a pipe file, not a machine file (a regular file is needed)\n", err
 
 
 def test_plot_file_of_no_image_format_is_refused_before_planning(tmp_path: Path,
