@@ -221,6 +221,14 @@ def test_a_device_or_a_pipe_as_the_machine_file_is_refused_not_read_for_ever(
             assert main(argv) == 1
         err = capsys.readouterr().err
         assert err == f"{pipe}: is a pipe file, not a machine file (a regular file is needed)\n", err
+    # the same pipe as [interpreter] var_file: canon check waited in its open()
+    config = tmp_path / "var_pipe.toml"
+    config.write_text((ROOT / "examples" / "canon.toml").read_text()
+                      .replace('# var_file = "canon.var"', f'var_file = "{pipe}"', 1))
+    with time_bound("var_file a pipe"):
+        assert main(["check", "--config", str(config), str(program_path)]) == 1
+    err = capsys.readouterr().err
+    assert err == f"{config}: interpreter.var_file: is a pipe file, not a parameter file: {pipe}\n", err
 
 
 def test_plot_file_of_no_image_format_is_refused_before_planning(tmp_path: Path,
