@@ -45,6 +45,8 @@ from gcode_canon.spline_steps import SPLINE_MOTIONS
 _PROBE_MODES = {382: ProbeMode.TOWARD_ERROR, 383: ProbeMode.TOWARD, 384: ProbeMode.AWAY_ERROR,
                 385: ProbeMode.AWAY}
 _IJK = "ijk"
+UVW_ARC = "Cannot do an arc in planes G17.1, G18.1, or G19.1"
+"""LinuxCNC's refusal of an arc (G2/G3, and G12/G13 here) in a UVW plane."""
 _PLAIN_MOTIONS = frozenset((0, 10, 20, 30))
 _isfinite = math.isfinite
 _AXIS_INDEX = {letter: k for k, letter in enumerate(AXIS_LETTERS)}
@@ -106,8 +108,10 @@ class MotionMixin:
         name = gname(code)
         if self.comp is not None:
             raise GCodeError(f"{name} with cutter radius compensation on is not supported")
-        self._require_feed(block, name)
         first, second, normal = self.plane._value_
+        if normal > 2:
+            raise GCodeError(UVW_ARC)
+        self._require_feed(block, name)
         i = block.take("i")
         tool_radius = 0.0
         d = self._int_word(block, "d", name)
@@ -341,6 +345,8 @@ class MotionMixin:
     def _arc(self, block: Block, clockwise: bool) -> None:
         name = "G2" if clockwise else "G3"
         first, second, normal = self.plane._value_
+        if normal > 2:
+            raise GCodeError(UVW_ARC)
         words = block.words
         first_letter, second_letter, normal_letter = _IJK[first], _IJK[second], _IJK[normal]
         if normal_letter in words:

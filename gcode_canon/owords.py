@@ -19,8 +19,9 @@ How it works without holding a program in memory:
 * Each call saves #1-#30 (the arguments, the rest 0) and opens a scope for named locals;
   ``#<_value>`` / ``#<_value_returned>`` carry the returned value.
 * Guards: ``max_call_depth`` (nested calls, recursion included) and ``max_loop_iterations`` (per
-  loop, per run of it); beyond them a GCodeError names the limit. Blocks left open at the end of a
-  file, or closed by the wrong keyword or label, are errors naming both lines.
+  loop, per run of it, and an ``M98 ... L`` repeat count); beyond them a GCodeError names the
+  limit. Blocks left open at the end of a file, or closed by the wrong keyword or label, are errors
+  naming both lines.
 
 Fanuc-style numbered programs (``O1000`` alone on a line, ``M98 P1000 L2``, ``M99``) are handled
 here too, with the meaning :mod:`gcode_canon.dialect` selects.
@@ -613,6 +614,9 @@ class FlowControl:
         label = f"o{p}"
         if repeats <= 0:
             return
+        limit = self.interp.settings.max_loop_iterations
+        if repeats > limit:  # its runs are a loop: bounded as a repeat count is
+            raise GCodeError(f"M98 P{p} L{repeats} is more than {limit} iterations (max_loop_iterations)")
         self._check_depth(label)
         d = self.subs.get(label)
         if d is None or d.source.stream.closed or not d.fanuc:

@@ -32,7 +32,8 @@ class InterpreterSettings:
     max_call_depth: int = 10
     """Nested o-word / M98 calls (recursion included) beyond this are an error."""
     max_loop_iterations: int = 1_000_000
-    """Passes of one while / do / repeat loop beyond this are an error (a runaway loop)."""
+    """Passes of one while / do / repeat loop (or an M98 L count) beyond this are an error (a runaway
+    loop)."""
     max_expression_depth: int = 64
     """Bracket / function / indirection nesting refused beyond this (protects the recursion limit)."""
     axes: str | None = None

@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from gcode_canon.errors import GCodeError
-from motiond.configkit import ConfigError
+from motiond.configkit import ConfigError, special_file
 from motiond.logsetup import setup_logging
 
 # name -> (module, one-line help). Add a line here for a new sub-command.
@@ -56,9 +56,8 @@ def program_file(name: str) -> Path:
         raise UserError(f"{name}: {exc.strerror}") from None
     if stat.S_ISDIR(st.st_mode):
         raise UserError(f"{name}: is a directory, not a G-code program")
-    if not stat.S_ISREG(st.st_mode):
-        kind = "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else \
-            "a pipe" if stat.S_ISFIFO(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode) else "special"
+    kind = special_file(st.st_mode)
+    if kind is not None:
         raise UserError(f"{name}: is {kind} file, not a G-code program (a regular file is needed)")
     try:
         with path.open("rb"):

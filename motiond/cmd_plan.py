@@ -10,7 +10,9 @@ deviation with its source line, and the velocity, acceleration and jerk over tim
 (:mod:`motiond.plan_plot`); ``--html out.html`` the same interactively (hover gives the time, the source
 line and the speed); ``--setpoints out.csv`` writes the stream (``t,file,line,x,y,z,...,vx,vy,
 vz,...``, one row per cycle); ``--json`` prints the
-summary as one JSON object. Exit status 0 when the stream passes every check, 2 when it does not
+summary as one JSON object. ``--max-time`` bounds the planned machine time (8 h by default): past it
+the plan stops with ``FILE:LINE`` of the line being planned (a slip such as ``F0.0001`` planned for
+ever and filled the memory). Exit status 0 when the stream passes every check, 2 when it does not
 (a planner fault to report), 1 for a user mistake.
 """
 
@@ -24,6 +26,10 @@ from typing import Any
 
 from motiond.cli import UserError, add_common, program_file
 
+MAX_TIME_S = 8 * 3600.0
+"""Default bound on the planned machine time: the setpoints are all kept for the checks (about
+100 bytes a cycle, 1.4 GB for 8 h at 2 ms), and a slip such as ``F0.0001`` would plan for years."""
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from motiond.interp_settings import add_arguments as add_interp_arguments
@@ -33,6 +39,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--html", metavar="out.html",
                         help="interactive figure (hover: time, source line, speed), one self-contained file")
     parser.add_argument("--setpoints", metavar="out.csv", help="write the setpoint stream as CSV")
+    parser.add_argument("--max-time", metavar="SECONDS", type=float, default=MAX_TIME_S,
+                        help="stop with an error when the planned run passes this much machine time "
+                             f"(default: {MAX_TIME_S / 3600:g} h; a feed rate typo otherwise plans for ever)")
     add_interp_arguments(parser)
 
 
@@ -42,6 +51,7 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
+    from gcode_canon.errors import GCodeError
     from gcode_canon.interpreter import Interpreter
     from gcode_canon.machine import DryRunMachine
     from motiond.config_check import load_checked
@@ -50,6 +60,12 @@ def run(args: argparse.Namespace) -> int:
     from planner import check_stream, plan_all
 
     program_file(args.file)
+    if not args.max_time > 0.0:  # NaN too
+        raise UserError(f"--max-time must be a positive number of seconds, got {args.max_time}")
+    if args.plot:
+        from motiond.plan_plot import check_plot_path
+
+        check_plot_path(args.plot)
     config = load_checked(args.config)
     machine = config.limits
     settings = settings_from_args(config, args, dry_run=True)
@@ -69,9 +85,13 @@ def run(args: argparse.Namespace) -> int:
                 yield cmd
 
         src: list[tuple[str, int]] = []  # each setpoint's source file and line
+        max_cycles = args.max_time / machine.cycle_s
         for sp in plan_all(recorded(), machine):
             flat.extend(sp.positions)
             src.append((sp.file, sp.line))
+            if len(src) > max_cycles:
+                raise GCodeError(f"the planned run passes {args.max_time:g} s of machine time (--max-time) "
+                                 "in this line: a feed rate too low, or a move too long?", sp.file, sp.line)
     planning_s = time.perf_counter() - started
     pts = np.frombuffer(flat, dtype=float).reshape(-1, n) if len(flat) else np.zeros((0, n))
     report = check_stream(pts, commands, machine)

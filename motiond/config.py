@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from gcode_canon.commands import AXES
-from motiond.configkit import ConfigError, Table, in_range, load_toml, positive
+from motiond.configkit import ConfigError, Table, in_range, load_toml, positive, special_file
 from planner.machine import DEMO_MACHINE, AxisLimits, MachineError, MachineLimits
 
 TOP_LEVEL = ("machine", "axes", "interpreter", "canopen", "modbus", "io", "telemetry", "motion")
@@ -132,6 +132,9 @@ def _interpreter(t: Table, base: Path) -> InterpreterConfig:
     var_file = path_key("var_file", None)  # may not exist yet: it is written at program end
     if var_file is not None and var_file.is_dir():
         raise t.error("var_file", f"is a directory: {var_file}")
+    kind = special_file(var_file.stat().st_mode) if var_file is not None and var_file.exists() else None
+    if kind is not None:  # a pipe: reading it waited for a writer for ever
+        raise t.error("var_file", f"is {kind} file, not a parameter file: {var_file}")
     t.check_unknown()
     return InterpreterConfig(dialect, dirs, depth, loops, log_dir, block_delete, tool_table, var_file,
                              programs, spindle_on, no_g92, no_fanuc)

@@ -62,10 +62,25 @@ def collect_errors() -> Iterator[list[ConfigError]]:
         _collected.reset(token)
 
 
+def special_file(mode: int) -> str | None:
+    """What a file of ``os.stat`` mode ``mode`` is when it is neither a regular file nor a directory
+    ("a device", "a pipe" ...: reading one may never end), else None."""
+    import stat
+
+    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
+        return None
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "a device"
+    return "a pipe" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "special"
+
+
 def load_toml(path: str | Path) -> dict[str, Any]:
     """Read a TOML file; syntax errors become :class:`ConfigError` with the line TOML reports."""
     p = Path(path)
     try:
+        kind = special_file(p.stat().st_mode)  # /dev/zero or a pipe: read() would never end
+        if kind is not None:
+            raise ConfigError(str(p), "", f"is {kind} file, not a machine file (a regular file is needed)")
         with p.open("rb") as fh:
             data = fh.read()
         try:

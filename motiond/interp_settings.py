@@ -47,11 +47,20 @@ def build_settings(config: Any, *, var: str | None = None, tool_table: str | Non
     """
     from motiond.cli import UserError
 
+    def not_a_file(option: str, name: str) -> UserError:
+        from motiond.configkit import special_file
+
+        p = Path(name)
+        kind = special_file(p.stat().st_mode) if p.exists() else None
+        what = ("is a directory, not a file" if p.is_dir() else f"is {kind} file, not a regular file" if kind
+                else "no such file")
+        return UserError(f"{option} {name}: {what}")
+
     ic = config.interpreter
     if tool_table is not None and not Path(tool_table).is_file():
-        raise UserError(f"--tool-table {tool_table}: no such file")
+        raise not_a_file("--tool-table", tool_table)
     if var is not None and check_var and not Path(var).is_file():
-        raise UserError(f"--var {var}: no such file")
+        raise not_a_file("--var", var)
     if dialect is not None:
         from gcode_canon.dialect import Dialect
 

@@ -266,6 +266,20 @@ def _envelope(t: Any, y: Any, buckets: int = 4000) -> tuple[Any, Any, Any]:
     return t[:m:k], y[:m].reshape(-1, k).min(axis=1), y[:m].reshape(-1, k).max(axis=1)
 
 
+def check_plot_path(path: str) -> None:
+    """A :class:`motiond.cli.UserError` before any planning when ``path``'s suffix names no format
+    matplotlib writes (``--plot out.txt`` was a ValueError traceback after the whole plan)."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    from motiond.cli import UserError
+
+    suffix = os.path.splitext(path)[1].lower().lstrip(".")
+    formats = FigureCanvasBase.get_supported_filetypes()
+    if suffix and suffix not in formats:
+        raise UserError(f"--plot {path}: .{suffix} is not an image format "
+                        f"(one of: {', '.join(sorted(formats))})")
+
+
 def save_figure(fig: Any, path: str) -> None:
     """Write the figure to ``path`` (the format from its suffix) through a temporary file."""
     import tempfile
