@@ -23,7 +23,6 @@ import argparse
 import os
 import re
 import sys
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -146,33 +145,8 @@ def start(config: Any, lc: Any, tele: Any, *, key: bytes, var_file: str | os.Pat
         machine.program_dirs = list(programs)
     machine.start()
     server = CommandServer(lc, machine.handle_command, key=key, url=tele.url,
-                           on_security=machine.security_event)
-    server.thread_wrapper = on_stop_path(machine.canopen.realtime_priority)
-    return machine, server.start()
-
-
-def on_stop_path(cycle_priority: int) -> Callable[[Callable[[], None]], Callable[[], None]]:
-    """Wraps a thread's body so that it runs at SCHED_FIFO two below a real-time cycle (``[canopen]
-    realtime_priority``; 0: as it is), as the task's other stop-path threads do: the command server's
-    receiving thread (it carries out an LCM E-stop the moment it reads it) and its urgent lane (abort,
-    hold, resume, feed override). At normal priority two CPU hogs kept the receiving thread off a CPU:
-    an E-stop during a flood of commands took 223 ms to reach the drives, against 50 ms allowed. The
-    thread that checks the other commands stays ordinary, so a flood cannot take a CPU at real-time
-    priority. A refusal (no CAP_SYS_NICE) is logged once per thread."""
-    def wrap(body: Callable[[], None]) -> Callable[[], None]:
-        def run() -> None:
-            if cycle_priority > 0:
-                import logging
-
-                from fieldbus.canopen.clock import rank_below_cycle
-
-                rank_below_cycle(cycle_priority, "the command server's stop-path thread",
-                                 logging.getLogger(__name__), below=2)
-            body()
-
-        return run
-
-    return wrap
+                           on_security=machine.security_event).start()
+    return machine, server
 
 
 ROOT_WARNING = ("canon daemon: WARNING: running as root. It needs no more than real-time scheduling "

@@ -122,8 +122,6 @@ IMMEDIATE_VERBS = frozenset({"estop"})
 """Carried out on the receiving thread the moment the command is read: nothing queues before them."""
 URGENT_VERBS = frozenset({"abort", "pause", "resume", "feed_override"})
 """Carried out on a thread of their own, in order, never behind the other verbs, never rate-limited."""
-_DECIDED_ON_RECEIPT = IMMEDIATE_VERBS | URGENT_VERBS
-"""Authenticated and checked on the receiving thread as they are read, never behind the intake."""
 COMMANDS_PER_S = 20.0
 """The other verbs: each sender may send this many per second on average (bursts of twice that);
 beyond it a command is refused with the reason (``refused: rate limit ...``), never dropped."""
@@ -193,10 +191,8 @@ class CommandServer(Worker):
         if not self._lane_threads:
             self._lanes_stop.clear()
             for name, lane in self._lanes.items():
-                body: Callable[[], None] = lambda lane=lane: self._lane_main(lane)  # noqa: E731
-                if name == "urgent" and self.thread_wrapper is not None:  # on the stop path: abort, hold
-                    body = self.thread_wrapper(body)
-                t = threading.Thread(target=body, name=f"canon-command-{name}", daemon=True)
+                t = threading.Thread(target=self._lane_main, args=(lane,), name=f"canon-command-{name}",
+                                     daemon=True)
                 t.start()
                 self._lane_threads.append(t)
             self._intake_thread = threading.Thread(target=self._intake_main, name="canon-command-intake",
@@ -211,11 +207,9 @@ class CommandServer(Worker):
                 self._subscription.set_queue_capacity(RECEIVE_QUEUE)
 
     def on_message(self, channel: str, data: bytes) -> None:
-        """LCM's dispatch: an E-stop is decided at once, and an urgent verb (abort, hold, resume, feed
-        override) is checked here and queued on its lane; anything else goes to the intake thread, so
-        that a backlog of other commands never stands in front of them. (Urgent verbs once went through
-        the intake too: under a flood of other commands a feed hold waited behind all of them.)"""
-        if self._intake_thread is not None and _raw_verb(data) not in _DECIDED_ON_RECEIPT:
+        """LCM's dispatch: an E-stop is decided at once; anything else goes to the intake thread, so
+        that a backlog of other commands never stands in front of an E-stop."""
+        if self._intake_thread is not None and _raw_verb(data) not in IMMEDIATE_VERBS:
             try:
                 self._intake.put_nowait(data)
                 return

@@ -7,7 +7,6 @@ runs ``_run`` until ``_stop`` is set; this base holds that life cycle once.
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
 from typing import Self
 
 
@@ -15,9 +14,6 @@ class Worker:
     """Owns one daemon thread running ``self._run()`` until ``self._stop`` is set."""
 
     thread_name = "canon-worker"
-    #: wraps the thread's body before it starts (None: as it is): the daemon ranks the threads on its
-    #: stop path through it (the command server's receiving thread)
-    thread_wrapper: Callable[[Callable[[], None]], Callable[[], None]] | None = None
 
     def __init__(self) -> None:
         self._stop = threading.Event()
@@ -29,8 +25,7 @@ class Worker:
     def _start_thread(self) -> None:
         if self._thread is None:
             self._stop.clear()
-            target = self._run if self.thread_wrapper is None else self.thread_wrapper(self._run)
-            self._thread = threading.Thread(target=target, name=self.thread_name, daemon=True)
+            self._thread = threading.Thread(target=self._run, name=self.thread_name, daemon=True)
             self._thread.start()
 
     def start(self) -> Self:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import itertools
-import os
 import threading
 import time
 from typing import Any
@@ -11,7 +10,6 @@ from typing import Any
 import lcm
 import pytest
 from keys import TEST_KEY
-from test_motion_process import fifo_allowed
 
 from telemetry import publisher
 from telemetry.auth import (
@@ -616,75 +614,6 @@ def test_estop_and_urgent_verbs_never_wait_behind_other_commands(memq: lcm.LCM) 
     # while run (and mdi behind it) were still waiting
     assert first == ["estop", "pause"], [(r.verb, r.error) for r in replies.messages]
     assert done[-2:] == ["run", "mdi"]
-
-
-def test_an_urgent_verb_does_not_wait_behind_a_backlog_of_other_commands(memq: lcm.LCM) -> None:
-    """A feed hold read after a burst of ordinary commands that the intake is still checking (a busy
-    PC: here each check takes 5 ms) is decided on the receiving thread at once, not behind them."""
-    server = CommandServer(memq, lambda c: None, key=TEST_KEY)
-    check = server.verifier.check
-
-    def slow_check(cmd: Any, data: bytes) -> str | None:
-        if cmd.verb != "pause":
-            time.sleep(0.005)
-        return check(cmd, data)
-
-    server.verifier.check = slow_check  # type: ignore[method-assign]
-    replies = Receiver(memq, CANON_REPLY, reply)
-    try:
-        server.subscribe()
-        for i in range(100):  # 0.5 s of checking for the intake; one sender each: no rate limit
-            memq.publish(CANON_COMMAND, make_command("single_block", values=[1], request_id=i,
-                                                     sender=f"s{i}", key=TEST_KEY).encode())
-        memq.publish(CANON_COMMAND, make_command("pause", request_id=1000, sender="hmi",
-                                                 key=TEST_KEY).encode())
-        replies.wait_for(101)
-    finally:
-        server.stop()
-        replies.close()
-    order = [r.verb for r in replies.messages]
-    assert len(order) == 101 and order.count("pause") == 1
-    assert order.index("pause") < 50, order.index("pause")  # before most of the burst was checked
-
-
-def test_the_daemon_ranks_the_command_servers_stop_path_threads() -> None:
-    """The receiving thread (an LCM E-stop is carried out on it) and the urgent lane run through the
-    daemon's wrapper: SCHED_FIFO two below a real-time cycle; the intake and the other lane do not."""
-    from motiond.cmd_daemon import on_stop_path
-
-    wrapped: list[str] = []
-    rank = on_stop_path(0)
-
-    def wrapper(body: Any) -> Any:
-        inner = rank(body)
-
-        def run() -> None:
-            wrapped.append(threading.current_thread().name)
-            inner()
-        return run
-
-    lc = lcm.LCM("memq://")
-    server = CommandServer(lc, lambda c: None, key=TEST_KEY)
-    server.thread_wrapper = wrapper
-    server.start()
-    try:
-        deadline = time.monotonic() + 10
-        while len(wrapped) < 2 and time.monotonic() < deadline:
-            time.sleep(0.01)
-    finally:
-        server.stop()
-    assert sorted(wrapped) == ["canon-command-server", "canon-command-urgent"], wrapped
-    if not fifo_allowed():
-        pytest.skip("SCHED_FIFO needs root or CAP_SYS_NICE")
-    policy: list[tuple[int, int]] = []
-
-    def probe() -> None:
-        policy.append((os.sched_getscheduler(0), os.sched_getparam(0).sched_priority))
-
-    t = threading.Thread(target=on_stop_path(30)(probe))
-    t.start()
-    t.join(10)
-    assert policy == [(os.SCHED_FIFO, 28)], policy
 
 
 def test_ordinary_verbs_are_rate_limited_per_sender_with_a_reply(memq: lcm.LCM) -> None:
