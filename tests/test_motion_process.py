@@ -110,28 +110,6 @@ def test_thread_mode_is_accepted_on_virtual(tmp_path: Path) -> None:
     assert motion_process(load_machine(str(path))) == "thread"
 
 
-def test_the_demo_cycle_is_realtime_only_where_the_user_may_have_it(monkeypatch) -> None:
-    """The demo machine (its motion "own", its simulated drives keeping a real drive's limits) asks
-    SCHED_FIFO 80 for its cycle where the user may have it (root, or RLIMIT_RTPRIO 80 or more), else
-    runs at normal priority without a refusal warning on every run."""
-    import resource
-
-    from motiond import config_canopen
-    from motiond.config import load_machine
-
-    monkeypatch.setattr(os, "geteuid", lambda: 1000)
-    monkeypatch.setattr(resource, "getrlimit", lambda which: (0, 0))
-    assert config_canopen.demo_realtime_priority() == 0
-    assert config_canopen.canopen_for_machine(load_machine(None)).realtime_priority == 0
-    monkeypatch.setattr(resource, "getrlimit", lambda which: (95, 95))
-    assert config_canopen.demo_realtime_priority() == config_canopen.DEMO_REALTIME_PRIORITY == 80
-    monkeypatch.setattr(resource, "getrlimit", lambda which: (resource.RLIM_INFINITY,) * 2)
-    assert config_canopen.canopen_for_machine(load_machine(None)).realtime_priority == 80
-    monkeypatch.setattr(os, "geteuid", lambda: 0)
-    monkeypatch.setattr(resource, "getrlimit", lambda which: (0, 0))
-    assert config_canopen.canopen_for_machine(load_machine(None)).realtime_priority == 80
-
-
 def test_auto_is_the_default_own_where_the_bus_crosses_processes_else_thread_saying_why(
         tmp_path: Path) -> None:
     """"auto": "own" on canon_local, udp_multicast and socketcan, also with the Modbus I/O or a drive's
