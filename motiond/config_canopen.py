@@ -40,29 +40,7 @@ def demo_canopen(axis_names: Sequence[str], cycle_s: float,
                  axis_limits: Mapping[str, Mapping[str, Any]] | None = None) -> CanopenConfig:
     drives = tuple(DriveConfig(name, i + 1, **_limits(name, axis_limits))
                    for i, name in enumerate(axis_names))
-    return CanopenConfig(CanBusConfig(LOCAL_INTERFACE), drives, cycle_s=cycle_s, simulate=True,
-                         realtime_priority=demo_realtime_priority())
-
-
-#: the demo machine's cycle at SCHED_FIFO, where this user may have it (``[canopen] realtime_priority``)
-DEMO_REALTIME_PRIORITY = 80
-
-
-def demo_realtime_priority() -> int:
-    """The demo's ``realtime_priority``: :data:`DEMO_REALTIME_PRIORITY` where the user may have it
-    (root, or an RLIMIT_RTPRIO that allows it), else 0. Its motion runs in a process of its own
-    ([motion] "auto"), whose simulated drives keep a real drive's limits (a TPDO late by 0.1 s, a cycle
-    late by 50 ms, docs/daemon.md): on a busy PC an ordinary motion process stalls past them. A user
-    who may not have SCHED_FIFO gets the demo at normal priority, without a warning on every run."""
-    import os
-    import resource
-
-    try:
-        soft = resource.getrlimit(resource.RLIMIT_RTPRIO)[0]
-        allowed = os.geteuid() == 0 or soft == resource.RLIM_INFINITY or soft >= DEMO_REALTIME_PRIORITY
-    except (AttributeError, OSError, ValueError):
-        allowed = False
-    return DEMO_REALTIME_PRIORITY if allowed else 0
+    return CanopenConfig(CanBusConfig(LOCAL_INTERFACE), drives, cycle_s=cycle_s, simulate=True)
 
 
 def _limits(name: str, axis_limits: Mapping[str, Mapping[str, Any]] | None) -> dict[str, Any]:

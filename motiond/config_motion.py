@@ -11,10 +11,10 @@ canon's local bus ``canon_local`` or ``udp_multicast`` for simulated drives in a
 ``socketcan``): python-can's ``virtual`` channels exist only inside one process, so the drives
 simulated there could not be reached from the motion process. The Modbus I/O (``[modbus]``, the
 ``[io]`` map) stays in the task process (:mod:`motiond.runtime.io_loop`); a drive's touch probe and
-the probe input cross as requests and urgent messages (docs/daemon.md). "auto" takes them along as
-an explicit "own" does: nothing of the machine file but its bus keeps the motion a thread, so the
-built-in demo machine and ``examples/canon.toml`` (canon_local, the Modbus I/O, the I/O map, a touch
-probe) run "own", with their simulated drives in a third process.
+the probe input cross as requests and urgent messages (docs/daemon.md). An explicit "own" takes them;
+"auto" keeps a machine with them in "thread" for now and says why: carrying them across is new, and
+the one-process path is the one long proven with the I/O map (the measured extra latency of an E-stop
+input through the task: docs/wiring.md).
 
 The liveness watch of the two processes (``task_timeout_ms``, ``motion_timeout_ms``, "own" only):
 :class:`Watch`.
@@ -96,6 +96,10 @@ def motion_choice(config: MachineConfig, canopen: Any = None) -> MotionChoice:
         return MotionChoice("thread", asked, bus[0], watch)
     if asked == "own":
         return MotionChoice("own", asked, "", watch)
+    beside = _kept_beside(config, canopen)
+    if beside is not None:
+        log.debug("[motion] process = \"auto\": thread, as %s", beside)
+        return MotionChoice("thread", asked, beside, watch)
     return MotionChoice("own", asked, f"the {canopen.bus.interface} bus crosses processes", watch)
 
 
@@ -115,6 +119,23 @@ def _bus_refusal(canopen: Any) -> tuple[str, str] | None:
         refusal = (f'needs a bus that crosses processes ([canopen] interface = "canon_local", '
                    f'"udp_multicast" or "socketcan"), not {interface!r}')
     return f"the {interface} bus does not cross processes", refusal
+
+
+def _kept_beside(config: MachineConfig, canopen: Any) -> str | None:
+    """Why "auto" keeps the motion a thread on a bus that would allow "own" (an explicit "own"
+    takes these along): the Modbus I/O or a drive's touch probe, whose stops are quickest beside
+    the motion (docs/daemon.md). None: nothing keeps it."""
+    data = config.root.data if config.root is not None else {}
+    from motiond.config_modbus import modbus_for
+
+    for key in ("modbus", "io"):
+        if key in data or (key == "modbus" and modbus_for(config) is not None):
+            return f"the Modbus I/O ([{key}]) runs beside the motion (\"own\" takes it when asked)"
+    probes = [d.axis for d in canopen.drives if getattr(d, "touch_probe", 0)]
+    if probes:
+        return (f"a drive's touch probe (axis {probes[0]}) runs beside the motion (\"own\" takes it "
+                "when asked)")
+    return None
 
 
 def motion_settings(config: MachineConfig, canopen: Any = None) -> tuple[str, Watch]:

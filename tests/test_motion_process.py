@@ -112,9 +112,9 @@ def test_thread_mode_is_accepted_on_virtual(tmp_path: Path) -> None:
 
 def test_auto_is_the_default_own_where_the_bus_crosses_processes_else_thread_saying_why(
         tmp_path: Path) -> None:
-    """"auto": "own" on canon_local, udp_multicast and socketcan, also with the Modbus I/O or a drive's
-    touch probe (carried across: test_machine_io_e2e, test_touch_probe), and for the built-in demo
-    machine; "thread" on virtual."""
+    """"auto": "own" on canon_local, udp_multicast and socketcan; "thread" on virtual, and where the
+    machine has the Modbus I/O or a drive's touch probe (carried across when "own" is asked for
+    explicitly: test_machine_io_e2e, test_touch_probe)."""
     from motiond.config import load_machine
     from motiond.config_check import describe, validate_machine
     from motiond.config_motion import motion_choice
@@ -132,17 +132,16 @@ def test_auto_is_the_default_own_where_the_bus_crosses_processes_else_thread_say
     assert choice("socketcan", "vcan0")[0] == "own"
     assert choice("virtual", "canon") == ("thread", "the virtual bus does not cross processes")
     modbus = '\n[[modbus.devices]]\nname = "io"\nhost = "127.0.0.1"\nport = 1502\nsimulate = true\n'
-    crosses = ("own", "the canon_local bus crosses processes")
-    assert choice("canon_local", "auto-test", extra=modbus) == crosses
-    assert choice("canon_local", "auto-test", z="touch_probe = 1\n")[0] == "own"
-    # no [motion] table: "auto"; the built-in demo machine (canon_local, its simulated Modbus module)
-    # and examples/canon.toml (also the I/O map and Z's touch probe): "own"
+    mode, why = choice("canon_local", "auto-test", extra=modbus)
+    assert mode == "thread" and "[modbus]" in why and '"own" takes it when asked' in why, why
+    mode, why = choice("canon_local", "auto-test", z="touch_probe = 1\n")
+    assert mode == "thread" and "touch probe (axis z)" in why, why
+    # no [motion] table: "auto"; the built-in demo machine is on canon_local but has its simulated
+    # Modbus module: "thread" ("auto" keeps the I/O map beside the motion)
     path = write(tmp_path, machine_text("canon_local", "auto-test", simulate=True).split("[motion]")[0])
     assert motion_choice(load_machine(str(path))).mode == "own"
     demo = motion_choice(load_machine(None))
-    assert (demo.mode, demo.asked) == ("own", "auto") and "canon_local" in demo.reason, demo
-    example = motion_choice(load_machine(str(ROOT / "examples" / "canon.toml")))
-    assert (example.mode, example.asked) == ("own", "auto"), example
+    assert (demo.mode, demo.asked) == ("thread", "auto") and "Modbus" in demo.reason, demo
     lines = " ".join(str(x) for x in describe(validate_machine(str(path))))
     assert 'motion side in its own process (process = "auto": the canon_local bus crosses processes)' in lines
 

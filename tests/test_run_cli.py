@@ -71,7 +71,7 @@ def test_json_summary_positions_peaks_outputs(short: Path) -> None:
     assert r.returncode == 0, r.stderr
     d = json.loads(r.stdout)
     assert d["ok"] and d["program"] == str(short)
-    assert d["motion_process"] == "own"  # the demo machine: [motion] "auto" on canon_local
+    assert d["motion_process"] == "thread"  # the demo machine: "auto" keeps its Modbus I/O beside the motion
     assert tuple(d["final_positions"][a] for a in "xyz") == (12.5, 7.25, 3.0)  # the last G0 of SHORT
     for a in "xyz":
         assert d["final_actual"][a] == pytest.approx(d["final_positions"][a], abs=1e-3)
@@ -96,7 +96,7 @@ def test_table_summary(short: Path) -> None:
     assert r.returncode == 0, r.stderr
     out = r.stdout
     assert "short.ngc" in out and "outputs switched: 4" in out
-    assert "motion side in its own process" in " ".join(out.split())  # rich wraps long lines
+    assert "motion side in a thread of this process" in " ".join(out.split())  # rich wraps long lines
     for row in ("X mm", "Y mm", "Z mm"):
         assert row in out
     assert "12.5000" in out and "7.2500" in out
@@ -142,7 +142,7 @@ def test_example_config_loads_and_runs(short: Path, tmp_path: Path) -> None:
     r = canon("run", "--json", "--no-telemetry", "--config", str(cfg), str(short))
     assert r.returncode == 0, r.stderr
     d = json.loads(r.stdout)
-    assert d["machine"] == "example mill" and d["motion_process"] == "own"
+    assert d["machine"] == "example mill" and d["motion_process"] == "thread"
     assert d["final_positions"] == {"x": 12.5, "y": 7.25, "z": 3.0}
 
 
