@@ -53,6 +53,7 @@ shutdown), :mod:`~fieldbus.canopen.master_supervision` the faults and the checks
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -196,10 +197,8 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin
         timer = None
         try:
             if self.sync_mode == "process":
-                b = c.bus
-                timer = SyncProcess({"interface": b.interface, "channel": b.channel, "bitrate": b.bitrate,
-                                     "options": dict(b.options)}, c.cycle_s, SYNC_COB_ID,
-                                    c.realtime_priority, tuple(c.cpu_affinity))
+                timer = SyncProcess(dataclasses.asdict(c.bus), c.cycle_s, SYNC_COB_ID, c.realtime_priority,
+                                    tuple(c.cpu_affinity))
             ks = KernelSync(bus, c.bus.bus_kwargs(), c.cycle_s, timer=timer)
             ks.open()
         except (SyncError, SyncProcessError) as exc:
