@@ -144,8 +144,10 @@ def start(config: Any, lc: Any, tele: Any, *, key: bytes, var_file: str | os.Pat
     if programs is not None:
         machine.program_dirs = list(programs)
     machine.start()
+    # an E-stop's own socket's thread ranks with the task's stop path (own mode's pipe readers)
     server = CommandServer(lc, machine.handle_command, key=key, url=tele.url,
-                           on_security=machine.security_event).start()
+                           on_security=machine.security_event,
+                           estop_thread=getattr(machine.motion, "ranked", None)).start()
     return machine, server
 
 

@@ -15,6 +15,7 @@ import math
 import queue
 import struct
 import threading
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -128,6 +129,9 @@ beyond it a command is refused with the reason (``refused: rate limit ...``), ne
 LANE_DEPTH = 64
 """Commands waiting per lane (urgent, other); one more is refused ``busy`` with the reason."""
 
+ESTOPS_REMEMBERED = 64
+"""E-stop datagrams remembered (by their bytes, MAC included) so the second copy is skipped."""
+
 RECEIVE_QUEUE = 10_000
 """Commands LCM may hold for dispatch (its default is 30 per subscription, beyond which it drops)."""
 
@@ -146,7 +150,10 @@ class CommandServer(Worker):
     command is accepted, or the reason it is not.
 
     Commands read from LCM take one of three ways, so that an E-stop never waits behind anything:
-    :data:`IMMEDIATE_VERBS` (``estop``) are handled on the receiving thread at once;
+    :data:`IMMEDIATE_VERBS` (``estop``) are handled at once on the thread that reads them: for a
+    ``udpm`` ``url`` (the one ``lc`` was opened with) a socket of their own that the kernel hands
+    E-stops only (:mod:`telemetry.estop_socket`; its thread's body wrapped by ``estop_thread``, the
+    daemon's stop-path ranking), else LCM's receiving thread;
     :data:`URGENT_VERBS` (abort, hold, resume, feed override) on the ``urgent`` lane's thread; the
     others, at most :data:`COMMANDS_PER_S` per sender, on the ``normal`` lane's thread. The handler
     must therefore be callable from these three threads at once. A command refused by the rate limit
@@ -161,7 +168,9 @@ class CommandServer(Worker):
     def __init__(self, lc: Any, handler: Handler, *, key: bytes, url: str = "",
                  channel: str = CANON_COMMAND, reply_channel: str = CANON_REPLY,
                  window_s: float = WINDOW_S, on_security: SecurityHook | None = None,
-                 refusal_rate: float = REFUSAL_REPLIES_PER_S) -> None:
+                 refusal_rate: float = REFUSAL_REPLIES_PER_S,
+                 estop_thread: Callable[[Callable[[], None]], Callable[[], None]] | None = None,
+                 estop_socket: bool = True) -> None:
         self.lc = lc
         self.handler = handler
         self.url = url
@@ -184,6 +193,14 @@ class CommandServer(Worker):
         self._intake_thread: threading.Thread | None = None
         self._lanes_stop = threading.Event()
         self._subscription: Any = None
+        self._estop_thread = estop_thread
+        self._want_estop_socket = estop_socket
+        self.estop_listener: Any = None
+        """:class:`telemetry.estop_socket.EstopListener` while E-stops come through their own socket."""
+        self._estops_read: OrderedDict[bytes, None] = OrderedDict()
+        self._estops_lock = threading.Lock()
+        self.estop_socket_refused = ""
+        """Why E-stops come through the ordinary socket ("" while they have their own)."""
         Worker.__init__(self)
 
     def subscribe(self) -> None:
@@ -199,6 +216,8 @@ class CommandServer(Worker):
                                                    daemon=True)
             self._intake_thread.start()
             self._lane_threads.append(self._intake_thread)
+        if self.estop_listener is None and self._want_estop_socket:
+            self._open_estop_socket()
         if self._subscription is None:
             self._subscription = self.lc.subscribe(self.channel, self.on_message)
             # LCM keeps 30 messages per subscription waiting for dispatch and drops the rest: a burst of
@@ -206,10 +225,58 @@ class CommandServer(Worker):
             with contextlib.suppress(AttributeError):
                 self._subscription.set_queue_capacity(RECEIVE_QUEUE)
 
+    def _open_estop_socket(self) -> None:
+        """E-stops through a socket of their own (:mod:`telemetry.estop_socket`), where the URL allows."""
+        from telemetry.estop_socket import EstopListener, open_estop_socket
+        from telemetry.lcmtypes.canon import command
+        from telemetry.url import parse_url
+
+        if not self.url:  # which URL ``lc`` was opened with is not known: the ordinary socket only
+            self.estop_socket_refused = "the command server was not told its LCM URL"
+            return
+        try:
+            url = parse_url(self.url)
+        except ValueError as exc:
+            self.estop_socket_refused = str(exc)
+            return
+        sock, why = open_estop_socket(url, self.channel, command._get_packed_fingerprint())
+        if sock is None:
+            self.estop_socket_refused = why
+            log.info("E-stops share the command socket: %s", why)
+            return
+        self.estop_socket_refused = ""
+        self.estop_listener = EstopListener(sock, self.channel, self._take_estop, self._estop_thread).start()
+
+    def _first_read(self, data: bytes) -> bool:
+        """Whether this E-stop datagram is read here for the first time. An E-stop arrives twice, on its
+        own socket and on the ordinary one: whichever thread reads it first decides it, the other skips
+        it (deciding it again would refuse it as a replay). Neither relies on the other: an E-stop the
+        filtered socket did not get (its queue full, another transport) is still decided."""
+        with self._estops_lock:
+            if data in self._estops_read:
+                return False
+            self._estops_read[data] = None
+            if len(self._estops_read) > ESTOPS_REMEMBERED:
+                self._estops_read.popitem(last=False)
+            return True
+
+    def _take_estop(self, data: bytes) -> None:
+        if not self._first_read(data):
+            return
+        try:
+            self._take(data)
+        except Exception:
+            self.errors += 1
+            raise
+
     def on_message(self, channel: str, data: bytes) -> None:
-        """LCM's dispatch: an E-stop is decided at once; anything else goes to the intake thread, so
-        that a backlog of other commands never stands in front of an E-stop."""
-        if self._intake_thread is not None and _raw_verb(data) not in IMMEDIATE_VERBS:
+        """LCM's dispatch: an E-stop is decided at once (or left to its own socket, which has it
+        already); anything else goes to the intake thread, so that a backlog of other commands never
+        stands in front of an E-stop."""
+        verb = _raw_verb(data)
+        if verb in IMMEDIATE_VERBS and not self._first_read(data):
+            return  # the E-stop's own socket had it first and decided it
+        if self._intake_thread is not None and verb not in IMMEDIATE_VERBS:
             try:
                 self._intake.put_nowait(data)
                 return
@@ -346,6 +413,9 @@ class CommandServer(Worker):
         if self._subscription is not None:
             self.lc.unsubscribe(self._subscription)
             self._subscription = None
+        if self.estop_listener is not None:
+            self.estop_listener.stop(timeout)
+            self.estop_listener = None
         self._lanes_stop.set()
         for t in self._lane_threads:
             t.join(timeout)

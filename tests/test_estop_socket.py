@@ -1,0 +1,182 @@
+"""The E-stop's own socket (telemetry.estop_socket): the kernel hands it E-stop commands only, so an
+E-stop is decided while the ordinary command socket's reader is held up, once, and still through
+the server's checks. Joins multicast groups: ``multicast`` (tests/run's namespace)."""
+
+from __future__ import annotations
+
+import random
+import threading
+import time
+from typing import Any
+
+import lcm
+import pytest
+from keys import TEST_KEY
+
+from telemetry.commands import CommandServer, make_command
+from telemetry.estop_socket import estop_filter, lcm_payload, open_estop_socket
+from telemetry.lcmtypes.canon import command, reply
+from telemetry.publisher import CANON_COMMAND, CANON_REPLY
+from telemetry.url import parse_url
+
+pytestmark = pytest.mark.multicast
+
+
+def group_url() -> str:
+    group = f"239.79.{random.randint(1, 250)}.{random.randint(1, 250)}"
+    return f"udpm://{group}:{random.randint(20000, 60000)}?ttl=0"
+
+
+def test_the_filter_passes_estop_commands_on_the_channel_and_nothing_else() -> None:
+    url = parse_url(group_url())
+    sock, why = open_estop_socket(url, CANON_COMMAND, command._get_packed_fingerprint())
+    assert sock is not None, why
+    sock.settimeout(0.3)
+    lc = lcm.LCM(url.url)
+    seen: list[tuple[str, str]] = []
+    try:
+        sends = [
+            (CANON_COMMAND, make_command("feed_override", values=[0.5], sender="hmi", key=TEST_KEY).encode()),
+            (CANON_COMMAND, make_command("abort", sender="hmi", key=TEST_KEY).encode()),
+            (CANON_COMMAND, make_command("estop_reset", sender="hmi", key=TEST_KEY).encode()),
+            ("CANON_COMMANDS", make_command("estop", sender="hmi", key=TEST_KEY).encode()),  # other channel
+            (CANON_COMMAND, b"\0" * 8 + make_command("estop", sender="hmi").encode()[8:]),  # other type
+            (CANON_COMMAND, b"estop"),
+            (CANON_COMMAND, make_command("estop", sender="hmi", key=TEST_KEY).encode()),
+            (CANON_COMMAND, make_command("estop", sender="x" * 1000, key=TEST_KEY).encode()),
+            (CANON_COMMAND, make_command("estop", sender="", key=TEST_KEY).encode()),
+        ]
+        for channel, data in sends:
+            lc.publish(channel, data)
+        for _ in range(len(sends)):  # bounded: one read per datagram sent
+            try:
+                datagram = sock.recv(65536)
+            except TimeoutError:
+                break
+            payload = lcm_payload(datagram, CANON_COMMAND)
+            assert payload is not None
+            cmd = command.decode(payload)
+            seen.append((cmd.verb, cmd.sender))
+    finally:
+        sock.close()
+    assert seen == [("estop", "hmi"), ("estop", "x" * 1000), ("estop", "")]
+
+
+def test_the_filter_is_a_short_program_with_forward_jumps_only() -> None:
+    program = estop_filter(CANON_COMMAND, command._get_packed_fingerprint())
+    assert program[-2:] == [(0x06, 0, 0, 0xFFFF), (0x06, 0, 0, 0)]
+    for i, (code, jt, jf, _k) in enumerate(program[:-2]):
+        assert code != 0x06  # only the last two return
+        assert i + 1 + max(jt, jf) < len(program)
+    with pytest.raises(ValueError, match="too long"):
+        estop_filter("C" * 1000, command._get_packed_fingerprint())
+
+
+class Replies:
+    def __init__(self, url: str) -> None:
+        self.lc = lcm.LCM(url)
+        self.got: list[Any] = []
+        self.lc.subscribe(CANON_REPLY, lambda _c, d: self.got.append(reply.decode(d)))
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.lc.handle_timeout(20)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+
+
+def test_an_estop_is_decided_while_the_command_sockets_reader_is_held_up() -> None:
+    """The ordinary socket's reader is stuck in a slow handler for a second (as a reader that fell behind
+    a flood would be): an E-stop sent meanwhile is decided at once from its own socket, once."""
+    url = group_url()
+    lc = lcm.LCM(url)
+    decided: list[tuple[str, float]] = []
+    notes: list[str] = []
+    server = CommandServer(lc, lambda cmd: decided.append((cmd.verb, time.monotonic())) or None,
+                           key=TEST_KEY, url=url, on_security=notes.append)
+    held = threading.Event()
+
+    def hold(_channel: str, _data: bytes) -> None:
+        held.set()
+        time.sleep(1.0)
+
+    lc.subscribe("HOLD", hold)
+    server.start()
+    assert server.estop_listener is not None, server.estop_socket_refused
+    client = lcm.LCM(url)
+    replies = Replies(url)
+    try:
+        time.sleep(0.1)
+        client.publish("HOLD", b"x")
+        assert held.wait(5)
+        for i in range(50):  # queued behind the held reader
+            client.publish(CANON_COMMAND, make_command("single_block", values=[0], request_id=100 + i,
+                                                       sender="flood", key=TEST_KEY).encode())
+        t0 = time.monotonic()
+        client.publish(CANON_COMMAND, make_command("estop", request_id=1, sender="op", key=TEST_KEY).encode())
+        for _ in range(500):  # bounded: 500 polls of 1 ms
+            if any(v == "estop" for v, _ in decided):
+                break
+            time.sleep(0.001)
+        estop_at = next((t - t0 for v, t in decided if v == "estop"), None)
+        for _ in range(300):  # bounded: the held reader catches up, the replies arrive
+            if len(replies.got) >= 51:
+                break
+            time.sleep(0.01)
+        time.sleep(0.2)
+    finally:
+        replies.close()
+        server.stop()
+    assert estop_at is not None and estop_at < 0.5, f"E-stop decided after {estop_at} s"
+    assert [v for v, _ in decided].count("estop") == 1  # decided once, not refused as its own replay
+    estop_replies = [r for r in replies.got if r.sender == "op"]
+    assert [(r.verb, r.ok) for r in estop_replies] == [("estop", True)]
+    assert server.estop_listener is None  # stopped with the server
+    assert notes == [], "the second copy of the E-stop was refused (a replay) instead of skipped"
+
+
+def test_a_forged_estop_on_its_own_socket_is_refused_with_the_reason() -> None:
+    url = group_url()
+    lc = lcm.LCM(url)
+    decided: list[str] = []
+    notes: list[str] = []
+    server = CommandServer(lc, lambda cmd: decided.append(cmd.verb) or None, key=TEST_KEY, url=url,
+                           on_security=notes.append).start()
+    client = lcm.LCM(url)
+    try:
+        client.publish(CANON_COMMAND, make_command("estop", sender="mallory", key=b"\x01" * 32).encode())
+        for _ in range(500):  # bounded
+            if notes:
+                break
+            time.sleep(0.002)
+    finally:
+        server.stop()
+    assert decided == []
+    assert len(notes) == 1 and "bad MAC" in notes[0]
+
+
+def test_without_its_url_the_server_takes_estops_from_its_lcm_instance() -> None:
+    lc = lcm.LCM("memq://")
+    decided: list[str] = []
+    server = CommandServer(lc, lambda cmd: decided.append(cmd.verb) or None, key=TEST_KEY).start()
+    try:
+        assert server.estop_listener is None and "URL" in server.estop_socket_refused
+        lc.publish(CANON_COMMAND, make_command("estop", sender="op", key=TEST_KEY).encode())
+        for _ in range(500):  # bounded
+            if decided:
+                break
+            time.sleep(0.002)
+    finally:
+        server.stop()
+    assert decided == ["estop"]
+    memq = CommandServer(lcm.LCM("memq://"), lambda cmd: None, key=TEST_KEY, url="memq://")
+    memq.subscribe()
+    try:
+        assert memq.estop_listener is None and "udpm" in memq.estop_socket_refused
+    finally:
+        memq.stop()
