@@ -59,8 +59,8 @@ def build_settings(config: Any, *, var: str | None = None, tool_table: str | Non
     ic = config.interpreter
     if tool_table is not None and not Path(tool_table).is_file():
         raise not_a_file("--tool-table", tool_table)
-    if var is not None and check_var and not Path(var).is_file():
-        raise not_a_file("--var", var)
+    if var is not None and not Path(var).is_file() and (check_var or Path(var).exists()):
+        raise not_a_file("--var", var)  # a run may create it, but never in place of a directory
     if dialect is not None:
         from gcode_canon.dialect import Dialect
 

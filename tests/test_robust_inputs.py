@@ -202,6 +202,10 @@ def test_option_files_that_are_not_files(bad_inputs: dict[str, Path], tmp_path: 
         assert main(["check", option, "/dev/null", str(program_path)]) == 1
         err = capsys.readouterr().err
         assert err == f"canon check: {option} /dev/null: is a device file, not a regular file\n"
+    # canon run may create its --var file, but not in place of a directory (it said "DIR:0: cannot
+    # read parameter file" after booting the machine)
+    assert main(["run", "--no-telemetry", "--var", str(directory), str(program_path)]) == 1
+    assert capsys.readouterr().err == f"canon run: --var {directory}: is a directory, not a file\n"
 
 
 def test_a_device_or_a_pipe_as_the_machine_file_is_refused_not_read_for_ever(
