@@ -21,7 +21,6 @@ why and the server takes E-stops from its ordinary socket, as before.
 
 from __future__ import annotations
 
-import contextlib
 import ctypes
 import logging
 import socket
@@ -121,10 +120,10 @@ def open_estop_socket(url: LcmUrl, channel: str, fingerprint: bytes) -> tuple[so
         return None, "not Linux (no socket filter)"
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
-        # as LCM binds its own socket: the group's port shared by every LCM instance on this host
+        # as LCM binds its own socket on Linux: the group's port shared by every LCM instance on this
+        # host, each getting its own copy of a multicast datagram (no SO_REUSEPORT, which would put the
+        # sockets in a group that shares out unicast datagrams instead)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        with contextlib.suppress(AttributeError, OSError):
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
         _attach(sock, estop_filter(channel, fingerprint))  # before bind: nothing unfiltered queues
         sock.bind(("", url.port))
         sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP,
