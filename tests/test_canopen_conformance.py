@@ -199,6 +199,16 @@ def test_the_simulated_rpdo_deadline_faults_with_0x8250_and_enable_names_that_em
             d.active = False
 
     monkeypatch.setattr(r.master, "_activate", without_targets)
+    enable_drive = r.master._enable_drive
+
+    def as_slow_as_a_real_drive(d):
+        # a real drive takes tens of ms to enable; over the in-process bus the other two took less than
+        # the three SYNCs drive 1 waits on a fast PC, and enable() returned before its EMCY
+        if d.cfg.node_id == 2:
+            wait_for(lambda: r.sim(1).emcys != [], 2.0)
+        enable_drive(d)
+
+    monkeypatch.setattr(r.master, "_enable_drive", as_slow_as_a_real_drive)
     with _Cycling(r.master), pytest.raises(Exception, match=r"node 1 \(axis x\): EMCY 0x8250"):
         r.master.enable()
     assert r.sim(1).emcys == [0x8250]
