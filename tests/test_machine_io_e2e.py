@@ -142,7 +142,9 @@ def test_estop_input_during_motion_stops_at_once_and_drops_machine_enable(rig: R
     assert max(c for c, _t, _p, _e in rig.machine.trace) <= cycle
     assert rig.x() < 100.0
     assert first_write(rig, "coil", 8, 0, since=n) > t_pressed  # machine enable dropped
-    assert any("E-stop input active" in e[1] and "discrete input 8" in e[1] for e in rig.events), rig.events
+    # the event follows the state (Machine.estop: state, quick stop, outputs, then the event)
+    wait_for(lambda: any("E-stop input active" in e[1] and "discrete input 8" in e[1] for e in rig.events),
+             "the E-stop input's event")
     result = rig.machine.wait_job(job, 5.0)
     assert result is not None and not result.ok
     with pytest.raises(CommandRefused, match="E-stop input is active"):
