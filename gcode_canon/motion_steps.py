@@ -460,16 +460,21 @@ class MotionMixin:
             return None
         start = self.prog
         target = list(start)
+        xv, yv, zv = words.get("x"), words.get("y"), words.get("z")  # not a loop over the I J K R F words
         if self.absolute:
-            for letter, value in words.items():
-                k = _XYZ_INDEX.get(letter)
-                if k is not None:
-                    target[k] = value * scale
+            if xv is not None:
+                target[0] = xv * scale
+            if yv is not None:
+                target[1] = yv * scale
+            if zv is not None:
+                target[2] = zv * scale
         else:
-            for letter, value in words.items():
-                k = _XYZ_INDEX.get(letter)
-                if k is not None:
-                    target[k] += value * scale
+            if xv is not None:
+                target[0] += xv * scale
+            if yv is not None:
+                target[1] += yv * scale
+            if zv is not None:
+                target[2] += zv * scale
         clockwise = motion == 20
         s2 = (start[first], start[second])
         e2 = (target[first], target[second])

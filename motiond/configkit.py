@@ -10,7 +10,6 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import math
-import tomllib
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
@@ -76,6 +75,8 @@ def special_file(mode: int) -> str | None:
 
 def load_toml(path: str | Path) -> dict[str, Any]:
     """Read a TOML file; syntax errors become :class:`ConfigError` with the line TOML reports."""
+    import tomllib  # here, not at the top: canon check without a machine file reads no TOML
+
     p = Path(path)
     try:
         kind = special_file(p.stat().st_mode)  # /dev/zero or a pipe: read() would never end

@@ -203,3 +203,18 @@ def test_text_is_written_in_blocks_whatever_the_commands(tmp_path: Path) -> None
            writes.append, None)
     assert max(chunk.count("\n") for chunk in writes) <= 256
     assert sum(chunk.count("STRAIGHT_FEED") for chunk in writes) == 2000
+
+
+def test_texts_keep_their_negative_zero_and_percent_signs(tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """A block's moves are formatted in one ``%`` formatting with "-0.0000" replaced over its text: a
+    comment or message between them keeps its own "-0.0000" and "%" as written, in any block."""
+    body = []
+    for k in range(300):  # more than a block of commands
+        body.append(f"G1 X-0.00001 Y{k} (at {k} -0.0000 and 100% %s)" if k % 3 else f"G0 X{k} Z-0.00004")
+        if k % 50 == 7:
+            body.append("(MSG, -0.0000 %d %%)")
+    out = checked_as_format_text(write(tmp_path, "G21 F100\n" + "\n".join(body) + "\nM2\n"), capsys)
+    assert sum('-0.0000 and 100% %s")' in line for line in out) == 200
+    assert sum("MESSAGE(" in line and line.endswith('-0.0000 %d %%")') for line in out) == 6
+    assert not any("-0.0000" in line for line in out if "STRAIGHT" in line)
