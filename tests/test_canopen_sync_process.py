@@ -166,7 +166,7 @@ def test_a_killed_sync_process_is_a_fault_of_the_master_naming_it(local_rig):
 
     runner = PeriodicRunner(0.002, step, cycles=3000, tick=master.sync_tick).start()
     assert runner.join(60.0)
-    assert master.fault is not None and master.fault.node == 0, master.fault
+    assert master.fault is not None and master.fault.node == 0, (master.fault, runner.error, done[0])
     assert "no SYNC on the bus" in master.fault.reason and "the SYNC process stopped" in master.fault.reason
 
 

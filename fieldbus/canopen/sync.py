@@ -211,6 +211,12 @@ class KernelSync:
         with self._lock:
             first = self._read(max(0.0, until - time.monotonic()))
             if first is None:
+                # a source that ended (the SYNC process's pipe at EOF, a failed socket) answers at once:
+                # the wait still lasts until ``until``, or the cycle would step unpaced, setpoints at CPU
+                # speed, and the stall watch would never see the SYNC missing
+                rest = until - time.monotonic()
+                if rest > 0:
+                    time.sleep(rest)
                 return None
             last, more = self._drain()
             return first, last if more else first, 1 + more
