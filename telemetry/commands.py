@@ -169,8 +169,7 @@ class CommandServer(Worker):
                  channel: str = CANON_COMMAND, reply_channel: str = CANON_REPLY,
                  window_s: float = WINDOW_S, on_security: SecurityHook | None = None,
                  refusal_rate: float = REFUSAL_REPLIES_PER_S,
-                 estop_thread: Callable[[Callable[[], None]], Callable[[], None]] | None = None,
-                 estop_socket: bool = True) -> None:
+                 estop_thread: Callable[[Callable[[], None]], Callable[[], None]] | None = None) -> None:
         self.lc = lc
         self.handler = handler
         self.url = url
@@ -194,7 +193,6 @@ class CommandServer(Worker):
         self._lanes_stop = threading.Event()
         self._subscription: Any = None
         self._estop_thread = estop_thread
-        self._want_estop_socket = estop_socket
         self.estop_listener: Any = None
         """:class:`telemetry.estop_socket.EstopListener` while E-stops come through their own socket."""
         self._estops_read: OrderedDict[bytes, None] = OrderedDict()
@@ -216,7 +214,7 @@ class CommandServer(Worker):
                                                    daemon=True)
             self._intake_thread.start()
             self._lane_threads.append(self._intake_thread)
-        if self.estop_listener is None and self._want_estop_socket:
+        if self.estop_listener is None:
             self._open_estop_socket()
         if self._subscription is None:
             self._subscription = self.lc.subscribe(self.channel, self.on_message)

@@ -12,8 +12,8 @@ message on the command channel whose payload is a ``canon.command`` (its fingerp
 ``estop``. Filtered in the kernel, a flood of other commands never reaches this socket's queue, and
 its thread (on the task's stop path, ranked as those threads are) wakes only for an E-stop. What
 arrives still goes through the server's checks (MAC, time, sequence): the filter selects, it does not
-trust. The same E-stop also arrives on the ordinary socket, where the server skips it, so it is
-decided once.
+trust. The same E-stop also arrives on the ordinary socket; whichever of the server's readers has it
+first decides it and the other skips it, so it is decided once.
 
 Where the filter cannot be attached (not Linux, another LCM provider) :func:`open_estop_socket` says
 why and the server takes E-stops from its ordinary socket, as before.
@@ -43,7 +43,7 @@ MAX_SENDER = 65507
 datagram (the check only keeps the index register's sum from wrapping around)."""
 
 # classic BPF opcodes (linux/filter.h)
-_LD_W_ABS, _LD_H_ABS, _LD_B_ABS = 0x20, 0x28, 0x30
+_LD_W_ABS, _LD_B_ABS = 0x20, 0x30
 _LD_W_IND, _LD_B_IND = 0x40, 0x50
 _JEQ_K, _JGT_K, _TAX, _RET_K = 0x15, 0x25, 0x07, 0x06
 _ACCEPT = 0xFFFF
@@ -154,7 +154,6 @@ class EstopListener:
         self.sock = sock
         self.channel = channel
         self.on_estop = on_estop
-        self.received = 0
         self._stop = threading.Event()
         body = self._run if thread_wrapper is None else thread_wrapper(self._run)
         self._thread = threading.Thread(target=body, name="canon-command-estop", daemon=True)
@@ -178,7 +177,6 @@ class EstopListener:
             payload = lcm_payload(datagram, self.channel)
             if payload is None:
                 continue
-            self.received += 1
             try:
                 self.on_estop(payload)
             except Exception:
@@ -188,7 +186,3 @@ class EstopListener:
         self._stop.set()
         self._thread.join(timeout)
         self.sock.close()
-
-    @property
-    def alive(self) -> bool:
-        return self._thread.is_alive()

@@ -7,11 +7,12 @@ from __future__ import annotations
 import random
 import threading
 import time
-from typing import Any
 
 import lcm
 import pytest
+from canopen_helpers import wait_for
 from keys import TEST_KEY
+from test_telemetry_multicast import Listener
 
 from telemetry.commands import CommandServer, make_command
 from telemetry.estop_socket import estop_filter, lcm_payload, open_estop_socket
@@ -72,24 +73,6 @@ def test_the_filter_is_a_short_program_with_forward_jumps_only() -> None:
         estop_filter("C" * 1000, command._get_packed_fingerprint())
 
 
-class Replies:
-    def __init__(self, url: str) -> None:
-        self.lc = lcm.LCM(url)
-        self.got: list[Any] = []
-        self.lc.subscribe(CANON_REPLY, lambda _c, d: self.got.append(reply.decode(d)))
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            self.lc.handle_timeout(20)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(2)
-
-
 def test_an_estop_is_decided_while_the_command_sockets_reader_is_held_up() -> None:
     """The ordinary socket's reader is stuck in a slow handler for a second (as a reader that fell behind
     a flood would be): an E-stop sent meanwhile is decided at once from its own socket, once."""
@@ -109,7 +92,7 @@ def test_an_estop_is_decided_while_the_command_sockets_reader_is_held_up() -> No
     server.start()
     assert server.estop_listener is not None, server.estop_socket_refused
     client = lcm.LCM(url)
-    replies = Replies(url)
+    replies = Listener(url, {CANON_REPLY: reply})
     try:
         time.sleep(0.1)
         client.publish("HOLD", b"x")
@@ -119,22 +102,16 @@ def test_an_estop_is_decided_while_the_command_sockets_reader_is_held_up() -> No
                                                        sender="flood", key=TEST_KEY).encode())
         t0 = time.monotonic()
         client.publish(CANON_COMMAND, make_command("estop", request_id=1, sender="op", key=TEST_KEY).encode())
-        for _ in range(500):  # bounded: 500 polls of 1 ms
-            if any(v == "estop" for v, _ in decided):
-                break
-            time.sleep(0.001)
+        wait_for(lambda: any(v == "estop" for v, _ in decided), 0.5, step=0.001)
         estop_at = next((t - t0 for v, t in decided if v == "estop"), None)
-        for _ in range(300):  # bounded: the held reader catches up, the replies arrive
-            if len(replies.got) >= 51:
-                break
-            time.sleep(0.01)
+        replies.wait(CANON_REPLY, 51, 3.0)  # the held reader catches up, the replies arrive
         time.sleep(0.2)
     finally:
         replies.close()
         server.stop()
     assert estop_at is not None and estop_at < 0.5, f"E-stop decided after {estop_at} s"
     assert [v for v, _ in decided].count("estop") == 1  # decided once, not refused as its own replay
-    estop_replies = [r for r in replies.got if r.sender == "op"]
+    estop_replies = [r for r in replies.got[CANON_REPLY] if r.sender == "op"]
     assert [(r.verb, r.ok) for r in estop_replies] == [("estop", True)]
     assert server.estop_listener is None  # stopped with the server
     assert notes == [], "the second copy of the E-stop was refused (a replay) instead of skipped"
@@ -150,10 +127,7 @@ def test_a_forged_estop_on_its_own_socket_is_refused_with_the_reason() -> None:
     client = lcm.LCM(url)
     try:
         client.publish(CANON_COMMAND, make_command("estop", sender="mallory", key=b"\x01" * 32).encode())
-        for _ in range(500):  # bounded
-            if notes:
-                break
-            time.sleep(0.002)
+        wait_for(lambda: notes != [], 1.0)
     finally:
         server.stop()
     assert decided == []
@@ -167,10 +141,7 @@ def test_without_its_url_the_server_takes_estops_from_its_lcm_instance() -> None
     try:
         assert server.estop_listener is None and "URL" in server.estop_socket_refused
         lc.publish(CANON_COMMAND, make_command("estop", sender="op", key=TEST_KEY).encode())
-        for _ in range(500):  # bounded
-            if decided:
-                break
-            time.sleep(0.002)
+        wait_for(lambda: decided != [], 1.0)
     finally:
         server.stop()
     assert decided == ["estop"]
