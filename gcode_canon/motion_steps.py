@@ -50,7 +50,6 @@ UVW_ARC = "Cannot do an arc in planes G17.1, G18.1, or G19.1"
 _PLAIN_MOTIONS = frozenset((0, 10, 20, 30))
 _isfinite = math.isfinite
 _AXIS_INDEX = {letter: k for k, letter in enumerate(AXIS_LETTERS)}
-_XYZ_INDEX = {"x": 0, "y": 1, "z": 2}
 _new_pose = tuple.__new__
 _add = operator.add
 
