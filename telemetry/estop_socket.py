@@ -23,10 +23,12 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import os
 import socket
 import struct
 import sys
 import threading
+import time
 from collections.abc import Callable
 
 from telemetry.url import LcmUrl
@@ -144,16 +146,108 @@ def lcm_payload(datagram: bytes, channel: str) -> bytes | None:
     return datagram[end + 1:]
 
 
+FLOOD_PER_S = 200
+"""E-stop datagrams in one second beyond which the E-stop thread reads them at ordinary priority. A
+person or a program that means it sends a few (a client may repeat one); hundreds a second are a flood,
+most likely forged: each costs a decode and a MAC check, and at real-time priority a LAN's worth of them
+would keep a CPU from the rest of the PC (and the task's other threads from the interpreter lock)."""
+
+
+class _FloodBudget:
+    """The E-stop thread's CPU budget: beyond :data:`FLOOD_PER_S` datagrams in a second it drops from
+    the real-time rank it was given to SCHED_OTHER, and takes the rank back once a whole second passes
+    under the limit. It still reads and decides every datagram meanwhile (an E-stop in a flood is still
+    decided, at ordinary priority, as on the ordinary socket), and the drives' own stop paths (the
+    motion process, the E-stop input, the drives) do not depend on this thread. A thread that was not
+    ranked (no ``realtime_priority``, or not allowed) has nothing to give up; it only counts."""
+
+    def __init__(self, per_s: int) -> None:
+        self.per_s = per_s
+        self.rank = _own_rank()
+        self.window = time.monotonic()
+        self.seen = 0
+        self.demoted = False
+        self.floods = 0
+        self.read_in_flood = 0
+
+    def count(self, now: float) -> None:
+        if now - self.window >= 1.0:
+            self._next_window(now)
+        self.seen += 1
+        if self.demoted:
+            self.read_in_flood += 1
+        elif self.seen > self.per_s:
+            self._demote()
+
+    def quiet(self, now: float) -> None:
+        """No datagram for a while (the socket's timeout): a flood that ended ends here too."""
+        if now - self.window >= 1.0:
+            self._next_window(now)
+
+    def _next_window(self, now: float) -> None:
+        if self.demoted and self.seen <= self.per_s:
+            self._restore()
+        self.window = now
+        self.seen = 0
+
+    def _demote(self) -> None:
+        self.demoted = True
+        self.floods += 1
+        self.read_in_flood = 0
+        if self.rank is None:
+            log.warning("E-stop socket: more than %d E-stop datagrams in a second (a flood, likely forged);"
+                        " each is still checked", self.per_s)
+            return
+        try:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        except OSError as exc:
+            log.warning("E-stop socket: a flood of E-stop datagrams, and the thread could not leave its "
+                        "real-time rank: %s", exc)
+            return
+        log.warning("E-stop socket: more than %d E-stop datagrams in a second (a flood, likely forged): "
+                    "read at ordinary priority until it ends; each is still checked", self.per_s)
+
+    def _restore(self) -> None:
+        self.demoted = False
+        if self.rank is None:
+            return
+        policy, priority = self.rank
+        try:
+            os.sched_setscheduler(0, policy, os.sched_param(priority))
+        except OSError as exc:
+            log.warning("E-stop socket: the flood ended but the real-time rank was refused: %s", exc)
+            return
+        log.warning("E-stop socket: the flood ended (%d more datagrams read in it); real-time rank back",
+                    self.read_in_flood)
+
+
+def _own_rank() -> tuple[int, int] | None:
+    """The calling thread's real-time policy and priority, or None when it runs ordinary."""
+    try:
+        policy = os.sched_getscheduler(0)
+        priority = os.sched_getparam(0).sched_priority
+    except (AttributeError, OSError):
+        return None
+    if policy not in (os.SCHED_FIFO, os.SCHED_RR):
+        return None
+    return policy, priority
+
+
 class EstopListener:
     """A thread that reads the E-stop socket and calls ``on_estop(payload)`` for each E-stop datagram.
 
-    ``thread_wrapper`` wraps the thread's body (the daemon ranks it with the task's stop-path threads)."""
+    ``thread_wrapper`` wraps the thread's body (the daemon ranks it with the task's stop-path threads).
+    More than ``flood_per_s`` datagrams in a second is a flood (:class:`_FloodBudget`): the thread gives
+    up its real-time rank until a second passes without one."""
 
     def __init__(self, sock: socket.socket, channel: str, on_estop: Callable[[bytes], None],
-                 thread_wrapper: Callable[[Callable[[], None]], Callable[[], None]] | None = None) -> None:
+                 thread_wrapper: Callable[[Callable[[], None]], Callable[[], None]] | None = None,
+                 flood_per_s: int = FLOOD_PER_S) -> None:
         self.sock = sock
         self.channel = channel
         self.on_estop = on_estop
+        self.flood_per_s = flood_per_s
+        self.budget: _FloodBudget | None = None
         self._stop = threading.Event()
         body = self._run if thread_wrapper is None else thread_wrapper(self._run)
         self._thread = threading.Thread(target=body, name="canon-command-estop", daemon=True)
@@ -164,16 +258,19 @@ class EstopListener:
         return self
 
     def _run(self) -> None:
+        budget = self.budget = _FloodBudget(self.flood_per_s)  # after thread_wrapper ranked the thread
         while not self._stop.is_set():
             try:
                 datagram = self.sock.recv(65536)
             except TimeoutError:
+                budget.quiet(time.monotonic())
                 continue
             except OSError:
                 if self._stop.is_set():
                     return
                 log.exception("the E-stop socket failed; E-stops still arrive on the command socket")
                 return
+            budget.count(time.monotonic())
             payload = lcm_payload(datagram, self.channel)
             if payload is None:
                 continue
@@ -186,3 +283,4 @@ class EstopListener:
         self._stop.set()
         self._thread.join(timeout)
         self.sock.close()
+

@@ -4,6 +4,7 @@ the server's checks. Joins multicast groups: ``multicast`` (tests/run's namespac
 
 from __future__ import annotations
 
+import os
 import random
 import threading
 import time
@@ -151,3 +152,82 @@ def test_without_its_url_the_server_takes_estops_from_its_lcm_instance() -> None
         assert memq.estop_listener is None and "udpm" in memq.estop_socket_refused
     finally:
         memq.stop()
+
+
+def _ranked(priority: int):
+    """A thread wrapper that runs the body at SCHED_FIFO ``priority``, as the daemon's stop path does."""
+    def wrap(body):
+        def run() -> None:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+            body()
+        return run
+    return wrap
+
+
+def _policy(thread: threading.Thread) -> int:
+    assert thread.native_id is not None
+    return os.sched_getscheduler(thread.native_id)
+
+
+def test_a_flood_of_forged_estops_costs_the_estop_thread_its_real_time_rank_until_it_ends() -> None:
+    """1,000 forged E-stops in well under a second (an attacker on the LAN): the E-stop socket's thread,
+    ranked real-time, reads them at ordinary priority from the 201st on, so the flood does not hold a CPU
+    at real-time priority; a real E-stop in the flood is still decided; a quiet second gives the rank
+    back."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(3))
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except (AttributeError, OSError) as exc:
+        pytest.skip(f"SCHED_FIFO not allowed here: {exc}")
+    url = group_url()
+    lc = lcm.LCM(url)
+    decided: list[str] = []
+    notes: list[str] = []
+    server = CommandServer(lc, lambda cmd: decided.append(cmd.verb) or None, key=TEST_KEY, url=url,
+                           on_security=notes.append, estop_thread=_ranked(3)).start()
+    listener = server.estop_listener
+    assert listener is not None, server.estop_socket_refused
+    thread = listener._thread
+    client = lcm.LCM(url)
+    try:
+        assert wait_for(lambda: listener.budget is not None, 2.0)
+        assert _policy(thread) == os.SCHED_FIFO
+        forged = [make_command("estop", request_id=i, sender="mallory", key=b"\x01" * 32).encode()
+                  for i in range(1000)]
+        t0 = time.monotonic()
+        for data in forged:
+            client.publish(CANON_COMMAND, data)
+        sent_in = time.monotonic() - t0
+        assert wait_for(lambda: listener.budget.demoted, 2.0, step=0.001)
+        assert _policy(thread) == os.SCHED_OTHER
+        real = make_command("estop", request_id=5000, sender="op", key=TEST_KEY)
+        client.publish(CANON_COMMAND, real.encode())
+        assert wait_for(lambda: "estop" in decided, 3.0)
+        # a quiet second gives the rank back
+        assert wait_for(lambda: not listener.budget.demoted, 4.0, step=0.01)
+        assert _policy(thread) == os.SCHED_FIFO
+    finally:
+        server.stop()
+    assert sent_in < 1.0, f"the flood took {sent_in:.2f} s to send: not a flood"
+    assert decided == ["estop"]  # the real one, none of the forged
+    assert listener.budget.floods == 1
+    assert notes and all("bad MAC" in n or "refus" in n for n in notes), notes[:3]
+
+
+def test_an_unranked_estop_thread_only_counts_a_flood() -> None:
+    url = group_url()
+    lc = lcm.LCM(url)
+    server = CommandServer(lc, lambda cmd: None, key=TEST_KEY, url=url, on_security=lambda _n: None)
+    server.start()
+    listener = server.estop_listener
+    assert listener is not None, server.estop_socket_refused
+    client = lcm.LCM(url)
+    try:
+        assert wait_for(lambda: listener.budget is not None, 2.0)
+        for i in range(400):
+            forged = make_command("estop", request_id=i, sender="m", key=b"\x02" * 32)
+            client.publish(CANON_COMMAND, forged.encode())
+        assert wait_for(lambda: listener.budget.floods == 1, 2.0)
+        assert listener.budget.rank is None and _policy(listener._thread) == os.SCHED_OTHER
+    finally:
+        server.stop()
