@@ -129,6 +129,10 @@ class FlowControl:
     value_returned: bool = False
     main_dir: Path | None = None
     main_source: LineSource | None = None
+    #: jumps back (a loop's next pass, an ``M98 ... L`` repeat) since the machine last moved, in all
+    #: loops together, and where it stood then (:meth:`_idle_jump`)
+    idle_jumps: int = 0
+    idle_at: object = None
 
     # --- program start / end --------------------------------------------------------------------
 
@@ -140,6 +144,8 @@ class FlowControl:
         self.file_marks = {}
         self.value = 0.0
         self.value_returned = False
+        self.idle_jumps = 0
+        self.idle_at = None
         self.main_source = main
         is_file = not isinstance(main.stream, io.StringIO)
         self.main_dir = Path(main.name).parent if is_file else None
@@ -309,6 +315,23 @@ class FlowControl:
         if b.count > limit:
             raise GCodeError(f"{b.label} {b.kind} (line {b.line}) ran more than {limit} iterations "
                              "(max_loop_iterations): a runaway loop?")
+        self._idle_jump(f"{b.label} {b.kind} (line {b.line})")
+
+    def _idle_jump(self, where: str) -> None:
+        """A jump back to run a loop's body again: no more than ``max_loop_iterations`` of them, in all
+        loops together, without the machine moving. Each loop is bounded on its own, but nested loops
+        multiply (``repeat [1e5]`` in ``repeat [1e5]``: 1e10 passes, hours of computing with nothing
+        to show); a program whose loops move the machine is a long program, not a hang, and goes on."""
+        pos = self.interp.pos
+        if pos is not self.idle_at:
+            self.idle_at = pos
+            self.idle_jumps = 0
+            return
+        self.idle_jumps += 1
+        limit = self.interp.settings.max_loop_iterations
+        if self.idle_jumps > limit:
+            raise GCodeError(f"{where}: more than {limit} loop passes without a move, nested loops "
+                             "counted together (max_loop_iterations): a runaway loop?")
 
     def _kw_while(self, label: str, s: str, i: int) -> None:
         interp = self.interp
@@ -368,6 +391,7 @@ class FlowControl:
     def _repeat_end(self, b: OBlock) -> None:
         b.remaining -= 1
         if b.remaining > 0:
+            self._idle_jump(f"{b.label} repeat (line {b.line})")
             assert b.mark is not None
             self.interp.source.jump(b.mark)
         else:
@@ -569,6 +593,7 @@ class FlowControl:
         interp = self.interp
         frame = frame or self.frames[-1]
         if frame.fanuc and frame.repeats > 0:
+            self._idle_jump(f"M98 {frame.label.upper()} repeat")
             frame.repeats -= 1
             self.blocks = []
             assert frame.start is not None

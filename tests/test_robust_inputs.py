@@ -122,6 +122,29 @@ def test_m98_repeat_count_is_bounded_by_max_loop_iterations() -> None:
     assert [c.line for c in out if c.NAME == "STRAIGHT_FEED"] == [5, 5, 5]
 
 
+NESTED = "o1 repeat [{n}]\no2 repeat [{n}]\n{body}\no2 endrepeat\no1 endrepeat\nM2\n"
+
+
+@pytest.mark.parametrize("body", ["#1 = [#1 + 1]", "o3 while [1]\no3 break\no3 endwhile", "M98 P7 L2"])
+def test_nested_loops_without_a_move_are_bounded_together(body: str) -> None:
+    """Each loop is bounded by max_loop_iterations on its own, but nested loops multiplied: ``repeat
+    [1e5]`` in ``repeat [1e5]`` ran 1e10 passes, hours with nothing to show. Loop passes without a move,
+    all loops together, are bounded by the same limit (here 1,000 x 1,000 passes, each loop within it)."""
+    text = NESTED.format(n=1000, body=body).replace("M2\n", "M2\nO7\n#2 = 1\nM99\n")
+    interp = Interpreter(InterpreterSettings(dry_run=True, max_loop_iterations=1000))
+    with time_bound(f"nested {body}"), pytest.raises(GCodeError) as info:
+        list(interp.run_string(text, "nested.ngc"))
+    assert info.value.file == "nested.ngc"
+    assert "more than 1000 loop passes without a move" in info.value.message, info.value.message
+
+
+def test_nested_loops_that_move_are_a_long_program_not_a_runaway() -> None:
+    """40 x 40 passes with a move in each: 1,600 passes, over a limit of 1,000 in all, but each moves."""
+    text = "G21 G91 F100\n" + NESTED.format(n=40, body="G1 X0.001")
+    out = list(Interpreter(InterpreterSettings(dry_run=True, max_loop_iterations=1000)).run_string(text))
+    assert sum(c.NAME == "STRAIGHT_FEED" for c in out) == 1600
+
+
 @pytest.mark.parametrize("dialect", DIALECTS)
 @pytest.mark.parametrize("plane", ["G17.1", "G18.1", "G19.1"])
 @pytest.mark.parametrize("arc", ["G2 X1 Y1 U1 V1 W1 R1", "G3 U1 I1 J1 K1", "G12 I2", "G83 U1 V1 W-1 R1 Q1",
