@@ -169,7 +169,8 @@ def run(args: argparse.Namespace) -> int:
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         # they stand in for hardware, which answers every SYNC whatever else the PC runs: with a
-        # SCHED_FIFO cycle in the file, just below it (as the daemon's own simulated drives' process)
+        # SCHED_FIFO cycle in the file, just below it, level with the master's other threads (the
+        # daemon's own simulated drives' process runs one above the cycle: motiond/runtime/sim_drives_proc.py)
         import logging
 
         from fieldbus.canopen.clock import ranked_below_cycle
