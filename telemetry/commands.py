@@ -169,7 +169,8 @@ class CommandServer(Worker):
                  channel: str = CANON_COMMAND, reply_channel: str = CANON_REPLY,
                  window_s: float = WINDOW_S, on_security: SecurityHook | None = None,
                  refusal_rate: float = REFUSAL_REPLIES_PER_S,
-                 estop_thread: Callable[[Callable[[], None]], Callable[[], None]] | None = None) -> None:
+                 estop_thread: Callable[[Callable[[], None]], Callable[[], None]] | None = None,
+                 estop_cpu_budget: float | None = None) -> None:
         self.lc = lc
         self.handler = handler
         self.url = url
@@ -193,6 +194,7 @@ class CommandServer(Worker):
         self._lanes_stop = threading.Event()
         self._subscription: Any = None
         self._estop_thread = estop_thread
+        self._estop_cpu_budget = estop_cpu_budget  # None: the E-stop socket's default (CPU_BUDGET)
         self.estop_listener: Any = None
         """:class:`telemetry.estop_socket.EstopListener` while E-stops come through their own socket."""
         self._estops_read: OrderedDict[bytes, None] = OrderedDict()
@@ -243,7 +245,9 @@ class CommandServer(Worker):
             log.info("E-stops share the command socket: %s", why)
             return
         self.estop_socket_refused = ""
-        self.estop_listener = EstopListener(sock, self.channel, self._take_estop, self._estop_thread).start()
+        budget = {} if self._estop_cpu_budget is None else {"cpu_budget": self._estop_cpu_budget}
+        self.estop_listener = EstopListener(sock, self.channel, self._take_estop, self._estop_thread,
+                                            **budget).start()
 
     def _first_read(self, data: bytes) -> bool:
         """Whether this E-stop datagram is read here for the first time. An E-stop arrives twice, on its

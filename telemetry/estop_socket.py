@@ -146,37 +146,41 @@ def lcm_payload(datagram: bytes, channel: str) -> bytes | None:
     return datagram[end + 1:]
 
 
-FLOOD_PER_S = 200
-"""E-stop datagrams in one second beyond which the E-stop thread reads them at ordinary priority. A
-person or a program that means it sends a few (a client may repeat one); hundreds a second are a flood,
-most likely forged: each costs a decode and a MAC check, and at real-time priority a LAN's worth of them
-would keep a CPU from the rest of the PC (and the task's other threads from the interpreter lock)."""
+CPU_BUDGET = 0.3
+"""CPU seconds a second beyond which the E-stop thread reads at ordinary priority (a flood). A real
+E-stop costs microseconds and a client may repeat one; a flood of forged ones costs a decode and a MAC
+check each (16 us of the thread's CPU measured on the 2-core development PC): a thousand a second is
+under 2 % of a CPU, read at real-time priority, so an E-stop among them is still decided at once. Only
+a flood that would take more than this share of a CPU at real-time priority (about twenty thousand a
+second there, from the LAN) gives up the rank, to keep the rest of the PC (and the task's other
+threads, on the interpreter lock) running; at that rate the socket's queue overflows and drops
+datagrams whatever the thread's priority."""
 
 
 class _FloodBudget:
-    """The E-stop thread's CPU budget: beyond :data:`FLOOD_PER_S` datagrams in a second it drops from
-    the real-time rank it was given to SCHED_OTHER, and takes the rank back once a whole second passes
-    under the limit. It still reads and decides every datagram meanwhile (an E-stop in a flood is still
-    decided, at ordinary priority, as on the ordinary socket), and the drives' own stop paths (the
-    motion process, the E-stop input, the drives) do not depend on this thread. A thread that was not
-    ranked (no ``realtime_priority``, or not allowed) has nothing to give up; it only counts."""
+    """The E-stop thread's CPU budget: when it used more than ``cpu_s`` of CPU time (``time.thread_time``)
+    in a second, it drops from the real-time rank it was given to SCHED_OTHER, and takes the rank back
+    after a whole second under the budget. It still reads and decides every datagram meanwhile (an
+    E-stop in a flood is still decided, at ordinary priority, as on the ordinary socket); the drives'
+    own stop paths (the motion process, the E-stop input, the drives) do not depend on this thread. A
+    thread that was not ranked (no ``realtime_priority``, or not allowed) has nothing to give up; it
+    only counts and warns."""
 
-    def __init__(self, per_s: int) -> None:
-        self.per_s = per_s
+    def __init__(self, cpu_s: float) -> None:
+        self.cpu_s = cpu_s
         self.rank = _own_rank()
         self.window = time.monotonic()
-        self.seen = 0
+        self.cpu_at = time.thread_time()
         self.demoted = False
         self.floods = 0
-        self.read_in_flood = 0
+        self.read = 0  # datagrams read in this window
 
     def count(self, now: float) -> None:
+        """A datagram was read (and decided) at ``now``."""
+        self.read += 1
         if now - self.window >= 1.0:
             self._next_window(now)
-        self.seen += 1
-        if self.demoted:
-            self.read_in_flood += 1
-        elif self.seen > self.per_s:
+        elif not self.demoted and time.thread_time() - self.cpu_at > self.cpu_s:
             self._demote()
 
     def quiet(self, now: float) -> None:
@@ -185,27 +189,26 @@ class _FloodBudget:
             self._next_window(now)
 
     def _next_window(self, now: float) -> None:
-        if self.demoted and self.seen <= self.per_s:
+        cpu = time.thread_time()
+        if self.demoted and cpu - self.cpu_at <= self.cpu_s * (now - self.window):
             self._restore()
-        self.window = now
-        self.seen = 0
+        self.window, self.cpu_at, self.read = now, cpu, 0
 
     def _demote(self) -> None:
         self.demoted = True
         self.floods += 1
-        self.read_in_flood = 0
+        took = time.monotonic() - self.window
+        why = (f"E-stop socket: a flood ({self.read} E-stop datagrams in {took:.2f} s took more than "
+               f"{self.cpu_s:g} s of CPU; likely forged)")
         if self.rank is None:
-            log.warning("E-stop socket: more than %d E-stop datagrams in a second (a flood, likely forged);"
-                        " each is still checked", self.per_s)
+            log.warning("%s; each is still checked", why)
             return
         try:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         except OSError as exc:
-            log.warning("E-stop socket: a flood of E-stop datagrams, and the thread could not leave its "
-                        "real-time rank: %s", exc)
+            log.warning("%s, and the thread could not leave its real-time rank: %s", why, exc)
             return
-        log.warning("E-stop socket: more than %d E-stop datagrams in a second (a flood, likely forged): "
-                    "read at ordinary priority until it ends; each is still checked", self.per_s)
+        log.warning("%s: read at ordinary priority until it ends; each is still checked", why)
 
     def _restore(self) -> None:
         self.demoted = False
@@ -217,8 +220,7 @@ class _FloodBudget:
         except OSError as exc:
             log.warning("E-stop socket: the flood ended but the real-time rank was refused: %s", exc)
             return
-        log.warning("E-stop socket: the flood ended (%d more datagrams read in it); real-time rank back",
-                    self.read_in_flood)
+        log.warning("E-stop socket: the flood ended; real-time rank back")
 
 
 def _own_rank() -> tuple[int, int] | None:
@@ -237,16 +239,16 @@ class EstopListener:
     """A thread that reads the E-stop socket and calls ``on_estop(payload)`` for each E-stop datagram.
 
     ``thread_wrapper`` wraps the thread's body (the daemon ranks it with the task's stop-path threads).
-    More than ``flood_per_s`` datagrams in a second is a flood (:class:`_FloodBudget`): the thread gives
-    up its real-time rank until a second passes without one."""
+    More than ``cpu_budget`` seconds of CPU in a second is a flood (:class:`_FloodBudget`): the thread gives
+    up its real-time rank until a second passes under it."""
 
     def __init__(self, sock: socket.socket, channel: str, on_estop: Callable[[bytes], None],
                  thread_wrapper: Callable[[Callable[[], None]], Callable[[], None]] | None = None,
-                 flood_per_s: int = FLOOD_PER_S) -> None:
+                 cpu_budget: float = CPU_BUDGET) -> None:
         self.sock = sock
         self.channel = channel
         self.on_estop = on_estop
-        self.flood_per_s = flood_per_s
+        self.cpu_budget = cpu_budget
         self.budget: _FloodBudget | None = None
         self._stop = threading.Event()
         body = self._run if thread_wrapper is None else thread_wrapper(self._run)
@@ -258,7 +260,7 @@ class EstopListener:
         return self
 
     def _run(self) -> None:
-        budget = self.budget = _FloodBudget(self.flood_per_s)  # after thread_wrapper ranked the thread
+        budget = self.budget = _FloodBudget(self.cpu_budget)  # after thread_wrapper ranked the thread
         while not self._stop.is_set():
             try:
                 datagram = self.sock.recv(65536)
