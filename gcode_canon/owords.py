@@ -19,9 +19,10 @@ How it works without holding a program in memory:
 * Each call saves #1-#30 (the arguments, the rest 0) and opens a scope for named locals;
   ``#<_value>`` / ``#<_value_returned>`` carry the returned value.
 * Guards: ``max_call_depth`` (nested calls, recursion included) and ``max_loop_iterations`` (per
-  loop, per run of it, and an ``M98 ... L`` repeat count); beyond them a GCodeError names the
-  limit. Blocks left open at the end of a file, or closed by the wrong keyword or label, are errors
-  naming both lines.
+  loop, per run of it, an ``M98 ... L`` repeat count, and passes without a move in all loops
+  together); beyond them a GCodeError names the limit. The loop keywords are
+  :mod:`gcode_canon.oword_loops`. Blocks left open at the end of a file, or closed by the wrong
+  keyword or label, are errors naming both lines.
 
 Fanuc-style numbered programs (``O1000`` alone on a line, ``M98 P1000 L2``, ``M99``) are handled
 here too, with the meaning :mod:`gcode_canon.dialect` selects.
@@ -37,6 +38,7 @@ from typing import TYPE_CHECKING
 
 from gcode_canon.errors import GCodeError
 from gcode_canon.lexer import split_comments
+from gcode_canon.oword_loops import LoopKeywords, OBlock
 from gcode_canon.source import LineSource
 
 if TYPE_CHECKING:
@@ -51,7 +53,6 @@ _FOLD = str.maketrans("", "", " \t\r")
 _HEAD = re.compile(r"/?(?:n[0-9]+(?:\.[0-9]*)?)?o(<[^>]*>|[0-9]+)([a-z]*)")
 _LABEL_NUMBER = re.compile(r"[0-9]+")
 _KEYWORD = re.compile(r"[a-z]+")
-_LOOP_END = {"while": "endwhile", "do": "while", "repeat": "endrepeat"}
 _NAME_OK = re.compile(r"[a-z0-9_.\-]+")
 
 
@@ -76,19 +77,6 @@ def _label(text: str) -> str:
     if text.startswith("<"):
         return f"o{text}"
     return f"o{int(text)}"
-
-
-@dataclass(slots=True)
-class OBlock:
-    """An open if / while / do / repeat block of the current call frame."""
-
-    kind: str
-    label: str
-    line: int
-    mark: tuple[int, int] | None = None
-    cond: tuple[str, int] | None = None  # while: the folded line and where its condition starts
-    count: int = 0
-    remaining: int = 0
 
 
 @dataclass(slots=True)
@@ -119,7 +107,7 @@ class SubDef:
 
 
 @dataclass(slots=True)
-class FlowControl:
+class FlowControl(LoopKeywords):
     interp: Interpreter
     frames: list[Frame] = field(default_factory=list)
     blocks: list[OBlock] = field(default_factory=list)
@@ -306,129 +294,6 @@ class FlowControl:
         self._rest_empty(s, i, f"{label} endif")
         self._top(label, ("if",), "endif")
         self.blocks.pop()
-
-    # --- loops --------------------------------------------------------------------------------------
-
-    def _limit(self, b: OBlock) -> None:
-        b.count += 1
-        limit = self.interp.settings.max_loop_iterations
-        if b.count > limit:
-            raise GCodeError(f"{b.label} {b.kind} (line {b.line}) ran more than {limit} iterations "
-                             "(max_loop_iterations): a runaway loop?")
-        self._idle_jump(f"{b.label} {b.kind} (line {b.line})")
-
-    def _idle_jump(self, where: str) -> None:
-        """A jump back to run a loop's body again: no more than ``max_loop_iterations`` of them, in all
-        loops together, without the machine moving. Each loop is bounded on its own, but nested loops
-        multiply (``repeat [1e5]`` in ``repeat [1e5]``: 1e10 passes, hours of computing with nothing
-        to show); a program whose loops move the machine is a long program, not a hang, and goes on."""
-        pos = self.interp.pos
-        if pos is not self.idle_at:
-            self.idle_at = pos
-            self.idle_jumps = 0
-            return
-        self.idle_jumps += 1
-        limit = self.interp.settings.max_loop_iterations
-        if self.idle_jumps > limit:
-            raise GCodeError(f"{where}: more than {limit} loop passes without a move, nested loops "
-                             "counted together (max_loop_iterations): a runaway loop?")
-
-    def _kw_while(self, label: str, s: str, i: int) -> None:
-        interp = self.interp
-        cond, j = self._value(s, i, label, "while")
-        self._rest_empty(s, j, f"{label} while")
-        if self.blocks and self.blocks[-1].label == label and self.blocks[-1].kind == "do":
-            b = self.blocks[-1]
-            if cond != 0.0:
-                self._limit(b)
-                assert b.mark is not None
-                interp.source.jump(b.mark)
-            else:
-                self.blocks.pop()
-            return
-        if cond != 0.0:
-            self.blocks.append(OBlock("while", label, interp.line, interp.source.mark(), (s, i)))
-        else:
-            self._skip(label, ("endwhile",), f"{label} while", interp.line)
-
-    def _kw_endwhile(self, label: str, s: str, i: int) -> None:
-        self._rest_empty(s, i, f"{label} endwhile")
-        b = self._top(label, ("while",), "endwhile")
-        self._again(b)
-
-    def _again(self, b: OBlock) -> None:
-        """End of one pass of while ``b`` (endwhile or continue): test again, jump back or leave."""
-        assert b.cond is not None and b.mark is not None
-        cond, _ = self.interp.reader.real_value(*b.cond)
-        if cond != 0.0:
-            self._limit(b)
-            self.interp.source.jump(b.mark)
-            return
-        self.blocks.pop()
-
-    def _kw_do(self, label: str, s: str, i: int) -> None:
-        self._rest_empty(s, i, f"{label} do")
-        self.blocks.append(OBlock("do", label, self.interp.line, self.interp.source.mark()))
-
-    def _kw_repeat(self, label: str, s: str, i: int) -> None:
-        interp = self.interp
-        value, i = self._value(s, i, label, "repeat")
-        self._rest_empty(s, i, f"{label} repeat")
-        count = round(value)
-        limit = interp.settings.max_loop_iterations
-        if count > limit:
-            raise GCodeError(f"{label} repeat [{count}] is more than {limit} iterations "
-                             "(max_loop_iterations)")
-        if count <= 0:
-            self._skip(label, ("endrepeat",), f"{label} repeat", interp.line)
-            return
-        self.blocks.append(OBlock("repeat", label, interp.line, interp.source.mark(), remaining=count))
-
-    def _kw_endrepeat(self, label: str, s: str, i: int) -> None:
-        self._rest_empty(s, i, f"{label} endrepeat")
-        self._repeat_end(self._top(label, ("repeat",), "endrepeat"))
-
-    def _repeat_end(self, b: OBlock) -> None:
-        b.remaining -= 1
-        if b.remaining > 0:
-            self._idle_jump(f"{b.label} repeat (line {b.line})")
-            assert b.mark is not None
-            self.interp.source.jump(b.mark)
-        else:
-            self.blocks.pop()
-
-    def _loop(self, label: str, kw: str) -> OBlock:
-        for b in reversed(self.blocks):
-            if b.kind != "if" and b.label == label:
-                break
-        else:
-            raise GCodeError(f"{label} {kw} is not inside an {label} while, do or repeat loop")
-        while self.blocks[-1] is not b:
-            self.blocks.pop()
-        return b
-
-    def _kw_break(self, label: str, s: str, i: int) -> None:
-        self._rest_empty(s, i, f"{label} break")
-        b = self._loop(label, "break")
-        self.blocks.pop()
-        self._skip(label, (_LOOP_END[b.kind],), f"{label} {b.kind}", b.line)
-
-    def _kw_continue(self, label: str, s: str, i: int) -> None:
-        self._rest_empty(s, i, f"{label} continue")
-        b = self._loop(label, "continue")
-        if b.kind == "while":
-            self._again(b)
-            if self.blocks and self.blocks[-1] is b:
-                return
-            self._skip(label, ("endwhile",), f"{label} while", b.line)
-        elif b.kind == "repeat":
-            self._repeat_end(b)
-            if self.blocks and self.blocks[-1] is b:
-                return
-            self._skip(label, ("endrepeat",), f"{label} repeat", b.line)
-        else:  # do: the closing while decides
-            _, raw = self._skip(label, ("while",), f"{label} do", b.line)
-            self._run_found(raw)
 
     # --- subroutines --------------------------------------------------------------------------------
 
