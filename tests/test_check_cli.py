@@ -218,3 +218,18 @@ def test_texts_keep_their_negative_zero_and_percent_signs(tmp_path: Path,
     assert sum('-0.0000 and 100% %s")' in line for line in out) == 200
     assert sum("MESSAGE(" in line and line.endswith('-0.0000 %d %%")') for line in out) == 6
     assert not any("-0.0000" in line for line in out if "STRAIGHT" in line)
+
+
+@pytest.mark.parametrize("before", [0, 1, 255, 256, 257, 600])
+def test_the_commands_before_an_error_are_written_before_it(tmp_path: Path, before: int,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """Whatever the error's place in a block of commands (gathered 256 at a time), every command before
+    it is written, and nothing after it."""
+    lines = "".join(f"G1 X{k + 1}\n" for k in range(before))
+    path = write(tmp_path, f"G21 F100\n{lines}G1 X[1 / 0]\nG1 X-1\nM2\n")
+    assert main(["check", str(path)]) == 1
+    captured = capsys.readouterr()
+    assert captured.err.strip() == f"{path}:{before + 2}: Attempt to divide by zero"
+    moves = [line for line in captured.out.splitlines() if "STRAIGHT_FEED" in line]
+    assert len(moves) == before
+    assert moves == [] or moves[-1].split()[0] == str(before + 1)
