@@ -113,6 +113,26 @@ def test_the_sync_process_paces_the_cycle_and_each_rpdo_follows_a_sync(local_rig
     assert rig.sim(1).target != 0 and rig.sim(1).syncs >= 120
 
 
+def test_the_sync_stops_with_the_cycle_so_enabled_drives_miss_no_setpoint(local_rig):
+    """The cycle stopped for good (the machine closing, drives still enabled until shutdown parks
+    them): the SYNC process stops with it, as the master's own SYNC does. It went on before, and each
+    of its SYNCs was a missed setpoint to every enabled drive (24 in 50 ms at 2 ms)."""
+    rig, listener = local_rig(2, cycle_s=0.002, feedback_timeout_s=2.0)
+    rig.up()
+    master = rig.master
+    run_on_sync(master, 100)
+    master.stop_sync()
+    stopped = time.time()
+    time.sleep(0.1)
+    listener.drain()
+    late = listener.syncs(stopped + 0.01)  # the pipe's last SYNC may be in flight at the call
+    sims = [rig.sim(1), rig.sim(2)]
+    assert [s.missed_setpoints for s in sims] == [0, 0]
+    assert late == []
+    assert master.sync_tick is None
+    master.stop_sync()  # safe twice
+
+
 def test_the_sync_goes_on_while_the_masters_process_holds_its_interpreter_lock(local_rig):
     """The point of the SYNC process: whatever holds the motion process's interpreter lock, the SYNC
     keeps its period (with the master's own SYNC none goes out while the cycle cannot run)."""

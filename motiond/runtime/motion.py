@@ -212,10 +212,14 @@ class MotionCore(Cycle):
         self.runner.start()
 
     def stop_cycle(self) -> None:
+        """The cycle stops for good (the machine closes), and with it the SYNC, whoever times it: no
+        SYNC goes out without setpoints (:meth:`CanopenMaster.stop_sync`)."""
         if self.runner is not None:
             self.runner.stop()
             self.runner.join(2.0)
             self.runner = None
+        if self.master is not None:
+            self.master.stop_sync()
 
     def close(self) -> None:
         if self.master is not None:
