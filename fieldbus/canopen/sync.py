@@ -28,7 +28,9 @@ against it (two setpoints in one SYNC period, or none, every few hundred cycles)
 The master prepares the task when it opens the bus (so a bus without kernel timing is refused there)
 and the kernel starts sending at the first cycle, as the master's own SYNC starts with its cycle. The
 BCM task belongs to its socket: it ends with :meth:`KernelSync.stop` and with the process (the kernel
-removes a closed socket's tasks), so no SYNC outlives canon.
+removes a closed socket's tasks), so no SYNC outlives canon; and the machine stops it when it stops its
+cycle (:meth:`~fieldbus.canopen.master.CanopenMaster.stop_sync`), so no SYNC reaches an enabled drive
+without a setpoint, as none does with the master's own SYNC.
 """
 
 from __future__ import annotations
