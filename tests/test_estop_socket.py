@@ -197,17 +197,22 @@ def _ranked_server(url: str, cpu_budget: float | None = None):
     return server, decided, notes
 
 
+def _listening(server: CommandServer, url: str):
+    """The server's E-stop listener once its thread counts (ranked, if it is), and a client to flood it."""
+    listener = server.estop_listener
+    assert listener is not None, server.estop_socket_refused
+    assert wait_for(lambda: listener.budget is not None, 2.0)
+    return listener, lcm.LCM(url)
+
+
 def test_a_thousand_forged_estops_keep_the_estop_thread_real_time() -> None:
     """A flood that costs the ranked E-stop thread a few percent of a CPU: it stays real-time, reads
     them all, and a real E-stop right after them is decided at once."""
     _can_rank()
     url = group_url()
     server, decided, _notes = _ranked_server(url)
-    listener = server.estop_listener
-    assert listener is not None, server.estop_socket_refused
-    client = lcm.LCM(url)
     try:
-        assert wait_for(lambda: listener.budget is not None, 2.0)
+        listener, client = _listening(server, url)
         _flood(client, 1000, b"\x01" * 32)
         t0 = time.monotonic()
         client.publish(CANON_COMMAND, _real_estop())
@@ -228,12 +233,9 @@ def test_a_flood_past_its_cpu_budget_costs_the_estop_thread_its_rank_until_it_en
     _can_rank()
     url = group_url()
     server, decided, notes = _ranked_server(url, cpu_budget=0.005)
-    listener = server.estop_listener
-    assert listener is not None
-    thread = listener._thread
-    client = lcm.LCM(url)
     try:
-        assert wait_for(lambda: listener.budget is not None, 2.0)
+        listener, client = _listening(server, url)
+        thread = listener._thread
         assert _policy(thread) == os.SCHED_FIFO
         _flood(client, 1000, b"\x01" * 32)
         assert wait_for(lambda: listener.budget.demoted, 2.0, step=0.001)
@@ -254,11 +256,8 @@ def test_an_unranked_estop_thread_only_counts_a_flood() -> None:
     url = group_url()
     server = CommandServer(lcm.LCM(url), lambda cmd: None, key=TEST_KEY, url=url, on_security=lambda _n: None,
                            estop_cpu_budget=0.005).start()
-    listener = server.estop_listener
-    assert listener is not None, server.estop_socket_refused
-    client = lcm.LCM(url)
     try:
-        assert wait_for(lambda: listener.budget is not None, 2.0)
+        listener, client = _listening(server, url)
         _flood(client, 1000, b"\x02" * 32)
         assert wait_for(lambda: listener.budget.floods == 1, 2.0)
         assert listener.budget.rank is None and _policy(listener._thread) == os.SCHED_OTHER
