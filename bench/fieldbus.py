@@ -269,6 +269,9 @@ def main() -> int:
                     help="--stress: SCHED_FIFO priority of the simulated drives' process (default: "
                          "--rt-priority minus one; 0: normal)")
     ap.add_argument("--stress-period-ms", type=float, default=2.0, help="--stress: cycle period (default 2)")
+    ap.add_argument("--setpoint-lead", type=int, default=1,
+                    help="--stress, SYNC by a process: [canopen] setpoint_lead, the SYNCs ahead the SYNC "
+                         "process holds setpoints for (default 1)")
     ap.add_argument("--stress-sync", choices=("master", "process", "both"), default="both",
                     help="--stress, own: who sends the SYNC on udp_multicast, the master's cycle or a SYNC "
                          "process of its own ([canopen] sync = \"process\"); default both")

@@ -331,7 +331,7 @@ def case(n: int, period: float, seconds: float, rt: int, latency: int | None, st
 
 # ---------------------------------------------------------------- one case, the daemon's arrangement
 def machine_file(n: int, group: str, period: float, rt: int, latency: int | None, steer_gc: bool,
-                 layout: str, every: int, sync: str = "master") -> str:
+                 layout: str, every: int, sync: str = "master", lead: int = 1) -> str:
     """The machine file of the "own" case: ``[motion] process = "own"``, the drives on ``group`` (not
     simulated by the machine: the bench's drives' process records them), status at 100 Hz."""
     axes = "".join(f"\n[axes.{a}]\nmax_velocity = 200.0\nmax_acceleration = 2000.0\nmax_jerk = 50000.0\n"
@@ -342,7 +342,7 @@ def machine_file(n: int, group: str, period: float, rt: int, latency: int | None
             f'heartbeat_consumer_ms = 2000\nsdo_timeout_s = 1.0\nsimulate = false\n'
             f'realtime_priority = {rt}\ncpu_latency_us = {-1 if latency is None else latency}\n'
             f'steer_gc = {str(steer_gc).lower()}\npdo_layout = "{layout}"\nfollowing_error_every = {every}\n'
-            f'sync = "{sync}"\n'
+            f'sync = "{sync}"\n' + (f'setpoint_lead = {lead}\n' if sync == "process" else "") +
             f'{drives}\n[motion]\nprocess = "own"\n\n[telemetry]\nstatus_hz = 100\n')
 
 
@@ -357,12 +357,13 @@ def program(n: int, seconds: float) -> str:
 
 
 def case_own(n: int, period: float, seconds: float, rt: int, latency: int | None, steer_gc: bool,
-             layout_for, task_priority: int = 0, sync: str = "master") -> dict:
+             layout_for, task_priority: int = 0, sync: str = "master", lead: int = 1) -> dict:
     """The daemon's arrangement: a :class:`~motiond.runtime.Machine` with ``[motion] process = "own"``
     here (the task side: its ``canon-status`` thread publishes ``canon.status`` at 100 Hz on LCM, ttl=0,
     a client process counts it), the master's cycle in the motion process it starts, running a long
     program; the drives in the bench's drives' process. ``sync``: who sends the SYNC, the master's
-    cycle ("master") or a SYNC process of its own ("process", :mod:`fieldbus.canopen.sync_process`)."""
+    cycle ("master") or a SYNC process of its own ("process", :mod:`fieldbus.canopen.sync_process`),
+    which then also sends the setpoints, ``lead`` SYNCs ahead (``[canopen] setpoint_lead``)."""
     import lcm
 
     from motiond.config import load_machine
@@ -374,7 +375,7 @@ def case_own(n: int, period: float, seconds: float, rt: int, latency: int | None
     tmp = tempfile.TemporaryDirectory()
     where = Path(tmp.name)
     (where / "machine.toml").write_text(machine_file(n, group, period, rt, latency, steer_gc, layout, every,
-                                                       sync))
+                                                       sync, lead))
     (where / "long.ngc").write_text(program(n, seconds))
     sims = Drives(n, group, where, DRIVES_PRIORITY if DRIVES_PRIORITY >= 0 else max(0, rt - 1))
     client = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--status-client",
@@ -423,8 +424,9 @@ def case_own(n: int, period: float, seconds: float, rt: int, latency: int | None
         result = sims.close()
         received = int((where / "status.count").read_text()) if (where / "status.count").exists() else 0
         tmp.cleanup()
+    by = f"a SYNC process, setpoints {lead} ahead" if sync == "process" else "the cycle"
     row = {"case": f"own: {n} drives, {1000 * period:g} ms, gc {'steered' if steer_gc else 'automatic'}, "
-                   f"SYNC by {'a SYNC process' if sync == 'process' else 'the cycle'}",
+                   f"SYNC by {by}",
            "status": f"{sent1 - sent0} in window/{received}"}
     print(f"  the motion process's threads during the window ({seconds:g} s): " + "; ".join(
         f"{r['tid']} {r['policy']} cpu {r['cpu_ms']:.0f} ms, waited {r['wait_ms']:.0f} ms, {r['invol']} "
@@ -585,7 +587,7 @@ def run(args, layout_for, build_rt_floor) -> int:
                         print(f"running own: {n} drives, gc {'steered' if steer else 'automatic'}, SYNC by "
                               f"{sync} ...", flush=True)
                         rows.append(case_own(n, period, args.seconds, rt, latency, steer, layout_for,
-                                             task_priority, sync))
+                                             task_priority, sync, args.setpoint_lead))
         refs.append(reference(period, args.seconds, exe, rt, latency, "after the cases"))
     finally:
         hogs.stop()

@@ -64,7 +64,8 @@ def _fmt(v: float) -> str:
 
 
 def timing_verdict(late_s: list[float], period_s: float, limit_s: float,
-                   heartbeat_consumer_ms: int, drive_timeout_ms: float = 0.0) -> tuple[str, str]:
+                   heartbeat_consumer_ms: int, drive_timeout_ms: float = 0.0,
+                   lead: int = 1) -> tuple[str, str]:
     """Late cycles judged against what a real drive tolerates: ``("ok" | "rough" | "fault", words)``.
 
     A cycle late by less than a period still delivers its setpoint before the next SYNC. One late by
@@ -74,13 +75,18 @@ def timing_verdict(late_s: list[float], period_s: float, limit_s: float,
     on the drives); when that is not configured, ``limit_s`` stands in for it (canon's late-cycle fault on
     real drives, ten cycles but at least 50 ms). A stall beyond the drives' heartbeat consumer time
     silences the master's heartbeat too: the drives fault on that as well.
+
+    ``lead``: ``[canopen] setpoint_lead``, the SYNCs ahead the SYNC process holds setpoints for: a cycle
+    then reaches the drives late only by what it was late beyond ``lead - 1`` periods.
     """
     period_ms = period_s * 1000
     n = len(late_s)
     if n == 0:
         return "ok", "every cycle on time: a real drive would have been happy"
     worst = max(late_s)
-    missed = sum(1 for by in late_s if by > period_s)
+    slack = (lead - 1) * period_s
+    at_drive = [by - slack for by in late_s]  # how late the setpoint reached the drives
+    missed = sum(1 for by in at_drive if by > period_s)
     if drive_timeout_ms > 0:
         tolerance = f"the drives' setpoint timeout ({drive_timeout_ms:g} ms)"
 
@@ -91,20 +97,22 @@ def timing_verdict(late_s: list[float], period_s: float, limit_s: float,
 
         def beyond(by: float) -> bool:
             return by > limit_s
-    over = [tolerance] if beyond(worst) else []
+    over = [tolerance] if beyond(worst - slack) else []
     if heartbeat_consumer_ms and worst * 1000 > heartbeat_consumer_ms:
         over.append(f"the drives' heartbeat consumer time ({heartbeat_consumer_ms} ms)")
     if over:
         silent = heartbeat_consumer_ms / 1000 if heartbeat_consumer_ms else float("inf")
-        k = sum(1 for by in late_s if beyond(by) or by > silent)
+        k = sum(1 for by in late_s if beyond(by - slack) or by > silent)
         return "fault", (f"NOT fit for a real machine: the worst cycle started {worst * 1000:.1f} ms late, "
                          f"beyond {' and '.join(over)}; on real drives the run would have stopped with a "
                          f"fault ({k} such cycle{'s' if k != 1 else ''})")
+    within = "one period" if lead == 1 else f"{lead} periods (the setpoint lead)"
     if missed == 0:
-        return "ok", (f"{n} cycles late but each by less than one period ({period_ms:g} ms, worst "
-                      f"{worst * 1000:.1f} ms): every setpoint arrived before the next SYNC; a real drive "
+        return "ok", (f"{n} cycles late but each by less than {within} ({period_ms:g} ms, worst "
+                      f"{worst * 1000:.1f} ms): every setpoint arrived before its SYNC; a real drive "
                       "would not have noticed")
-    return "rough", (f"{missed} cycles late by more than one period ({period_ms:g} ms, worst "
+    plural = "s" if missed != 1 else ""
+    return "rough", (f"{missed} cycle{plural} late by more than {within} ({period_ms:g} ms, worst "
                      f"{worst * 1000:.1f} ms): a real drive would have held its last setpoint for a SYNC or "
                      f"more each time (a velocity step, a jolt), within {tolerance}: no fault, but rough "
                      "motion")
@@ -136,6 +144,14 @@ def _tolerances(machine: Any) -> tuple[float, int, float]:
     return max(10 * machine.T, 0.050), hb, configured.drive_setpoint_timeout_ms
 
 
+def _lead(machine: Any) -> int:
+    """The setpoint lead the run had (``[canopen] setpoint_lead``; 1 without the SYNC process)."""
+    from motiond.config_canopen import canopen_for_machine
+
+    configured = canopen_for_machine(machine.config)
+    return configured.setpoint_lead if configured.sync_source == "process" else 1
+
+
 #: where the motion side ran, by ``[motion] process`` mode (docs/daemon.md)
 _WHERE = {"own": "in its own process", "thread": "in a thread of this process"}
 
@@ -156,9 +172,11 @@ def summary_dict(machine: Any, result: Any) -> dict[str, Any]:
             "program_final": result.expected_final[i] if result.expected_final else None,
         }
     limit_s, hb, drive_timeout_ms = _tolerances(machine)
-    verdict, words = timing_verdict(result.late_s, machine.T, limit_s, hb, drive_timeout_ms)
+    lead = _lead(machine)
+    verdict, words = timing_verdict(result.late_s, machine.T, limit_s, hb, drive_timeout_ms, lead)
     return {
         "timing": {"verdict": verdict, "text": words, "real_late_limit_ms": limit_s * 1000,
+                   "setpoint_lead": lead,
                    "heartbeat_consumer_ms": hb, "drive_setpoint_timeout_ms": drive_timeout_ms,
                    "late_by_more_than_a_period": sum(1 for by in result.late_s if by > machine.T)},
         "time": time_breakdown(result, machine.T),

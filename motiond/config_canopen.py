@@ -98,6 +98,15 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
     steer_gc = t.get("steer_gc", bool, True)
     drive_timeout = t.get("drive_setpoint_timeout_ms", float, 0.0, check=in_range(0.0, 60_000.0))
     sync = t.get("sync", str, "master", check=lambda v: sync_problem(v, interface))
+    lead = t.get("setpoint_lead", int, 1, check=in_range(1, 8))
+    if lead > 1 and sync != "process":
+        raise t.error("setpoint_lead", f"{lead} needs sync = \"process\" (the SYNC process sends the "
+                                       "setpoints buffered ahead); with the SYNC from the master or the "
+                                       "kernel the lead is 1")
+    if lead > 1 and "spindle" in t.data:
+        raise t.error("setpoint_lead", f"{lead} with a spindle drive ([canopen.spindle]): spindle-"
+                                       "synchronized motion predicts the spindle for the next SYNC only; "
+                                       "keep setpoint_lead = 1 on this machine")
     options = dict(t.table("options").data)
     emcy_t = t.table("emcy")
     emcy_lists = {}
@@ -177,7 +186,7 @@ def read_canopen(root: Table, axis_names: Sequence[str], cycle_s: float,
         pdo_layout=layout, following_error_every=fe_every, status_refresh_ms=refresh,
         realtime_priority=rt_priority, cpu_latency_us=None if cpu_latency < 0 else cpu_latency,
         emcy=EmcyPolicy(**emcy_lists), cpu_affinity=tuple(affinity), steer_gc=steer_gc,
-        drive_setpoint_timeout_ms=drive_timeout, sync=sync, spindle=spindle)
+        drive_setpoint_timeout_ms=drive_timeout, sync=sync, spindle=spindle, setpoint_lead=lead)
 
 
 def _node_and_eds(t: Table, base: Path, master_id: int, used: dict[int, str]) -> tuple[int, str]:

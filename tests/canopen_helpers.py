@@ -9,6 +9,7 @@ from collections.abc import Callable
 
 from fieldbus.canopen.config import CanBusConfig, CanopenConfig, DriveConfig
 from fieldbus.canopen.drive_sim import SimDrive
+from fieldbus.canopen.localbus import LocalBus
 from fieldbus.canopen.master import CanopenMaster
 from fieldbus.canopen.sim_process import SimBus
 
@@ -72,3 +73,34 @@ def wait_for(predicate: Callable[[], bool], timeout: float = 5.0, step: float = 
             return True
         time.sleep(step)
     return predicate()
+
+
+SYNC_COB_ID = 0x80
+
+
+class LocalListener:
+    """Every frame on a canon_local channel, with the sender's time stamp (canon_local carries it)."""
+
+    def __init__(self, channel: str) -> None:
+        self.bus = LocalBus(channel=channel)
+        self.frames: list[tuple[float, int]] = []
+        self.payloads: list[tuple[float, int, bytes]] = []  # the same frames with their data
+
+    def drain(self, quiet_s: float = 0.2) -> None:
+        """Read what was sent until now: until a frame sent after the call, or nothing for ``quiet_s``
+        (bounded: 100,000 frames)."""
+        now = time.time()
+        for _ in range(100_000):
+            msg = self.bus.recv(quiet_s)
+            if msg is None:
+                return
+            self.frames.append((msg.timestamp, msg.arbitration_id))
+            self.payloads.append((msg.timestamp, msg.arbitration_id, bytes(msg.data)))
+            if msg.timestamp > now:
+                return
+
+    def syncs(self, t0: float = 0.0, t1: float = float("inf")) -> list[float]:
+        return [t for t, cob in self.frames if cob == SYNC_COB_ID and t0 <= t <= t1]
+
+    def close(self) -> None:
+        self.bus.shutdown()

@@ -71,3 +71,29 @@ def rig() -> Iterator[Callable[..., Any]]:
     yield make
     for r in rigs:
         r.close()
+
+
+@pytest.fixture
+def local_rig() -> Iterator[Callable[..., Any]]:
+    """``make(n, **config)``: n simulated drives and a master on a fresh canon_local channel, the SYNC
+    from a SYNC process, and a listener on the channel; closed after the test."""
+    from canopen_helpers import LocalListener, Rig, make_config, unique_channel
+
+    from fieldbus.canopen.config import CanBusConfig
+
+    made: list[tuple[Rig, LocalListener]] = []
+
+    def make(n: int, **kw: object) -> tuple[Rig, LocalListener]:
+        channel = unique_channel()
+        config = make_config(n, bus=CanBusConfig("canon_local", channel), sync="process", **kw)
+        listener = LocalListener(channel)
+        rig = Rig(config, check_budget=False)
+        made.append((rig, listener))
+        return rig, listener
+
+    yield make
+    for rig, listener in made:
+        try:
+            rig.close()
+        finally:
+            listener.close()

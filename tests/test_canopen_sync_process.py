@@ -14,11 +14,10 @@ import time
 from pathlib import Path
 
 import pytest
-from canopen_helpers import Rig, make_config, unique_channel
+from canopen_helpers import LocalListener as Listener
+from canopen_helpers import unique_channel
 
 from fieldbus.canopen.clock import PeriodicRunner
-from fieldbus.canopen.config import CanBusConfig
-from fieldbus.canopen.localbus import LocalBus
 from fieldbus.canopen.master import CanopenMaster
 from fieldbus.canopen.sync_process import SyncProcess, SyncProcessError
 from motiond.config_canopen import read_canopen
@@ -26,52 +25,6 @@ from motiond.configkit import ConfigError, Table
 
 ROOT = Path(__file__).resolve().parent.parent
 SYNC, RPDO1 = 0x80, 0x200
-
-
-class Listener:
-    """Every frame on the channel, with the sender's time stamp (canon_local carries it)."""
-
-    def __init__(self, channel: str) -> None:
-        self.bus = LocalBus(channel=channel)
-        self.frames: list[tuple[float, int]] = []
-
-    def drain(self, quiet_s: float = 0.2) -> None:
-        """Read what was sent until now: until a frame sent after the call, or nothing for ``quiet_s``
-        (bounded: 100,000 frames)."""
-        now = time.time()
-        for _ in range(100_000):
-            msg = self.bus.recv(quiet_s)
-            if msg is None:
-                return
-            self.frames.append((msg.timestamp, msg.arbitration_id))
-            if msg.timestamp > now:
-                return
-
-    def syncs(self, t0: float = 0.0, t1: float = float("inf")) -> list[float]:
-        return [t for t, cob in self.frames if cob == SYNC and t0 <= t <= t1]
-
-    def close(self) -> None:
-        self.bus.shutdown()
-
-
-@pytest.fixture
-def local_rig():
-    made: list[tuple[Rig, Listener]] = []
-
-    def make(n: int, **kw: object) -> tuple[Rig, Listener]:
-        channel = unique_channel()
-        config = make_config(n, bus=CanBusConfig("canon_local", channel), sync="process", **kw)
-        listener = Listener(channel)
-        rig = Rig(config, check_budget=False)
-        made.append((rig, listener))
-        return rig, listener
-
-    yield make
-    for rig, listener in made:
-        try:
-            rig.close()
-        finally:
-            listener.close()
 
 
 def run_on_sync(master: CanopenMaster, cycles: int) -> PeriodicRunner:

@@ -32,6 +32,17 @@ def test_late_by_more_than_a_period_is_rough() -> None:
     assert verdict == "rough" and words.startswith("2 cycles late by more than one period")
 
 
+def test_late_within_the_setpoint_lead_is_not_noticed() -> None:
+    """With the SYNC process holding setpoints 3 SYNCs ahead, a cycle late by 2.5 periods still found
+    its setpoints out in time; past 3 periods it did not."""
+    late = [0.0015, 0.004, 0.005]
+    assert timing_verdict(late, T, 0.05, 300)[0] == "rough"
+    verdict, words = timing_verdict(late, T, 0.05, 300, lead=3)
+    assert verdict == "ok" and "less than 3 periods (the setpoint lead)" in words
+    verdict, words = timing_verdict([*late, 0.0065], T, 0.05, 300, lead=3)
+    assert verdict == "rough" and words.startswith("1 cycle late by more than 3 periods (the setpoint lead)")
+
+
 @pytest.mark.parametrize(("late", "hb", "beyond"), [
     ([0.003, 0.1656], 300, "late-cycle limit for real drives (50 ms)"),
     ([0.3500], 300, "heartbeat consumer time (300 ms)"),

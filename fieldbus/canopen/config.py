@@ -226,6 +226,11 @@ class CanopenConfig:
     #: "kernel" (SocketCAN's broadcast manager), "process" (a SYNC process of its own, for buses without
     #: the kernel's: :mod:`fieldbus.canopen.sync_process`) or "auto" (kernel on socketcan, else master)
     sync: str = "master"
+    #: with ``sync = "process"``: the SYNC process also sends the RPDOs, which the cycle computes up to
+    #: this many SYNCs ahead (:mod:`fieldbus.canopen.setpoint_buffer`): a cycle up to ``lead - 1``
+    #: periods late costs no setpoint, for ``lead - 1`` periods more between a setpoint and the drive
+    #: (stops pass the buffer). 1: each setpoint for the next SYNC, as with the kernel's SYNC
+    setpoint_lead: int = 1
     #: the spindle as a drive on this bus (None: none; the I/O map may still drive a spindle)
     spindle: SpindleDriveConfig | None = None
 

@@ -48,7 +48,8 @@ The master is one class in parts, by concern: this module holds the bus set-up a
 exchange; :mod:`~fieldbus.canopen.master_boot` the boot and SDO access,
 :mod:`~fieldbus.canopen.master_states` the CiA 402 state machine (enable, disable, reset, homing,
 shutdown), :mod:`~fieldbus.canopen.master_supervision` the faults and the checks of the feedback,
-:mod:`~fieldbus.canopen.master_records` the errors, faults, feedback and per-drive book-keeping.
+:mod:`~fieldbus.canopen.master_records` the errors, faults, feedback and per-drive book-keeping,
+:mod:`~fieldbus.canopen.master_setpoints` the RPDOs handed to the SYNC process ahead of their SYNC.
 """
 
 from __future__ import annotations
@@ -80,6 +81,7 @@ from fieldbus.canopen.master_records import (
     Fault,
     input_names,
 )
+from fieldbus.canopen.master_setpoints import SetpointsMixin
 from fieldbus.canopen.master_spindle import SpindleBook, SpindleFeedback, SpindleMixin
 from fieldbus.canopen.master_states import StateMachineMixin
 from fieldbus.canopen.master_supervision import ErrorFrameListener, SupervisionMixin
@@ -92,7 +94,8 @@ __all__ = ["INPUT_BITS", "NEGATIVE_LIMIT", "POSITIVE_LIMIT", "BusBudgetError", "
 log = logging.getLogger(__name__)
 
 
-class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin, OutputsMixin):
+class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin, OutputsMixin,
+                    SetpointsMixin):
     """Master of the configured drives on one bus. ``bus``: an open python-can bus to use (else one is
     made from ``config.bus``). ``check_budget=False`` only reports the bus load (benchmarks on the
     virtual bus, which has no bitrate)."""
@@ -142,6 +145,13 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin
         #: kernel SYNC: SYNCs that found no new RPDO since the previous one while streaming (the drives
         #: held their last target); with the master's SYNC a stalled cycle delays the SYNC instead
         self.missed_setpoints = 0
+        #: ``sync = "process"``: the SYNC process also sends the RPDOs, computed up to this many SYNCs
+        #: ahead (:mod:`fieldbus.canopen.setpoint_buffer`); else 1 (sent by the cycle, for the next SYNC)
+        self.setpoint_lead = config.setpoint_lead if self.sync_mode == "process" else 1
+        self._setpoints: SyncProcess | None = None  # the SYNC process that sends the RPDOs
+        self._next_tag = 0  # the SYNC the next set of RPDOs is for (0: from the next one seen)
+        self._generation = 0  # raised at each stop: a set pushed before it is void
+        self._frames: list[tuple[int, bytes]] | None = None  # the cycle's RPDOs, while it gathers them
         self._fault_listeners: list[Callable[[Fault], None]] = []
         self._warning_listeners: list[Callable[[Fault], None]] = []
         self.warnings: list[Fault] = []
@@ -201,6 +211,7 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin
                                     tuple(c.cpu_affinity))
             ks = KernelSync(bus, c.bus.bus_kwargs(), c.cycle_s, timer=timer)
             ks.open()
+            self._setpoints = timer
         except (SyncError, SyncProcessError) as exc:
             if timer is not None:
                 timer.stop()
@@ -208,6 +219,7 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin
         self._kernel_sync = ks
 
     def _stop_kernel_sync(self) -> None:
+        self._setpoints = None
         ks, self._kernel_sync = self._kernel_sync, None
         if ks is not None:
             ks.stop()
@@ -230,10 +242,6 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin
         runner keeps its absolute deadlines)."""
         ks = self._kernel_sync
         return ks.wait if ks is not None else None
-
-    def _send(self, cob_id: int, data: bytes) -> None:
-        assert self.network is not None
-        self.network.send_message(cob_id, data)
 
     # ------------------------------------------------------------------ the cycle
     def sync(self) -> None:
@@ -285,21 +293,38 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin
                 if self._stream_t0 == 0.0:
                     self._stream_t0 = now
                 self._check(now, active)
+            timer = self._setpoints
+            if timer is not None and timer.unfed:
+                # SYNCs the SYNC process found no set for; counted while drives were streamed to
+                if active:
+                    self.missed_setpoints += timer.unfed
+                timer.unfed = 0
+            # with the SYNC process: only while its buffer has room (the caller runs
+            # setpoints_wanted() cycles), the RPDOs gathered and pushed as one set
+            send = timer is None or self.setpoints_wanted() > 0
             try:
-                if self.streaming and positions is not None:
+                self._frames = [] if timer is not None else None
+                if send and self.streaming and positions is not None:
                     self._set_targets(positions)
                 for d in self.drives:
-                    if d.active and not d.homing:
-                        self._send(d.rpdo_id, d.cyclic_rpdo())
-                self._spindle_cycle(now)
-                if any(d.active for d in self.drives):
+                    if send and d.active and not d.homing:
+                        self._cyclic(d.rpdo_id, d.cyclic_rpdo())
+                self._spindle_cycle(now, send)
+                frames, self._frames = self._frames, None
+                if frames:
+                    self._push(frames)
+                if any(d.active for d in self.drives) and send:
                     # the latest SYNC (the master's: TPDO ages count to it) or, with the kernel's, when
                     # the setpoints went out
                     self._last_sent = self._sync_at if ks is None else time.monotonic()
-                    if ks is not None:
+                    if ks is not None and timer is None:
                         self._count_setpoints(ks, self._last_sent)
             except (can.CanError, OSError) as exc:
+                self._frames = None
                 self.raise_fault(0, f"bus error: {exc}")
+            except SyncProcessError as exc:
+                self._frames = None
+                self.raise_fault(0, str(exc))
             return self.feedback()
 
     def _count_setpoints(self, ks: KernelSync, done: float) -> None:

@@ -333,7 +333,7 @@ class SpindleMixin(MasterCore):
     def spindle_feedback(self) -> SpindleFeedback | None:
         return self.spindle.feedback() if self.spindle is not None else None
 
-    def _spindle_cycle(self, now: float) -> None:
+    def _spindle_cycle(self, now: float, send: bool = True) -> None:
         """With ``_lock`` held, after the SYNC: supervise the spindle drive, ramp its target (csv),
         send its RPDO."""
         sb = self.spindle
@@ -356,13 +356,15 @@ class SpindleMixin(MasterCore):
                 self.raise_fault(sb.cfg.node_id, f"spindle drive left Operation enabled: in '{state}' "
                                                  f"(statusword 0x{sb.statusword:04X})")
                 return
+        if not send:  # the SYNC process's buffer is full: no set this cycle, so no ramp step either
+            return
         want = sb.commanded_rpm
         if sb.cfg.mode == "csv":
             step = sb.cfg.acceleration * conf.cycle_s
             sb.ramp_rpm += max(-step, min(step, want - sb.ramp_rpm))
         else:
             sb.ramp_rpm = want
-        self._send(sb.rpdo_id, sb.rpdo())
+        self._cyclic(sb.rpdo_id, sb.rpdo())
 
     def _spindle_quick_stop(self) -> None:
         """With ``_lock`` held: the spindle drive's quick stop (its own 0x6085 ramp)."""
@@ -373,10 +375,12 @@ class SpindleMixin(MasterCore):
         if sb.active:
             sb.active = False
             sb.controlword = cia402.CW_QUICK_STOP
+            frame = (sb.rpdo_id, sb.rpdo(cia402.CW_QUICK_STOP))
             try:
-                self._send(sb.rpdo_id, sb.rpdo(cia402.CW_QUICK_STOP))
+                self._send(*frame)
             except (can.CanError, OSError) as exc:
                 log.error("quick stop to %s not sent: %s", sb.describe(), exc)
+            self._stopped([frame])
 
     def _spindle_books(self) -> list[SpindleBook]:
         return [self.spindle] if self.spindle is not None else []

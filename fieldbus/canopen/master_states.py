@@ -53,11 +53,14 @@ class StateMachineMixin(MasterCore):
             with self._lock:
                 self._spindle_quick_stop()
                 enabled = [d for d in self.drives if d.active]
+                frames = []
                 for d in enabled:
                     d.active = False
                     d.controlword = cia402.CW_QUICK_STOP
+                    frames.append(d.controlword_rpdo(cia402.CW_QUICK_STOP))
                     with contextlib.suppress(can.CanError, OSError):
-                        self._send(*d.controlword_rpdo(cia402.CW_QUICK_STOP))
+                        self._send(*frames[-1])
+                self._stopped(frames)
             raise
         with self._lock:
             now = time.monotonic()
@@ -113,7 +116,7 @@ class StateMachineMixin(MasterCore):
             d.active = True
             if self.network is not None and not d.homing:
                 try:
-                    self._send(d.rpdo_id, d.cyclic_rpdo())
+                    self._hold_now([(d.rpdo_id, d.cyclic_rpdo())])  # and into every buffered set
                 except (can.CanError, OSError) as exc:
                     raise CanopenError(f"{d.describe()}: its first target not sent: {exc}") from None
 
@@ -172,11 +175,14 @@ class StateMachineMixin(MasterCore):
         dropped at speed. No torque afterwards. A drive in Fault stays there (:meth:`reset_faults`)."""
         with self._lock:
             self._streaming_off()
+            frames = []
             for d in self.drives:
                 if d.active:
                     d.active = False
                     d.controlword = cia402.CW_QUICK_STOP
-                    self._send(*d.controlword_rpdo(cia402.CW_QUICK_STOP))
+                    frames.append(d.controlword_rpdo(cia402.CW_QUICK_STOP))
+                    self._send(*frames[-1])
+            self._stopped(frames)
             self._spindle_quick_stop()
         for d in [*self.drives, *self._spindle_books()]:
             self._park(d, consumer_off=False)
@@ -229,6 +235,8 @@ class StateMachineMixin(MasterCore):
             return d.scale.to_units(actual)
         with self._lock:
             d.homing = True
+            # homing's controlword goes by SDO: no buffered cyclic one may clear its start bit
+            self._unbuffer([d.rpdo_id])
         try:
             self._home_cia402(d)
         except CanopenError:
@@ -240,6 +248,9 @@ class StateMachineMixin(MasterCore):
             with self._lock:
                 d.homing = False
                 d.feedback_at = time.monotonic()
+                if d.active and self.network is not None:  # its holding target in every buffered set
+                    with contextlib.suppress(can.CanError, OSError):
+                        self._hold_now([(d.rpdo_id, d.cyclic_rpdo())])
         return d.scale.to_units(d.target)
 
     def _home_cia402(self, d: DriveBook) -> None:

@@ -122,13 +122,16 @@ class SupervisionMixin(MasterCore):
     def _quick_stop_locked(self) -> None:
         self._streaming_off()
         self._spindle_quick_stop()
+        frames = []
         for d in self.drives:
             d.active = False
             d.controlword = cia402.CW_QUICK_STOP
+            frames.append(d.controlword_rpdo(cia402.CW_QUICK_STOP))
             try:
-                self._send(*d.controlword_rpdo(cia402.CW_QUICK_STOP))
+                self._send(*frames[-1])
             except (can.CanError, OSError) as exc:
                 log.error("quick stop to %s not sent: %s", d.describe(), exc)
+        self._stopped(frames)  # and through the SYNC process, its buffered sets dropped
 
 
     def _check(self, now: float, active: list[DriveBook]) -> None:

@@ -4,21 +4,25 @@ On SocketCAN the kernel's broadcast manager sends the SYNC every period whatever
 (:mod:`fieldbus.canopen.sync`). ``udp_multicast`` and canon's local bus have no such timer: there the
 master's cycle sends the SYNC, and whatever holds the motion process's interpreter lock when the cycle
 wakes (python-can's reader decoding TPDOs, the command reader) delays the SYNC by up to the lock's
-switch interval. This module gives those buses the kernel's structure: a small process that does
-nothing but sleep to the next deadline and send the SYNC, with nothing else on its interpreter lock,
-at SCHED_FIFO one above the cycle where the cycle has it (it stands for the bus's timer, as the
-kernel's does). The master sees each SYNC on a socket of its own and sends every drive's RPDO for the
-next SYNC right after it, exactly as with the kernel's SYNC.
+switch interval. This module gives those buses the kernel's structure, and one thing more: a small
+process that does nothing but sleep to the next deadline, send the SYNC and then the drives' RPDOs for
+the next one, with nothing else on its interpreter lock, at SCHED_FIFO one above the cycle where the
+cycle has it (it stands for the bus's timer, as the kernel's does). The master's cycle, paced by the
+SYNCs the process reports, computes the RPDOs up to ``[canopen] setpoint_lead`` SYNCs ahead and hands
+them over tagged with the SYNC that is to latch them (:mod:`fieldbus.canopen.setpoint_buffer`), so a
+late cycle costs no setpoint while the buffer lasts; stops pass the buffer and empty it.
 
 The process is started stopped (:meth:`SyncProcess.start` begins the SYNC, as the kernel's task starts
 at the first cycle) and ends with :meth:`SyncProcess.stop` and with its parent: it reads its standard
-input and stops at its end, which comes when the parent closes it or dies (the kernel closes a dead
-process's files), and it also stops when it finds itself re-parented. So no SYNC outlives canon, as a
-BCM task ends with its socket. A deadline missed by more than a period (the process held off) is
-skipped, not sent in a burst: the drives then see one long period, as after a late BCM timer.
+input (the master's messages) and stops at its end, which comes when the parent closes it or dies (the
+kernel closes a dead process's files), and it also stops when it finds itself re-parented. So no SYNC
+outlives canon, as a BCM task ends with its socket. A deadline missed by more than a period (the
+process held off) is skipped, not sent in a burst: the drives then see one long period, as after a
+late BCM timer.
 
 Run as ``python -m fieldbus.canopen.sync_process``; the parent writes one JSON line (the bus, period,
-COB-ID, priority, CPUs) and then ``start``; the child answers ``ready`` once its bus is open.
+COB-ID, priority, CPUs), the child answers ``ready`` once its bus is open, and from then on the parent
+writes binary messages (``START``, the setpoints) and the child reports each SYNC.
 """
 
 from __future__ import annotations
@@ -28,17 +32,14 @@ import json
 import logging
 import os
 import select
-import struct
 import subprocess
 import sys
-import threading
 import time
 from typing import Any
 
-log = logging.getLogger(__name__)
+from fieldbus.canopen import setpoint_buffer as sb
 
-#: a SYNC's report on the child's output: its ``time.monotonic`` time, right after it was sent
-STAMP = struct.Struct("<d")
+log = logging.getLogger(__name__)
 
 #: the last part of each period spun rather than slept, as the master's cycle does
 #: (:class:`~fieldbus.canopen.clock.PeriodicRunner`'s ``spin_s``)
@@ -78,7 +79,16 @@ class SyncProcess:
         if answer != "ready":
             self.stop()
             raise SyncProcessError(f"the SYNC process did not open the bus: {answer or 'no answer'}")
+        # from here on one atomic write per message that never blocks: a SYNC process that does not
+        # read (stalled, stopped) is an error of the write, not a stalled cycle
+        os.set_blocking(self._proc.stdin.fileno(), False)
         self.started = False
+        #: the number of the last SYNC reported (0: none yet)
+        self.number = 0
+        #: reported SYNCs that found no set of RPDOs sent for them, numbered from :attr:`expect_from`
+        #: on (the master sets it to the first SYNC it pushed a set for, and back to never at a stop)
+        self.unfed = 0
+        self.expect_from = sys.maxsize
 
     @property
     def pid(self) -> int:
@@ -88,19 +98,46 @@ class SyncProcess:
         """The child sends the SYNC from now on, every period, until :meth:`stop`."""
         if self.started:
             return
-        assert self._proc.stdin is not None
-        try:
-            self._proc.stdin.write(b"start\n")
-            self._proc.stdin.flush()
-        except OSError as exc:
-            raise SyncProcessError(f"the SYNC process is gone: {exc}") from None
+        self._write(sb.encode(sb.START))
         self.started = True
+
+    def _write(self, messages: list[bytes]) -> None:
+        stdin = self._proc.stdin
+        if stdin is None or stdin.closed:
+            raise SyncProcessError("the SYNC process is stopped")
+        fd = stdin.fileno()
+        for m in messages:
+            try:
+                os.write(fd, m)
+            except BlockingIOError:
+                raise SyncProcessError("the SYNC process takes no setpoints (its input is full: it is "
+                                       "stalled)") from None
+            except OSError as exc:
+                raise SyncProcessError(f"the SYNC process is gone: {exc}") from None
+
+    def push(self, tag: int, frames: list[sb.Frame], generation: int) -> None:
+        """RPDOs for SYNC number ``tag``: sent right after the SYNC before it (at once if that one is
+        already out; dropped if ``tag`` is). :class:`SyncProcessError` when the child is gone or
+        stalled."""
+        self._write(sb.encode(sb.PUSH, frames, tag, generation))
+
+    def now(self, frames: list[sb.Frame], *, merge: bool = False, flush: bool = False,
+            generation: int = 0) -> None:
+        """Frames sent at once (for the next SYNC). ``merge``: and into every buffered set (a drive
+        that became active). ``flush``: every buffered set dropped first and ``generation`` the
+        current one (a stop)."""
+        kind = sb.NOW_FLUSH if flush else sb.NOW_MERGE if merge else sb.NOW
+        self._write(sb.encode(kind, frames, 0, generation))
+
+    def drop(self, cob_ids: list[int]) -> None:
+        """These COB-IDs out of every buffered set (a drive that starts homing)."""
+        self._write(sb.encode(sb.DROP, [(c, b"") for c in cob_ids]))
 
     def read(self, timeout: float) -> float | None:
         """The ``time.monotonic`` time of the next SYNC the child reports within ``timeout`` (0: one
-        already reported), or None. The child reports each SYNC right after sending it (8 bytes, one
-        atomic write on its output pipe; it drops reports rather than wait when this side does not read,
-        as the kernel drops frames at a full socket)."""
+        already reported), or None; :attr:`number` becomes its number. The child reports each SYNC right
+        after sending it (one atomic write on its output pipe; it drops reports rather than wait when
+        this side does not read, as the kernel drops frames at a full socket)."""
         out = self._proc.stdout
         if out is None or out.closed:
             return None
@@ -108,12 +145,16 @@ class SyncProcess:
         try:
             if not select.select([fd], [], [], max(0.0, timeout))[0]:
                 return None
-            data = os.read(fd, STAMP.size)
+            data = os.read(fd, sb.REPORT.size)
         except (OSError, ValueError):  # closed meanwhile by stop()
             return None
-        if len(data) != STAMP.size:  # the child's end: it stopped or died
+        if len(data) != sb.REPORT.size:  # the child's end: it stopped or died
             return None
-        return STAMP.unpack(data)[0]
+        t, number, fed = sb.REPORT.unpack(data)
+        self.number = number
+        if not fed and number >= self.expect_from:
+            self.unfed += 1
+        return t
 
     def end(self) -> None:
         """Close the child's input: it sends no SYNC after this (it looks before each)."""
@@ -183,8 +224,9 @@ def _rank(priority: int, cpus: list[int]) -> None:
 
 
 def run(spec: dict[str, Any], stdin: Any, stdout: Any) -> int:
-    """The child: open the bus, say ``ready``, wait for ``start``, then send the SYNC at every period's
-    deadline until ``stdin`` ends or the parent is gone. Returns the number of deadlines skipped."""
+    """The child: open the bus, say ``ready``, then read the parent's messages; from ``START`` on send
+    the SYNC at every period's deadline, each followed by its report and the RPDOs buffered for the
+    next SYNC, until ``stdin`` ends or the parent is gone. Returns the number of deadlines skipped."""
     import gc
 
     import can
@@ -195,49 +237,71 @@ def run(spec: dict[str, Any], stdin: Any, stdout: Any) -> int:
     msg = can.Message(arbitration_id=int(spec.get("cob_id", 0x80)), data=b"", is_extended_id=False)
     bus = _open_bus(spec["bus"])
     try:
+        def send(cob_id: int, data: bytes) -> None:
+            bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+
+        buffer = sb.SetpointBuffer(send)
+        decoder = sb.Decoder()
+        fd = stdin.fileno()
         stdout.write(b"ready\n")
         stdout.flush()
-        if stdin.readline().strip() != b"start":
-            return 0
-        ended = threading.Event()
-
-        def watch() -> None:  # the parent closed the pipe or died
-            while stdin.readline():
-                pass
-            ended.set()
-
-        threading.Thread(target=watch, name="sync-parent", daemon=True).start()
         report = stdout.fileno()
         os.set_blocking(report, False)  # a parent that does not read loses reports, never a SYNC
         gc.collect()
         gc.freeze()
         gc.disable()  # nothing here allocates for long: no collection ever stalls a SYNC
+
+        def take(timeout: float | None) -> bool:
+            """The parent's messages within ``timeout``, acted on; False at the input's end."""
+            if not select.select([fd], [], [], timeout)[0]:
+                return True
+            data = os.read(fd, 65536)
+            if not data:  # the parent closed its end, or died
+                return False
+            for m in decoder.feed(data):
+                buffer.on_message(*m)
+            return True
+
         skipped = 0
-        deadline = time.monotonic()
-        while not ended.is_set():
-            now = time.monotonic()
-            if deadline - now > SPIN_S:
-                time.sleep(deadline - now - SPIN_S)
+        deadline: float | None = None
+        while True:
+            if deadline is None:  # not started: only messages
+                if not take(None):
+                    break
+                if buffer.started:
+                    deadline = time.monotonic()
+                continue
+            left = deadline - time.monotonic() - SPIN_S
+            if left > 0:
+                if not take(left):
+                    break
+                continue
             while time.monotonic() < deadline:  # the rest spun: the kernel's wake-up is later than that
                 pass
-            if ended.is_set() or os.getppid() != parent:
+            # a message that came while spinning (a stop, the end) is acted on before the SYNC
+            if not take(0.0) or os.getppid() != parent:
                 break
             try:
                 bus.send(msg)
             except (can.CanError, OSError) as exc:
                 log.error("SYNC not sent: %s", exc)
+            fed = buffer.synced()
             try:
-                os.write(report, STAMP.pack(time.monotonic()))
+                os.write(report, sb.REPORT.pack(time.monotonic(), buffer.number, int(fed)))
             except BlockingIOError:
                 pass
             except OSError:  # the parent closed its end: it stopped
                 break
+            buffer.send_next()
             deadline += period
             late = time.monotonic() - deadline
             if late > period:  # held off past the next deadline: skip, never a burst of SYNCs
                 n = int(late / period)
                 deadline += n * period
                 skipped += n
+        if buffer.late or buffer.void:
+            log.warning("%d sets of RPDOs came after their SYNC, %d were void (pushed before a stop)",
+                        buffer.late, buffer.void)
         return skipped
     finally:
         bus.shutdown()

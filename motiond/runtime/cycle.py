@@ -140,12 +140,19 @@ class Cycle:
     # ------------------------------------------------------------------ the cycle
     def _step(self, k: int, deadline: float) -> None:
         try:
-            self._cycle_step()
+            # one setpoint per SYNC; with the SYNC process sending them ahead ([canopen] setpoint_lead),
+            # as many as fill its buffer: none when full, several after a late step
+            wanted = self.master.setpoints_wanted()
+            self._cycle_step(wanted > 0)
+            for _ in range(wanted - 1):
+                self._cycle_step(True)
         except Exception as exc:  # a bug must not end the cycle thread with the drives streaming
             log.exception("cycle %d", k)
             self.post_fault(f"internal error in the cycle loop: {exc!r}", "motiond")
 
-    def _cycle_step(self) -> None:
+    def _cycle_step(self, take: bool = True) -> None:
+        """One setpoint (``take``; else the checks only: the SYNC process's buffer is full) and the
+        drives' feedback."""
         # the SYNC first, at the deadline: nothing below delays it; the setpoint this step sends is for
         # the next SYNC (master.sync_tick's kernel SYNC has the same structure)
         self.master.sync()
@@ -164,7 +171,7 @@ class Cycle:
         master = self.master
         p = self.planner
         sp = None
-        if p is not None and master.streaming and not self.hold_stream:
+        if take and p is not None and master.streaming and not self.hold_stream:
             try:
                 self._feed(p)
                 # with a spindle drive, synchronized motion follows its measured position
