@@ -330,3 +330,49 @@ def test_canon_run_with_the_setpoints_ahead(tmp_path):
     for a, want in zip("xyz", (5.0, 4.0, 2.0), strict=True):
         assert d["final_actual"][a] == pytest.approx(want, abs=1e-3)
     assert d["timing"]["setpoint_lead"] == 3
+
+
+def test_a_drive_homing_leaves_the_buffered_sets_and_rejoins_them_after(tmp_path):
+    """Homing's controlword goes by SDO (bit 4, homing operation start): the cyclic RPDOs buffered for
+    the axis before it must not reach the drive during homing (on a real drive their controlword
+    0x000F clears the start bit; without the drop the simulated one counted a missed setpoint). After
+    homing, its holding target is in every buffered set again: no SYNC finds it
+    without one (8 missed without that)."""
+    import dataclasses
+
+    from canopen_helpers import Rig, make_config, unique_channel
+
+    from fieldbus.canopen.config import CanBusConfig
+    from fieldbus.canopen.drive_sim import SimDrive
+
+    sims = [SimDrive(1), SimDrive(2, home_switch_counts=20000)]
+    cfg = make_config(2, bus=CanBusConfig("canon_local", unique_channel()), sync="process", setpoint_lead=8,
+                      cycle_s=0.004, feedback_timeout_s=2.0, homing="cia402", home_offset=-1.0)
+    y = dataclasses.replace(cfg.drives[1], homing_method=19)
+    cfg = dataclasses.replace(cfg, drives=(cfg.drives[0], y))
+    rig = Rig(cfg, sims, check_budget=False)
+    try:
+        rig.up()
+        master = rig.master
+        homed: list[float] = []
+
+        def home_y() -> None:
+            homed.append(master.home("y"))
+
+        steps = [0]
+
+        def step(k: int, t: float) -> None:  # the targets held, as many cycles as the buffer wants
+            steps[0] += 1
+            if steps[0] == 20:  # from another thread, as the daemon's service operations do
+                threading.Thread(target=home_y, name="home").start()
+            for _ in range(max(1, master.setpoints_wanted())):
+                master.cycle(None)
+
+        runner = PeriodicRunner(cfg.cycle_s, step, cycles=400, tick=master.sync_tick).start()
+        assert runner.join(60.0) and runner.error is None  # 1.6 s: the search takes 0.2 s and more
+        assert homed == [pytest.approx(-1.0)], (homed, master.fault)
+        assert master.fault is None, master.fault
+        assert rig.sim(2).mode == cia402.MODE_CSP
+        assert rig.sim(2).missed_setpoints == 0
+    finally:
+        rig.close()
