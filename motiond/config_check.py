@@ -225,9 +225,10 @@ def describe(m: CheckedMachine) -> list[Any]:
     c = m.canopen
     hb = (f"heartbeat {c.heartbeat_producer_ms} ms (consumer {c.heartbeat_consumer_ms} ms)"
           if c.heartbeat_producer_ms else "no heartbeat")
+    lead = f", setpoints sent {c.setpoint_lead} SYNCs ahead" if c.setpoint_lead > 1 else ""
     out.append(f"CAN: {c.bus.interface} {c.bus.channel} at {c.bus.bitrate / 1000:g} kbit/s"
                f"{', drives simulated' if c.simulate else ''}; {c.pdo_layout} PDO layout; {hb}; "
-               f"SYNC timed by {_SYNC_BY[c.sync_source]}; bus load "
+               f"SYNC timed by {_SYNC_BY[c.sync_source]}{lead}; bus load "
                f"{100 * m.bus_load.fraction:.1f} % of {100 * c.max_bus_load:.0f} % allowed "
                f"({m.bus_load.describe()})")
     if m.motion is not None:

@@ -220,4 +220,10 @@ def test_config_check_says_a_sync_process_times_the_sync(tmp_path):
     r = subprocess.run([sys.executable, "-m", "motiond.cli", "config", "check", "--config", str(cfg)],
                        capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert r.returncode == 0, r.stderr
-    assert "SYNC timed by a SYNC process" in " ".join(r.stdout.split())
+    assert "SYNC timed by a SYNC process;" in " ".join(r.stdout.split())
+    cfg.write_text(text.replace('sync = "master"', 'sync = "process"', 1).replace(
+        "setpoint_lead = 1 ", "setpoint_lead = 6 ", 1))
+    r = subprocess.run([sys.executable, "-m", "motiond.cli", "config", "check", "--config", str(cfg)],
+                       capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    assert "SYNC timed by a SYNC process, setpoints sent 6 SYNCs ahead;" in " ".join(r.stdout.split())
