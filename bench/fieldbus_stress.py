@@ -22,7 +22,10 @@ kernel's receive time stamp of its datagram (SO_TIMESTAMPNS, what a drive's hard
 time its reader got it. The SYNC period is taken from the kernel's stamps (p50, p99, p99.9, max, and
 its deviation from the nominal period); the deviation p99.9 from the reader's times is a column of its
 own (it adds the simulator's own scheduling), and so is the spread of the deviation's p99.9 taken
-second by second (median / max). The drives count their missed setpoints. In the same run and under
+second by second (median / max). With the SYNC from a SYNC process, the column "at the SYNC process"
+takes the period from the times it sent each SYNC (it records them when ``CANON_SYNC_TRACE`` names a
+folder): the jitter canon itself puts on the SYNC, before the sockets, the kernel's loopback and the
+receiving process add theirs. The drives count their missed setpoints. In the same run and under
 the same hogs, before the cases and again after them (not beside them), ``bench/rt_floor.c`` gives
 the C reference: the kernel's wake-up lateness for a periodic thread at the same priority, with the
 spread of its per-second p99.9. A host that takes the CPUs away now and then (a VM) shows there: a
@@ -62,6 +65,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
+
+from fieldbus.canopen.sync_process import TRACE_ENV  # noqa: E402  (after the path)
 
 STATUS_CHANNEL = "CANON_STATUS"
 DRIVES_PRIORITY = -1
@@ -377,6 +382,8 @@ def case_own(n: int, period: float, seconds: float, rt: int, latency: int | None
     (where / "machine.toml").write_text(machine_file(n, group, period, rt, latency, steer_gc, layout, every,
                                                        sync, lead))
     (where / "long.ngc").write_text(program(n, seconds))
+    if sync == "process":  # the SYNC process records when it sent each SYNC (the sender's column)
+        os.environ[TRACE_ENV] = str(where)
     sims = Drives(n, group, where, DRIVES_PRIORITY if DRIVES_PRIORITY >= 0 else max(0, rt - 1))
     client = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--status-client",
                                str(seconds + 60), str(where / "status.count")], cwd=ROOT,
@@ -422,7 +429,9 @@ def case_own(n: int, period: float, seconds: float, rt: int, latency: int | None
         client.terminate()
         client.wait(10)
         result = sims.close()
+        os.environ.pop(TRACE_ENV, None)
         received = int((where / "status.count").read_text()) if (where / "status.count").exists() else 0
+        sent_at = [t for f in sorted(where.glob("sync-*.f64")) for t in read_trace(f)]
         tmp.cleanup()
     by = f"a SYNC process, setpoints {lead} ahead" if sync == "process" else "the cycle"
     row = {"case": f"own: {n} drives, {1000 * period:g} ms, gc {'steered' if steer_gc else 'automatic'}, "
@@ -431,7 +440,23 @@ def case_own(n: int, period: float, seconds: float, rt: int, latency: int | None
     print(f"  the motion process's threads during the window ({seconds:g} s): " + "; ".join(
         f"{r['tid']} {r['policy']} cpu {r['cpu_ms']:.0f} ms, waited {r['wait_ms']:.0f} ms, {r['invol']} "
         "preempted" for r in threads if r["cpu_ms"] > 0), flush=True)
-    return finish_row(row, window, period, result, fault, f"{late[0]} (worst {1e3 * late[1]:.1f} ms)", "-")
+    row = finish_row(row, window, period, result, fault, f"{late[0]} (worst {1e3 * late[1]:.1f} ms)", "-")
+    inside = [t for t in sent_at if window[0] <= t <= window[1]]
+    if len(inside) > 2:
+        import numpy as np
+
+        dev = np.abs(np.diff(np.array(inside)) * 1e6 - 1e6 * period)
+        row["sender"] = f"{np.percentile(dev, 99):.0f} / {np.percentile(dev, 99.9):.0f} / {dev.max():.0f}"
+    return row
+
+
+def read_trace(path: Path) -> list[float]:
+    """The SYNC process's send times (:data:`fieldbus.canopen.sync_process.TRACE_ENV`)."""
+    from array import array
+
+    times = array("d")
+    times.frombytes(path.read_bytes())
+    return list(times)
 
 
 POLICIES = {0: "OTHER", 1: "FIFO", 2: "RR", 3: "BATCH", 5: "IDLE"}
@@ -600,7 +625,9 @@ def run(args, layout_for, build_rt_floor) -> int:
             ("p999", "p99.9 ms"), ("max", "max ms"), ("d50", "|dev| p50 us"), ("d99", "|dev| p99 us"),
             ("d999", "|dev| p99.9 us"), ("dmax", "|dev| max us"),
             ("reader", "|dev| p99.9 us at the drives' reader"),
-            ("per_s", "per-second p99.9 us: median / max"), ("setpoints", "missed setpoints"),
+            ("per_s", "per-second p99.9 us: median / max"),
+            ("sender", "|dev| p99 / p99.9 / max us at the SYNC process (its send times)"),
+            ("setpoints", "missed setpoints"),
             ("cycles", "master late cycles"), ("gc", "gc in slack"), ("status", "status sent/received"),
             ("load", "load avg (1 min)")]
     for _, title in cols:

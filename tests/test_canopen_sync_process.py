@@ -195,6 +195,26 @@ def test_no_sync_outlives_a_killed_parent():
         listener.close()
 
 
+def test_the_sync_process_records_when_it_sent_each_sync_where_asked(tmp_path, monkeypatch):
+    """``CANON_SYNC_TRACE``: the bench's view of the SYNC at its sender (its send times, written at its
+    end), apart from what the sockets and the receivers add."""
+    from array import array
+
+    from fieldbus.canopen.sync_process import TRACE_ENV
+
+    monkeypatch.setenv(TRACE_ENV, str(tmp_path))
+    t = SyncProcess({"interface": "canon_local", "channel": unique_channel()}, 0.004)
+    t.start()
+    got = [t.read(5.0) for _ in range(20)]
+    t.stop()
+    files = list(tmp_path.glob(f"sync-{t.pid}.f64"))
+    assert len(files) == 1
+    sent = array("d")
+    sent.frombytes(files[0].read_bytes())
+    assert len(sent) >= 20 and list(sent[:20]) == got  # the times it reported, in order
+    assert statistics.median(b - a for a, b in itertools.pairwise(sent)) == pytest.approx(0.004, rel=0.2)
+
+
 def test_a_sync_process_whose_bus_does_not_open_says_why():
     with pytest.raises(SyncProcessError, match=r"did not open the bus: .*nosuch"):
         SyncProcess({"interface": "nosuch", "channel": "x"}, 0.01)

@@ -35,6 +35,7 @@ import select
 import subprocess
 import sys
 import time
+from array import array
 from typing import Any
 
 from fieldbus.canopen import setpoint_buffer as sb
@@ -44,6 +45,11 @@ log = logging.getLogger(__name__)
 #: the last part of each period spun rather than slept, as the master's cycle does
 #: (:class:`~fieldbus.canopen.clock.PeriodicRunner`'s ``spin_s``)
 SPIN_S = 0.0003
+
+#: an environment variable naming a folder: the SYNC process records the ``time.monotonic`` time right
+#: after each SYNC it sends and writes them there at its end (``sync-PID.f64``, native doubles), so a
+#: bench can tell the SYNC's jitter at its sender from what the bus and the receivers add
+TRACE_ENV = "CANON_SYNC_TRACE"
 
 #: how long the parent waits for the child's bus to be open (Python's start-up and python-can's
 #: import, several seconds on a loaded PC)
@@ -262,6 +268,7 @@ def run(spec: dict[str, Any], stdin: Any, stdout: Any) -> int:
                 buffer.on_message(*m)
             return True
 
+        trace = array("d") if os.environ.get(TRACE_ENV) else None
         skipped = 0
         deadline: float | None = None
         while True:
@@ -286,8 +293,11 @@ def run(spec: dict[str, Any], stdin: Any, stdout: Any) -> int:
             except (can.CanError, OSError) as exc:
                 log.error("SYNC not sent: %s", exc)
             fed = buffer.synced()
+            sent_at = time.monotonic()
+            if trace is not None:
+                trace.append(sent_at)
             try:
-                os.write(report, sb.REPORT.pack(time.monotonic(), buffer.number, int(fed)))
+                os.write(report, sb.REPORT.pack(sent_at, buffer.number, int(fed)))
             except BlockingIOError:
                 pass
             except OSError:  # the parent closed its end: it stopped
@@ -302,9 +312,20 @@ def run(spec: dict[str, Any], stdin: Any, stdout: Any) -> int:
         if buffer.late or buffer.void:
             log.warning("%d sets of RPDOs came after their SYNC, %d were void (pushed before a stop)",
                         buffer.late, buffer.void)
+        if trace is not None:
+            _write_trace(trace)
         return skipped
     finally:
         bus.shutdown()
+
+
+def _write_trace(trace: array) -> None:
+    folder = os.environ.get(TRACE_ENV, "")
+    try:
+        with open(os.path.join(folder, f"sync-{os.getpid()}.f64"), "wb") as f:
+            trace.tofile(f)
+    except OSError as exc:
+        log.warning("SYNC trace not written to %s: %s", folder, exc)
 
 
 def main() -> int:
