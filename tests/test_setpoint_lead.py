@@ -264,6 +264,7 @@ class CountingMaster:
         from fieldbus.canopen.master_records import DriveFeedback
 
         self.sent.append((self.step, None if positions is None else tuple(positions)))
+        self.last_set_tag = 0  # sent at once
         return DriveFeedback(0, (0.0,), (0.0,), (cia402.State.OPERATION_ENABLED,), None, (0,))
 
 
@@ -332,24 +333,26 @@ def test_canon_run_with_the_setpoints_ahead(tmp_path):
     assert d["timing"]["setpoint_lead"] == 3
 
 
-def test_a_drive_homing_leaves_the_buffered_sets_and_rejoins_them_after(tmp_path):
-    """Homing's controlword goes by SDO (bit 4, homing operation start): the cyclic RPDOs buffered for
-    the axis before it must not reach the drive during homing (on a real drive their controlword
-    0x000F clears the start bit; without the drop the simulated one counted a missed setpoint). After
-    homing, its holding target is in every buffered set again: no SYNC finds it
-    without one (8 missed without that)."""
+def test_a_drive_homing_leaves_the_buffered_sets_and_rejoins_them_after():
+    """Homing's controlword goes by SDO (0x001F, bit 4 homing operation start): no cyclic RPDO
+    buffered for the axis before it may reach the drive while it homes (their controlword 0x000F
+    clears the start bit on a real drive): on the bus, none between the SDO that starts the homing and
+    the one that ends it. After homing its holding target is in every buffered set again: no SYNC
+    finds it without one (8 missed without that)."""
     import dataclasses
 
-    from canopen_helpers import Rig, make_config, unique_channel
+    from canopen_helpers import LocalListener, Rig, make_config, unique_channel
 
     from fieldbus.canopen.config import CanBusConfig
     from fieldbus.canopen.drive_sim import SimDrive
 
+    channel = unique_channel()
     sims = [SimDrive(1), SimDrive(2, home_switch_counts=20000)]
-    cfg = make_config(2, bus=CanBusConfig("canon_local", unique_channel()), sync="process", setpoint_lead=8,
-                      cycle_s=0.004, feedback_timeout_s=2.0, homing="cia402", home_offset=-1.0)
+    cfg = make_config(2, bus=CanBusConfig("canon_local", channel), sync="process", setpoint_lead=8,
+                      cycle_s=0.010, feedback_timeout_s=2.0, homing="cia402", home_offset=-1.0)
     y = dataclasses.replace(cfg.drives[1], homing_method=19)
     cfg = dataclasses.replace(cfg, drives=(cfg.drives[0], y))
+    listener = LocalListener(channel)
     rig = Rig(cfg, sims, check_budget=False)
     try:
         rig.up()
@@ -360,19 +363,97 @@ def test_a_drive_homing_leaves_the_buffered_sets_and_rejoins_them_after(tmp_path
             homed.append(master.home("y"))
 
         steps = [0]
+        before: list[int] = []
 
         def step(k: int, t: float) -> None:  # the targets held, as many cycles as the buffer wants
             steps[0] += 1
+            if steps[0] == 10:  # the first step fills the buffer only after the first SYNC: from here on
+                before.append(rig.sim(2).missed_setpoints)
             if steps[0] == 20:  # from another thread, as the daemon's service operations do
                 threading.Thread(target=home_y, name="home").start()
             for _ in range(max(1, master.setpoints_wanted())):
                 master.cycle(None)
 
-        runner = PeriodicRunner(cfg.cycle_s, step, cycles=400, tick=master.sync_tick).start()
-        assert runner.join(60.0) and runner.error is None  # 1.6 s: the search takes 0.2 s and more
+        runner = PeriodicRunner(cfg.cycle_s, step, cycles=200, tick=master.sync_tick).start()
+        assert runner.join(60.0) and runner.error is None  # 2 s: the search takes 0.2 s and more
         assert homed == [pytest.approx(-1.0)], (homed, master.fault)
         assert master.fault is None, master.fault
         assert rig.sim(2).mode == cia402.MODE_CSP
-        assert rig.sim(2).missed_setpoints == 0
+        assert rig.sim(2).missed_setpoints == before[0]
+        listener.drain()
+        # SDO downloads to node 2's controlword: 0x2B, index 0x6040, sub 0, the value
+        frames = sorted(listener.payloads)
+        start = next(t for t, c, d in frames if c == 0x602 and d[:6] == bytes([0x2B, 0x40, 0x60, 0, 0x1F, 0]))
+        end = next(t for t, c, d in frames if c == 0x602 and t > start
+                   and d[:6] == bytes([0x2B, 0x40, 0x60, 0, 0x0F, 0]))
+        assert [t for t, c, _ in frames if c == RPDO1 + 2 and start < t < end] == []
+        assert sum(1 for t, c, _ in frames if c == RPDO1 + 1 and start < t < end) > 5  # x streamed on
     finally:
         rig.close()
+        listener.close()
+
+
+class TaggingMaster(CountingMaster):
+    """... that pushes each set tagged with its SYNC, SYNC ``step + 1`` the last reported."""
+
+    setpoint_generation = 0
+
+    def __init__(self, wanted: list[int]) -> None:
+        super().__init__(wanted)
+        self.next_tag = 2
+
+    @property
+    def sync_number(self) -> int:
+        return self.step + 1
+
+    def cycle(self, positions):
+        fb = super().cycle(positions)
+        if positions is not None:
+            self.last_set_tag, self.next_tag = self.next_tag, self.next_tag + 1
+        return fb
+
+
+class EventfulRamp(Ramp):
+    """Its 2nd setpoint carries an event (an output switched with the move); after its 3rd it stands
+    at a sync point."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.waiting_for = None
+        self.point = object()
+
+    def next_setpoint(self):
+        sp = super().next_setpoint()
+        if self.n == 2:
+            sp.events = ("output on",)
+        if self.n >= 3:
+            self.waiting_for = self.point
+        return sp
+
+
+def test_with_setpoints_ahead_what_rides_on_a_setpoint_waits_until_it_goes_out():
+    """An output switched with a move, and the planner's stop after it, are acted on when the
+    setpoint's set goes out (right after the SYNC before its own), not when the cycle computed it
+    ``setpoint_lead - 1`` SYNCs earlier."""
+    from types import SimpleNamespace
+
+    from motiond.runtime.cycle import Cycle
+
+    seen: list[tuple[int, object]] = []
+    master = TaggingMaster([3, 1, 1, 1, 1, 1])
+    hooks = SimpleNamespace(io_cycle=lambda *a: None, fault=lambda *a: None,
+                            io_event=lambda ev, stream: seen.append((master.step, ev)),
+                            io_wait=lambda w: False)
+    limits = SimpleNamespace(names=("x",), cycle_s=0.002)
+    cyc = Cycle(limits, None, late_fault_s=1.0, simulated=True, hooks=hooks)  # type: ignore[arg-type]
+    planner = EventfulRamp()
+    cyc.master, cyc.planner = master, planner
+    reached = []
+    for k in range(6):
+        master.step = k
+        cyc._step(k, 0.0)
+        reached.append(cyc._sync_reached is planner.point)
+    # step 0 (SYNC 1 reported) computes setpoints 1-3 for SYNCs 2-4: the 2nd, for SYNC 3, goes out
+    # after SYNC 2, reported at step 1; the 3rd (then the sync point) after SYNC 3, at step 2
+    assert seen == [(1, "output on")]
+    assert reached == [False, False, True, True, True, True]

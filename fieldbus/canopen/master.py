@@ -152,6 +152,7 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin
         self._next_tag = 0  # the SYNC the next set of RPDOs is for (0: from the next one seen)
         self._generation = 0  # raised at each stop: a set pushed before it is void
         self._frames: list[tuple[int, bytes]] | None = None  # the cycle's RPDOs, while it gathers them
+        self.last_set_tag = 0
         self._fault_listeners: list[Callable[[Fault], None]] = []
         self._warning_listeners: list[Callable[[Fault], None]] = []
         self.warnings: list[Fault] = []
@@ -302,6 +303,7 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin
             # with the SYNC process: only while its buffer has room (the caller runs
             # setpoints_wanted() cycles), the RPDOs gathered and pushed as one set
             send = timer is None or self.setpoints_wanted() > 0
+            self.last_set_tag = 0
             try:
                 self._frames = [] if timer is not None else None
                 if send and self.streaming and positions is not None:

@@ -28,6 +28,8 @@ class SetpointsMixin(MasterCore):
     _next_tag: int  # the SYNC the next set is for (0: from the one after the last seen)
     _generation: int  # raised at each stop: a set pushed before it is void
     _frames: list[tuple[int, bytes]] | None  # the cycle's RPDOs, while it gathers them
+    #: the SYNC the last :meth:`cycle` pushed its set for (0: it pushed none: sent at once, or nothing)
+    last_set_tag: int
 
     def _send(self, cob_id: int, data: bytes) -> None:
         assert self.network is not None
@@ -61,6 +63,19 @@ class SetpointsMixin(MasterCore):
             timer.expect_from = tag
         timer.push(tag, frames, self._generation)
         self._next_tag = tag + 1
+        self.last_set_tag = tag
+
+    @property
+    def sync_number(self) -> int:
+        """With the SYNC process: the number of the last SYNC it reported. A set tagged ``t`` has gone
+        out once this is ``t - 1`` or more (or was dropped by a stop: :attr:`setpoint_generation`)."""
+        timer = self._setpoints
+        return timer.number if timer is not None else 0
+
+    @property
+    def setpoint_generation(self) -> int:
+        """Raised at each stop: the sets pushed before it never go out."""
+        return self._generation
 
     def _stopped(self, frames: list[tuple[int, bytes]]) -> None:
         """With ``_lock`` held, after a stop's frames went out on the master's own socket: through the

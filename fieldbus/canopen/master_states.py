@@ -246,11 +246,8 @@ class StateMachineMixin(MasterCore):
             raise
         finally:
             with self._lock:
-                d.homing = False
+                d.homing = False  # streamed to again already (_stream_again), unless that failed
                 d.feedback_at = time.monotonic()
-                if d.active and self.network is not None:  # its holding target in every buffered set
-                    with contextlib.suppress(can.CanError, OSError):
-                        self._hold_now([(d.rpdo_id, d.cyclic_rpdo())])
         return d.scale.to_units(d.target)
 
     def _home_cia402(self, d: DriveBook) -> None:
@@ -288,19 +285,31 @@ class StateMachineMixin(MasterCore):
         actual = self._sdo(d, "position actual", 0x6064, 0, "i")
         with self._lock:
             d.scale.drive_zero_is_home()
-            d.target = d.actual = actual
         self._sdo(d, "controlword", 0x6040, 0, "H", cia402.CW_ENABLE_OPERATION)
+        self._stream_again(d, actual)
         self._set_mode(d, cia402.MODE_CSP)
+
+    def _stream_again(self, d: DriveBook, actual: int) -> None:
+        """Before a drive goes back to cyclic synchronous position: the cycle sends it ``actual`` as its
+        target from now on (and, with the SYNC process, in every set already buffered), so the first
+        SYNC it sees in CSP finds a target (switched first, a SYNC while the mode's SDOs go back and
+        forth would find none). The target in an RPDO is ignored in homing mode, and its controlword
+        is the 0x000F just written."""
+        with self._lock:
+            d.target = d.actual = actual
+            d.homing = False
+            d.feedback_at = time.monotonic()
+            if d.active and self.network is not None:
+                with contextlib.suppress(can.CanError, OSError):
+                    self._hold_now([(d.rpdo_id, d.cyclic_rpdo())])
 
     def _back_to_csp(self, d: DriveBook) -> None:
         """A drive left in another mode (a homing that failed or was cut short): stop that motion
-        (homing start bit cleared), back to cyclic synchronous position, and hold where it stands."""
+        (homing start bit cleared), hold where it stands, back to cyclic synchronous position."""
         if cia402.decode(self._statusword(d)) == State.OPERATION_ENABLED:
             self._sdo(d, "controlword (stop homing)", 0x6040, 0, "H", cia402.CW_ENABLE_OPERATION)
+        self._stream_again(d, self._sdo(d, "position actual", 0x6064, 0, "i"))
         self._set_mode(d, cia402.MODE_CSP)
-        actual = self._sdo(d, "position actual", 0x6064, 0, "i")
-        with self._lock:
-            d.target = d.actual = actual
         log.info("%s back in cyclic synchronous position mode", d.describe())
 
     def _set_mode(self, d: DriveBook, mode: int) -> None:

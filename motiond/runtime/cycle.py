@@ -114,6 +114,11 @@ class Cycle:
         self.modal: ModalState | None = None  # the executing block's modal state (a job running)
         self.first_setpoint_t: float | None = None
         self._cycle_ident = 0
+        #: setpoints whose events wait for their set of RPDOs to go out (the SYNC process sending them
+        #: ahead, [canopen] setpoint_lead): (generation, SYNC tag, setpoint, stream)
+        self._pending: collections.deque[tuple[int, int, Any, Stream | None]] = collections.deque()
+        self._sp_out: tuple[int, int] | None = None  # (generation, tag) of the last setpoint sent ahead
+        self._wait_mark: tuple[Any, tuple[int, int] | None] | None = None  # a sync point, its setpoint
         self.trace: list[tuple[int, float, tuple[float, ...], tuple[Any, ...]]] | None = None
         """Set to a list to record (cycle, monotonic time, positions, events) of every setpoint."""
 
@@ -195,22 +200,61 @@ class Cycle:
             if self.first_setpoint_t is None:
                 self.first_setpoint_t = time.monotonic()
             self._track(sp, stream)
-            if sp.events:
-                self._events(sp, stream)
-                if self.io is not None:
-                    self.io.on_setpoint(sp)
+            tag = master.last_set_tag
+            if tag:  # sent ahead of its SYNC: what rides on it waits until it goes out, with the motion
+                self._sp_out = (master.setpoint_generation, tag)
+                if sp.events:
+                    self._pending.append((master.setpoint_generation, tag, sp, stream))
+            elif sp.events:
+                self._setpoint_events(sp, stream)
         else:
             self.velocity = tuple(0.0 for _ in range(self.n))
             self._acc = [0.0] * self.n
+        if self._pending:
+            self._release(master)
         if p is not None and p is self.planner:
+            # the planner's stops and its end, once the setpoints before them have gone out
             w = p.waiting_for
             if w is not None and w is not self._wait_seen:
-                self._wait_seen = w
-                self._on_wait(w)
-            if p.is_idle:
+                if self._wait_mark is None or self._wait_mark[0] is not w:
+                    self._wait_mark = (w, self._sp_out)  # the setpoint it stands at
+                if not self._pending and self._gone_out(master, self._wait_mark[1]):
+                    self._wait_mark = None
+                    self._wait_seen = w
+                    self._on_wait(w)
+            if p.is_idle and not self._pending and self._gone_out(master, self._sp_out):
                 self._at_rest()
         elif self.planner is None and (self.aborting or self.stop_then_disable):
             self._at_rest()
+
+    @staticmethod
+    def _gone_out(master: Any, mark: tuple[int, int] | None) -> bool:
+        """The set of RPDOs marked (generation, SYNC tag) went out (or a stop dropped it); None: no
+        set was sent ahead."""
+        if mark is None:
+            return True
+        generation, tag = mark
+        return generation != master.setpoint_generation or tag - 1 <= master.sync_number
+
+    def _setpoint_events(self, sp: Any, stream: Stream | None) -> None:
+        self._events(sp, stream)
+        if self.io is not None:
+            self.io.on_setpoint(sp)  # the synchronized outputs (M62-M65, M67) riding on it
+
+    def _release(self, master: Any) -> None:
+        """The events of the setpoints whose sets have gone out (a set for SYNC ``t`` goes out right
+        after SYNC ``t - 1``), so that an output switched with a move, or the end of a move, is not
+        acted on ``setpoint_lead - 1`` periods before the drives get there. Those of sets a stop
+        dropped (an older generation) never went out: dropped too."""
+        pending = self._pending
+        generation = master.setpoint_generation
+        while pending:
+            gen, tag, sp, stream = pending[0]
+            if not self._gone_out(master, (gen, tag)):
+                return
+            pending.popleft()
+            if gen == generation:
+                self._setpoint_events(sp, stream)
 
     def _feed(self, p: Any) -> None:
         stream = self.stream
