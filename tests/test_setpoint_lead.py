@@ -338,7 +338,8 @@ def test_a_drive_homing_leaves_the_buffered_sets_and_rejoins_them_after():
     buffered for the axis before it may reach the drive while it homes (their controlword 0x000F
     clears the start bit on a real drive): on the bus, none between the SDO that starts the homing and
     the one that ends it. After homing its holding target is in every buffered set again: no SYNC
-    finds it without one (8 missed without that)."""
+    finds it without one but, at most, the one during the switch back to CSP (8 missed without the
+    rejoin)."""
     import dataclasses
 
     from canopen_helpers import LocalListener, Rig, make_config, unique_channel
@@ -379,7 +380,9 @@ def test_a_drive_homing_leaves_the_buffered_sets_and_rejoins_them_after():
         assert homed == [pytest.approx(-1.0)], (homed, master.fault)
         assert master.fault is None, master.fault
         assert rig.sim(2).mode == cia402.MODE_CSP
-        assert rig.sim(2).missed_setpoints == before[0]
+        # at most the SYNC between the SDO that switches the drive back to CSP and the holding target
+        # sent again once it shows CSP (the simulated drive drops a pending target on a mode change)
+        assert rig.sim(2).missed_setpoints - before[0] <= 1
         listener.drain()
         # SDO downloads to node 2's controlword: 0x2B, index 0x6040, sub 0, the value
         frames = sorted(listener.payloads)

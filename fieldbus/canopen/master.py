@@ -275,7 +275,12 @@ class CanopenMaster(BootMixin, StateMachineMixin, SupervisionMixin, SpindleMixin
         "kernel", where no SYNC is sent here and the cycle is best called right after one:
         :attr:`sync_tick`), with the master's SYNC at the cycle's deadline. A stall of the cycle then
         delays the SYNC only by what came before it, never by the setpoint's work; every SYNC still
-        finds the RPDOs of the cycle before it (one thread sends both, in that order)."""
+        finds the RPDOs of the cycle before it (one thread sends both, in that order).
+
+        With the SYNC process (:attr:`sync_mode` "process") the RPDOs are gathered into one set and
+        handed to it for the next SYNC not yet given one, and only while its buffer has room
+        (:meth:`setpoints_wanted`; ``positions`` is not taken when it is full): :attr:`last_set_tag`
+        says for which SYNC."""
         now = time.monotonic()
         with self._lock:
             if self.network is None:  # not open, or shut down: nothing to send

@@ -102,8 +102,22 @@ class SetpointsMixin(MasterCore):
             return
         try:
             timer.now(frames, merge=True)
+            if self._next_tag == 0:
+                self._fill_with_holds(timer)
         except SyncProcessError as exc:
             raise can.CanError(str(exc)) from None
+
+    def _fill_with_holds(self, timer: SyncProcess) -> None:
+        """With ``_lock`` held, nothing buffered yet (the first drive enabled, or the first since a
+        stop): the active drives' holding targets fill the lead at once. Else the buffer would fill
+        only at the next cycle, and a cycle late past one period then cost the SYNCs just after the
+        enable their setpoints (seen beside two CPU hogs: one missed by each drive)."""
+        held = [(d.rpdo_id, d.cyclic_rpdo()) for d in self.drives if d.active and not d.homing]
+        first = timer.number + 1
+        timer.expect_from = first
+        for tag in range(first, first + self.setpoint_lead):
+            timer.push(tag, held, self._generation)
+        self._next_tag = first + self.setpoint_lead
 
     def _unbuffer(self, cob_ids: list[int]) -> None:
         """With ``_lock`` held: these frames out of every buffered set (a drive that starts homing)."""

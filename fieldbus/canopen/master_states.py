@@ -288,13 +288,17 @@ class StateMachineMixin(MasterCore):
         self._sdo(d, "controlword", 0x6040, 0, "H", cia402.CW_ENABLE_OPERATION)
         self._stream_again(d, actual)
         self._set_mode(d, cia402.MODE_CSP)
+        self._stream_again(d, actual)  # again in CSP: a drive that drops a target on the mode change
 
     def _stream_again(self, d: DriveBook, actual: int) -> None:
         """Before a drive goes back to cyclic synchronous position: the cycle sends it ``actual`` as its
         target from now on (and, with the SYNC process, in every set already buffered), so the first
         SYNC it sees in CSP finds a target (switched first, a SYNC while the mode's SDOs go back and
         forth would find none). The target in an RPDO is ignored in homing mode, and its controlword
-        is the 0x000F just written."""
+        is the 0x000F just written. Called again once the drive shows CSP: a drive that drops its
+        pending target on the mode change (as the simulated one does, starting from where the motor
+        is) gets it again; a SYNC between the mode's write and that still finds none, and the drive
+        holds where it stands, as CiA 402 drives do on entering CSP."""
         with self._lock:
             d.target = d.actual = actual
             d.homing = False
@@ -308,8 +312,10 @@ class StateMachineMixin(MasterCore):
         (homing start bit cleared), hold where it stands, back to cyclic synchronous position."""
         if cia402.decode(self._statusword(d)) == State.OPERATION_ENABLED:
             self._sdo(d, "controlword (stop homing)", 0x6040, 0, "H", cia402.CW_ENABLE_OPERATION)
-        self._stream_again(d, self._sdo(d, "position actual", 0x6064, 0, "i"))
+        actual = self._sdo(d, "position actual", 0x6064, 0, "i")
+        self._stream_again(d, actual)
         self._set_mode(d, cia402.MODE_CSP)
+        self._stream_again(d, actual)
         log.info("%s back in cyclic synchronous position mode", d.describe())
 
     def _set_mode(self, d: DriveBook, mode: int) -> None:

@@ -16,7 +16,8 @@
 * ``"process"``: the same structure on buses without the kernel's timer (``canon_local``,
   ``udp_multicast``): a SYNC process of its own sends it and reports each one on a pipe
   (:mod:`fieldbus.canopen.sync_process`, :attr:`KernelSync.timer`), which the master reads in place
-  of the listening socket.
+  of the listening socket. It also sends the drives' RPDOs, which the master hands it up to
+  ``[canopen] setpoint_lead`` SYNCs ahead (:mod:`fieldbus.canopen.setpoint_buffer`).
 * ``"auto"``: ``"kernel"`` on socketcan, else ``"master"``.
 
 With the kernel's SYNC the cycle thread is paced by the SYNCs it sees (:meth:`KernelSync.wait`, the
