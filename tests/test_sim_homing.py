@@ -3,6 +3,8 @@ it stops at; the switches keep their physical place when the count is re-based o
 
 from __future__ import annotations
 
+import time
+
 import pytest
 from canopen_helpers import Rig, make_config
 
@@ -76,3 +78,39 @@ def test_an_unsupported_method_is_a_homing_error() -> None:
 
     with pytest.raises(CanopenError, match=r"homing error .*method 36"):
         home(36)
+
+
+def test_homing_onto_a_limit_switch_is_no_fault_when_no_cycle_check_saw_the_drive_arrive() -> None:
+    """A busy PC: the cycle's checks did not run between the drive's arrival on the switch it homes on
+    and the homing's end. The switch, active where homing ended, is armed (read from the drive), not
+    taken for one that became active while the axis is driven."""
+    sim = SimDrive(1, negative_limit_counts=NEG, positive_limit_counts=POS, home_switch_counts=HOME)
+    r = Rig(make_config(1, homing="cia402", homing_method=17), [sim])
+    try:
+        r.up()
+        check = r.master._check
+        checks_after = []
+
+        def held_off_while_homing(now: float, active: list) -> None:
+            if any(d.homing for d in r.master.drives):
+                return  # the cycle came too late to see the drive on its switch while homing
+            checks_after.append(now)
+            check(now, active)
+
+        r.master._check = held_off_while_homing  # type: ignore[method-assign]
+        runner = PeriodicRunner(r.config.cycle_s, lambda k, t: r.master.cycle(None), cycles=5000,
+                                late_s=1.0).start()
+        try:
+            assert r.master.home("x") == pytest.approx(0.0)
+            t0 = len(checks_after)
+            deadline = time.monotonic() + 5.0
+            while len(checks_after) < t0 + 20 and time.monotonic() < deadline:
+                time.sleep(0.01)  # the checks after homing, with the switch active in the TPDOs
+        finally:
+            runner.stop()
+            assert runner.join(5.0)
+        assert len(checks_after) >= t0 + 20
+        assert sim.digital_inputs() & 1  # still on the negative limit switch's edge
+        assert r.master.fault is None, r.master.fault
+    finally:
+        r.close()

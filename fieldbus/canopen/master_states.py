@@ -283,12 +283,26 @@ class StateMachineMixin(MasterCore):
                                    f"(statusword 0x{sw:04X})")
             time.sleep(0.005)
         actual = self._sdo(d, "position actual", 0x6064, 0, "i")
+        self._arm_limits(d)
         with self._lock:
             d.scale.drive_zero_is_home()
         self._sdo(d, "controlword", 0x6040, 0, "H", cia402.CW_ENABLE_OPERATION)
         self._stream_again(d, actual)
         self._set_mode(d, cia402.MODE_CSP)
         self._stream_again(d, actual)  # again in CSP: a drive that drops a target on the mode change
+
+    def _arm_limits(self, d: DriveBook) -> None:
+        """After homing: the limit switches active where the drive stopped (read by SDO) count as
+        armed, as at enable, since homing on a limit switch (methods 17/18) ends on its edge with it
+        active. The cycle's check arms them from the TPDOs while homing too, but only if it ran between
+        the drive's arrival and the homing's end: a cycle held off that long (a busy PC) would take the
+        switch the drive homed on for one that became active while driven."""
+        if not d.has_inputs:
+            return
+        inputs = self._sdo(d, "digital inputs", 0x60FD, 0, "I")
+        with self._lock:
+            d.inputs = inputs
+            d.limits_armed = inputs & (NEGATIVE_LIMIT | POSITIVE_LIMIT)
 
     def _stream_again(self, d: DriveBook, actual: int) -> None:
         """Before a drive goes back to cyclic synchronous position: the cycle sends it ``actual`` as its
@@ -313,6 +327,7 @@ class StateMachineMixin(MasterCore):
         if cia402.decode(self._statusword(d)) == State.OPERATION_ENABLED:
             self._sdo(d, "controlword (stop homing)", 0x6040, 0, "H", cia402.CW_ENABLE_OPERATION)
         actual = self._sdo(d, "position actual", 0x6064, 0, "i")
+        self._arm_limits(d)
         self._stream_again(d, actual)
         self._set_mode(d, cia402.MODE_CSP)
         self._stream_again(d, actual)
