@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 
 import can
@@ -420,6 +421,32 @@ def test_disable_takes_the_drives_to_switch_on_disabled_and_back(rig):
     r.master.enable()
     r.run(5)
     assert r.master.fault is None and r.master.state[1].state == State.OPERATION_ENABLED
+
+
+def test_disable_stops_every_drive_when_one_quick_stop_cannot_be_sent(rig, caplog):
+    """A bus error on the first drive's quick stop is logged; the next drive still gets its own, and
+    both end disabled (before, the error left disable() half done, the second drive enabled)."""
+    r = rig(2)
+    r.run(5)
+    bus = r.master.network.bus
+    send = bus.send
+    quick_stops = [d.controlword_rpdo(cia402.CW_QUICK_STOP) for d in r.master.drives]
+    sent: list[tuple[int, bytes]] = []
+
+    def broken_for_node_1(msg, timeout=None):
+        frame = (msg.arbitration_id, bytes(msg.data))
+        if frame == quick_stops[0]:
+            raise can.CanOperationError("bus off")
+        sent.append(frame)
+        return send(msg, timeout)
+
+    bus.send = broken_for_node_1
+    with caplog.at_level(logging.ERROR):
+        r.master.disable()
+    bus.send = send
+    assert "quick stop to node 1 (axis x) not sent: bus off" in caplog.text
+    assert quick_stops[1] in sent  # the second drive's quick stop went out
+    assert [s.state for s in r.sims.drives.values()] == [State.SWITCH_ON_DISABLED] * 2
 
 
 def test_a_restarted_drive_is_seen_as_not_operational_and_boots_again(rig):

@@ -366,21 +366,24 @@ class SpindleMixin(MasterCore):
             sb.ramp_rpm = want
         self._cyclic(sb.rpdo_id, sb.rpdo())
 
-    def _spindle_quick_stop(self) -> None:
-        """With ``_lock`` held: the spindle drive's quick stop (its own 0x6085 ramp)."""
+    def _spindle_quick_stop(self) -> tuple[int, bytes] | None:
+        """With ``_lock`` held: the spindle drive's quick stop (its own 0x6085 ramp), sent at once on the
+        master's socket (an error logged); its frame, for the SYNC process's flush
+        (:meth:`~fieldbus.canopen.master_supervision.SupervisionMixin._quick_stop_drives`), or None."""
         sb = self.spindle
         if sb is None:
-            return
+            return None
         sb.commanded_rpm = sb.ramp_rpm = 0.0
-        if sb.active:
-            sb.active = False
-            sb.controlword = cia402.CW_QUICK_STOP
-            frame = (sb.rpdo_id, sb.rpdo(cia402.CW_QUICK_STOP))
-            try:
-                self._send(*frame)
-            except (can.CanError, OSError) as exc:
-                log.error("quick stop to %s not sent: %s", sb.describe(), exc)
-            self._stopped([frame])
+        if not sb.active:
+            return None
+        sb.active = False
+        sb.controlword = cia402.CW_QUICK_STOP
+        frame = (sb.rpdo_id, sb.rpdo(cia402.CW_QUICK_STOP))
+        try:
+            self._send(*frame)
+        except (can.CanError, OSError) as exc:
+            log.error("quick stop to %s not sent: %s", sb.describe(), exc)
+        return frame
 
     def _spindle_books(self) -> list[SpindleBook]:
         return [self.spindle] if self.spindle is not None else []

@@ -51,16 +51,7 @@ class StateMachineMixin(MasterCore):
             self._fault_during_enable()
         except CanopenError:
             with self._lock:
-                self._spindle_quick_stop()
-                enabled = [d for d in self.drives if d.active]
-                frames = []
-                for d in enabled:
-                    d.active = False
-                    d.controlword = cia402.CW_QUICK_STOP
-                    frames.append(d.controlword_rpdo(cia402.CW_QUICK_STOP))
-                    with contextlib.suppress(can.CanError, OSError):
-                        self._send(*frames[-1])
-                self._stopped(frames)
+                self._quick_stop_drives([d for d in self.drives if d.active])
             raise
         with self._lock:
             now = time.monotonic()
@@ -175,15 +166,7 @@ class StateMachineMixin(MasterCore):
         dropped at speed. No torque afterwards. A drive in Fault stays there (:meth:`reset_faults`)."""
         with self._lock:
             self._streaming_off()
-            frames = []
-            for d in self.drives:
-                if d.active:
-                    d.active = False
-                    d.controlword = cia402.CW_QUICK_STOP
-                    frames.append(d.controlword_rpdo(cia402.CW_QUICK_STOP))
-                    self._send(*frames[-1])
-            self._stopped(frames)
-            self._spindle_quick_stop()
+            self._quick_stop_drives([d for d in self.drives if d.active])
         for d in [*self.drives, *self._spindle_books()]:
             self._park(d, consumer_off=False)
 

@@ -121,9 +121,18 @@ class SupervisionMixin(MasterCore):
 
     def _quick_stop_locked(self) -> None:
         self._streaming_off()
-        self._spindle_quick_stop()
+        self._quick_stop_drives(self.drives)
+
+    def _quick_stop_drives(self, drives: list[DriveBook]) -> None:
+        """With ``_lock`` held: quick stop to the spindle drive and to ``drives``, no longer streamed to.
+        Each frame goes out at once on the master's own socket; one that cannot be sent is logged and
+        the others still go (a bus error on the first drive must not leave the next one driven). Then
+        all of them pass through the SYNC process in one flush, its buffered sets dropped first."""
         frames = []
-        for d in self.drives:
+        spindle = self._spindle_quick_stop()
+        if spindle is not None:
+            frames.append(spindle)
+        for d in drives:
             d.active = False
             d.controlword = cia402.CW_QUICK_STOP
             frames.append(d.controlword_rpdo(cia402.CW_QUICK_STOP))
@@ -132,7 +141,6 @@ class SupervisionMixin(MasterCore):
             except (can.CanError, OSError) as exc:
                 log.error("quick stop to %s not sent: %s", d.describe(), exc)
         self._stopped(frames)  # and through the SYNC process, its buffered sets dropped
-
 
     def _check(self, now: float, active: list[DriveBook]) -> None:
         """The feedback of the drives streamed to, before this cycle's RPDOs: the SYNC first (a stalled
