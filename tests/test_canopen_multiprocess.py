@@ -13,6 +13,7 @@ to catch up). These tests check behaviour, not timing.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
 import subprocess
 import sys
@@ -24,12 +25,13 @@ import pytest
 from canopen_helpers import wait_for
 
 from fieldbus.canopen.cia402 import State, decode
-from fieldbus.canopen.clock import PeriodicRunner, stream
+from fieldbus.canopen.clock import PeriodicRunner, ranked_below_cycle, stream
 from fieldbus.canopen.master import CanopenMaster
 from motiond.config_canopen import canopen_from_file
 from motiond.configkit import load_toml
 
 pytestmark = [pytest.mark.timeout(600)]
+log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parent.parent
 HAVE_VCAN0 = Path("/sys/class/net/vcan0").exists()
@@ -214,9 +216,17 @@ def setup(tmp_path, bus):
         drives_proc = DriveProcess(path, *extra, start_s=bus.start_s)
         master = CanopenMaster(config)
         made.append((drives_proc, master))
+        # the master's threads (python-can's reader, its heartbeat) ranked below the cycle, as in the
+        # motion process (motiond.runtime.motion_proc.rank_threads): an ordinary thread holding the
+        # interpreter lock behind two CPU hogs stalls the cycle (a heartbeat seen 229 ms late so)
+        with ranked_below_cycle(config.realtime_priority, "the test master's threads", log):
+            master.open()
         return drives_proc, master
 
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(min(switch, 0.0005))  # as the motion process
     yield make
+    sys.setswitchinterval(switch)
     for drives_proc, master in made:
         master.shutdown()
         print(drives_proc.stop())  # the drives' report (SYNCs, missed setpoints, EMCYs): shown on failure
@@ -348,7 +358,7 @@ def test_drives_with_rpdo_deadline_monitoring_enable_without_fault(setup, bus):
                            "--tick-ms", f"{bus.six_drives_tick_ms:g}", drives=6)
     master.boot()
     runner = PeriodicRunner(master.config.cycle_s, lambda k, t: master.cycle(None),
-                            keep_lateness=False).start()
+                            keep_lateness=False, realtime_priority=master.config.realtime_priority).start()
     try:
         master.enable()
         time.sleep(max(0.2, 5 * master.config.cycle_s))  # the last one enabled: 5 SYNCs more
@@ -448,7 +458,7 @@ def test_homing_by_the_drive_in_the_drive_process_on_its_home_switch(setup, bus)
     master.boot()
     master.enable()
     runner = PeriodicRunner(master.config.cycle_s, lambda k, t: master.cycle(None),
-                            keep_lateness=False).start()
+                            keep_lateness=False, realtime_priority=master.config.realtime_priority).start()
     try:
         t = time.monotonic()
         assert master.home("z") == pytest.approx(0.0)

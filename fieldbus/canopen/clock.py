@@ -441,7 +441,7 @@ def stream(master, trajectory: Callable[[float], Sequence[float]], seconds: floa
            fault_on_late: bool = True, late_s: float | None = None) -> PeriodicRunner:
     """Stream ``trajectory(t)`` (positions at ``t`` seconds from the start, ``t`` advancing one period per
     executed cycle) to ``master`` for ``seconds`` worth of cycles on a :class:`PeriodicRunner`; started,
-    not joined. A late cycle is a master fault unless
+    not joined, at the master's ``realtime_priority``. A late cycle is a master fault unless
     ``fault_on_late`` is False."""
     period = master.config.cycle_s
     n = max(1, round(seconds / period))
@@ -457,4 +457,5 @@ def stream(master, trajectory: Callable[[float], Sequence[float]], seconds: floa
         if fault_on_late:
             master.raise_fault(0, f"cycle {k} late by {1000 * by:.2f} ms (period {1000 * period:g} ms)")
 
-    return PeriodicRunner(period, step, cycles=n, late_s=late_s, on_late=late, tick=master.sync_tick).start()
+    return PeriodicRunner(period, step, cycles=n, late_s=late_s, on_late=late, tick=master.sync_tick,
+                          realtime_priority=master.config.realtime_priority).start()
