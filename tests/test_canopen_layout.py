@@ -292,11 +292,29 @@ def test_enable_right_after_a_quick_stop_waits_for_the_ramp(rig):
 
 
 def test_a_failed_homing_leaves_the_drive_in_csp_holding_where_it_stopped(rig):
-    """A homing that times out must not leave the drive homing by itself: the master stops it, puts
-    it back in cyclic synchronous position, and the axis streams again without a jump."""
+    """A homing that times out must not leave the drive homing by itself: the master stops it, waits
+    for its standstill, puts it back in cyclic synchronous position, and the axis streams again
+    without a jump."""
     import dataclasses
 
-    sims = [SimDrive(1, home_switch_counts=10**8)]  # a switch the drive never reaches
+    class Watched(SimDrive):
+        """Notes the highest position while homing, and whether it still moved when the master
+        switched it back to CSP (0x6060 by SDO; this drive would then stop at once, a real one would
+        do what its maker chose)."""
+
+        highest = 0.0
+        moving_at_mode_change: tuple[bool, ...] = ()
+
+        def _homing_step(self, dt: float) -> None:
+            super()._homing_step(dt)
+            self.highest = max(self.highest, self.actual)
+
+        def _on_write(self, index: int, subindex: int, od: object, data: bytes) -> None:
+            if index == 0x6060:
+                self.moving_at_mode_change += (self._homing,)
+            super()._on_write(index, subindex, od, data)
+
+    sims = [Watched(1, home_switch_counts=10**8)]  # a switch the drive never reaches
     cfg = make_config(1, homing="cia402", homing_timeout_s=0.3)
     cfg = dataclasses.replace(cfg, drives=(dataclasses.replace(cfg.drives[0], homing_method=19),))
     r = Rig(cfg, sims)
@@ -314,6 +332,10 @@ def test_a_failed_homing_leaves_the_drive_in_csp_holding_where_it_stopped(rig):
         assert sim.mode == cia402.MODE_CSP and not sim._homing
         moved = sim.actual
         assert abs(moved) > 1000  # it did travel before the timeout
+        # it ramped down (0x609A) after the stop and holds where it stood: not taken back to a position
+        # read while it still moved, nor stopped short by the mode change
+        assert moved == pytest.approx(sim.highest, abs=2)
+        assert sim.moving_at_mode_change[-1:] == (False,)  # back to CSP once it stood
         held = r.master.positions()[0]
         assert held * 10000 == pytest.approx(moved, abs=2)
         r.run(20, lambda k: [held + 0.001 * k])

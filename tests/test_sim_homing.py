@@ -3,7 +3,9 @@ it stops at; the switches keep their physical place when the count is re-based o
 
 from __future__ import annotations
 
+import contextlib
 import time
+from collections.abc import Iterator
 
 import pytest
 from canopen_helpers import Rig, make_config
@@ -12,6 +14,20 @@ from fieldbus.canopen.clock import PeriodicRunner
 from fieldbus.canopen.drive_sim import SimDrive
 
 NEG, POS, HOME = -30_000, 60_000, 20_000  # counts: negative and positive limit switches, home switch
+
+
+@contextlib.contextmanager
+def cycling(r: Rig) -> Iterator[None]:
+    """The master's cycle on its own thread for the body (at most 10 s), then stopped and joined; no
+    fault standing afterwards."""
+    runner = PeriodicRunner(r.config.cycle_s, lambda k, t: r.master.cycle(None), cycles=5000,
+                            late_s=1.0).start()
+    try:
+        yield
+    finally:
+        runner.stop()
+        assert runner.join(5.0)
+    assert r.master.fault is None, r.master.fault
 
 
 def home(method: int, **sim_kw: int) -> tuple[SimDrive, float, float]:
@@ -32,14 +48,8 @@ def home(method: int, **sim_kw: int) -> tuple[SimDrive, float, float]:
     r = Rig(make_config(1, homing="cia402", homing_method=method), [sim])
     try:
         r.up()
-        runner = PeriodicRunner(r.config.cycle_s, lambda k, t: r.master.cycle(None), cycles=5000,
-                                late_s=1.0).start()
-        try:
+        with cycling(r):
             assert r.master.home("x") == pytest.approx(0.0)
-        finally:
-            runner.stop()
-            assert runner.join(5.0)
-        assert r.master.fault is None, r.master.fault
     finally:
         r.close()
     return sim, seen[0], seen[1]
@@ -98,19 +108,54 @@ def test_homing_onto_a_limit_switch_is_no_fault_when_no_cycle_check_saw_the_driv
             check(now, active)
 
         r.master._check = held_off_while_homing  # type: ignore[method-assign]
-        runner = PeriodicRunner(r.config.cycle_s, lambda k, t: r.master.cycle(None), cycles=5000,
-                                late_s=1.0).start()
-        try:
+        with cycling(r):
             assert r.master.home("x") == pytest.approx(0.0)
             t0 = len(checks_after)
             deadline = time.monotonic() + 5.0
             while len(checks_after) < t0 + 20 and time.monotonic() < deadline:
                 time.sleep(0.01)  # the checks after homing, with the switch active in the TPDOs
-        finally:
-            runner.stop()
-            assert runner.join(5.0)
         assert len(checks_after) >= t0 + 20
         assert sim.digital_inputs() & 1  # still on the negative limit switch's edge
         assert r.master.fault is None, r.master.fault
+    finally:
+        r.close()
+
+
+def test_an_interrupted_homing_ramps_down_and_then_shows_bit_10() -> None:
+    """CiA 402's homing statusword (bits 13, 12, 10): 0 0 1 before the start, 0 0 0 while homing; after
+    the start bit went 1 -> 0 the drive ramps down at 0x609A, then shows 0 0 1 (interrupted)."""
+    from fieldbus.canopen import cia402
+
+    sim = SimDrive(1, home_switch_counts=10**8)  # never reached
+    r = Rig(make_config(1, homing="cia402", homing_method=19), [sim])
+    try:
+        r.up()
+        d = r.master.drives[0]
+        bits = cia402.SW_BIT13 | cia402.SW_BIT12 | cia402.SW_TARGET_REACHED
+        with cycling(r):
+            with r.master._lock:
+                d.homing = True
+            r.master._sdo(d, "homing method", 0x6098, 0, "b", 19)
+            r.master._set_mode(d, cia402.MODE_HOMING)
+            assert r.master._statusword(d) & bits == cia402.SW_TARGET_REACHED  # not started
+            r.master._sdo(d, "cw", 0x6040, 0, "H", cia402.CW_ENABLE_OPERATION | cia402.CW_HOMING_START)
+            time.sleep(0.2)
+            assert r.master._statusword(d) & bits == 0  # homing
+            at_stop: list[float] = []
+            controlword = sim._controlword
+
+            def noted(cw: int) -> None:
+                at_stop.append(sim.actual)
+                controlword(cw)
+
+            sim._controlword = noted  # type: ignore[method-assign]
+            r.master._sdo(d, "cw", 0x6040, 0, "H", cia402.CW_ENABLE_OPERATION)
+            deadline = time.monotonic() + 2.0
+            while not r.master._statusword(d) & cia402.SW_TARGET_REACHED and time.monotonic() < deadline:
+                time.sleep(0.005)
+            assert r.master._statusword(d) & bits == cia402.SW_TARGET_REACHED
+            # 100000 counts/s ramped down at 1e6 counts/s^2: v^2 / 2a = 5000 counts (not an instant stop)
+            assert sim.actual - at_stop[0] == pytest.approx(5000, abs=150)
+            r.master._back_to_csp(d)
     finally:
         r.close()

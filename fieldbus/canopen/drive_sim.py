@@ -206,6 +206,8 @@ class SimDrive(StateMachineMixin, CyclicMixin, HomingMixin, TouchProbeMixin, Vel
         self._homing: bool = False
         self._homing_attained = False
         self._homing_error = False
+        self._homing_interrupted = False
+        self._homing_v = 0.0  # counts/s of the last homing step (an interrupt ramps down from it)
         # counters a test reads
         self.syncs = 0
         self.rpdos = 0

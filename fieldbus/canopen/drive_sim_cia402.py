@@ -36,9 +36,13 @@ class StateMachineMixin:
                 extra |= cia402.SW_BIT12
                 if self._window != 0xFFFFFFFF and abs(self.demand - self.actual) > self._window:
                     extra |= cia402.SW_BIT13
-            elif self.mode == cia402.MODE_HOMING:
+            elif self.mode == cia402.MODE_HOMING and not self._homing:
+                # bits 13, 12, 10 as CiA 402 says for a homing that is over (this drive stops at once):
+                # 0 1 1 attained, 1 0 1 error at standstill, 0 0 1 interrupted or not started;
+                # 0 0 0 while it runs
+                extra |= cia402.SW_TARGET_REACHED
                 if self._homing_attained:
-                    extra |= cia402.SW_BIT12 | cia402.SW_TARGET_REACHED
+                    extra |= cia402.SW_BIT12
                 if self._homing_error:
                     extra |= cia402.SW_BIT13
             elif self.in_velocity_mode:
@@ -112,6 +116,11 @@ class StateMachineMixin:
             elif self.mode == cia402.MODE_HOMING and cw & cia402.CW_HOMING_START \
                     and not previous & cia402.CW_HOMING_START:
                 self._start_homing()
+            elif self.mode == cia402.MODE_HOMING and previous & cia402.CW_HOMING_START \
+                    and not cw & cia402.CW_HOMING_START and self._homing:
+                # start bit 1 -> 0: the homing is interrupted; the drive ramps down at the homing
+                # acceleration (0x609A), as drives do, and shows it stopped (bit 10) at standstill
+                self._homing_interrupted = True
         elif (s == State.QUICK_STOP_ACTIVE and cmd == Command.ENABLE_OPERATION
               and (self.velocity == 0 or self.reenable_during_quick_stop_ramp)
               and self._qs_option in (5, 6, 7, 8)):

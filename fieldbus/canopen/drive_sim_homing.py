@@ -36,6 +36,8 @@ class HomingMixin:
         self._homing = True
         self._homing_attained = False
         self._homing_error = False
+        self._homing_interrupted = False
+        self._homing_v = 0.0
         method = self._homing_method
         if 1 <= method <= 14:
             method += 16
@@ -81,9 +83,13 @@ class HomingMixin:
     def _homing_step(self, dt: float) -> None:
         if not self._homing:
             return
+        if self._homing_interrupted:
+            self._homing_ramp_down(dt)
+            return
         speed = self._homing_speed
         if self.home_switch_window_counts and self.digital_inputs() & DI_HOME:
             speed = self._homing_speed_zero  # on the home switch: the slow search for its zero
+        self._homing_v = speed
         step = speed * dt
         goal = self._homing_goal_counts()
         direction = self._homing_dir
@@ -111,3 +117,14 @@ class HomingMixin:
                 setattr(self, name, value + shift)
         self._homing = False
         self._homing_attained = True
+
+    def _homing_ramp_down(self, dt: float) -> None:
+        """An interrupted homing (start bit 1 -> 0): on in its direction, slower each period at 0x609A,
+        until it stands; then the homing is over (statusword bit 10: interrupted)."""
+        v = max(0.0, self._homing_v - max(1, self._value(0x609A)) * dt)
+        self.actual += self._homing_dir * 0.5 * (self._homing_v + v) * dt
+        self.demand = self.actual
+        self._homing_v = v
+        if v == 0.0:
+            self._homing = False
+            self._homing_interrupted = False

@@ -309,12 +309,30 @@ class StateMachineMixin(MasterCore):
         (homing start bit cleared), hold where it stands, back to cyclic synchronous position."""
         if cia402.decode(self._statusword(d)) == State.OPERATION_ENABLED:
             self._sdo(d, "controlword (stop homing)", 0x6040, 0, "H", cia402.CW_ENABLE_OPERATION)
+            self._wait_homing_stopped(d)
         actual = self._sdo(d, "position actual", 0x6064, 0, "i")
         self._arm_limits(d)
         self._stream_again(d, actual)
         self._set_mode(d, cia402.MODE_CSP)
         self._stream_again(d, actual)
         log.info("%s back in cyclic synchronous position mode", d.describe())
+
+    def _wait_homing_stopped(self, d: DriveBook) -> None:
+        """After the homing start bit went 1 -> 0: until the drive shows the homing interrupted and
+        at standstill (statusword bit 10, CiA 402's "interrupted" or "error, velocity 0"), so the
+        position read next is where it holds; a drive still decelerating would otherwise be streamed a
+        target behind it and jump back on entering CSP. Not seen within ``state_timeout_s``: a
+        warning, and the position read as it is."""
+        deadline = time.monotonic() + self.config.state_timeout_s
+        while True:
+            sw = self._statusword(d)
+            if sw & cia402.SW_TARGET_REACHED or cia402.decode(sw) != State.OPERATION_ENABLED:
+                return
+            if time.monotonic() > deadline:
+                log.warning("%s: homing stopped but no standstill shown within %g s (statusword "
+                            "0x%04X)", d.describe(), self.config.state_timeout_s, sw)
+                return
+            time.sleep(0.002)
 
     def _set_mode(self, d: DriveBook, mode: int) -> None:
         self._sdo(d, "modes of operation", 0x6060, 0, "b", mode)
