@@ -66,6 +66,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from fieldbus.canopen.clock import TRACE_ENV as CYCLE_TRACE_ENV  # noqa: E402  (after the path)
 from fieldbus.canopen.sync_process import TRACE_ENV  # noqa: E402  (after the path)
 
 STATUS_CHANNEL = "CANON_STATUS"
@@ -384,6 +385,7 @@ def case_own(n: int, period: float, seconds: float, rt: int, latency: int | None
     (where / "long.ngc").write_text(program(n, seconds))
     if sync == "process":  # the SYNC process records when it sent each SYNC (the sender's column)
         os.environ[TRACE_ENV] = str(where)
+    os.environ[CYCLE_TRACE_ENV] = str(where)  # and the motion process's cycle its steps (late_steps)
     sims = Drives(n, group, where, DRIVES_PRIORITY if DRIVES_PRIORITY >= 0 else max(0, rt - 1))
     client = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--status-client",
                                str(seconds + 60), str(where / "status.count")], cwd=ROOT,
@@ -430,8 +432,10 @@ def case_own(n: int, period: float, seconds: float, rt: int, latency: int | None
         client.wait(10)
         result = sims.close()
         os.environ.pop(TRACE_ENV, None)
+        os.environ.pop(CYCLE_TRACE_ENV, None)
         received = int((where / "status.count").read_text()) if (where / "status.count").exists() else 0
         sent_at = [t for f in sorted(where.glob("sync-*.f64")) for t in read_trace(f)]
+        steps = [read_trace(f) for f in sorted(where.glob("cycle-*.f64"))]
         tmp.cleanup()
     by = f"a SYNC process, setpoints {lead} ahead" if sync == "process" else "the cycle"
     row = {"case": f"own: {n} drives, {1000 * period:g} ms, gc {'steered' if steer_gc else 'automatic'}, "
@@ -440,6 +444,8 @@ def case_own(n: int, period: float, seconds: float, rt: int, latency: int | None
     print(f"  the motion process's threads during the window ({seconds:g} s): " + "; ".join(
         f"{r['tid']} {r['policy']} cpu {r['cpu_ms']:.0f} ms, waited {r['wait_ms']:.0f} ms, {r['invol']} "
         "preempted" for r in threads if r["cpu_ms"] > 0), flush=True)
+    for trace in steps:
+        print(late_steps(trace, window, period), flush=True)
     row = finish_row(row, window, period, result, fault, f"{late[0]} (worst {1e3 * late[1]:.1f} ms)", "-")
     inside = [t for t in sent_at if window[0] <= t <= window[1]]
     if len(inside) > 2:
@@ -450,8 +456,34 @@ def case_own(n: int, period: float, seconds: float, rt: int, latency: int | None
     return row
 
 
+def late_steps(trace: list[float], window: tuple[float, float], period: float, worst: int = 4) -> str:
+    """The motion process's cycle steps in ``window`` (:data:`fieldbus.canopen.clock.TRACE_ENV`: deadline,
+    start, end, CPU seconds each): the longest step with its CPU time, and the ``worst`` latest starts,
+    each with the step before it (its duration and CPU time: a step that ran long delays the next by
+    its own work; one far longer than its CPU time waited for the interpreter lock or a CPU) and the
+    gap from that step's end to this start (a gap is a wake-up held off)."""
+    rows = [tuple(trace[i:i + 4]) for i in range(0, len(trace) - 3, 4)]
+    idx = [i for i, r in enumerate(rows) if window[0] <= r[1] <= window[1]]
+    if not idx:
+        return "  the cycle's steps: none in the window"
+    longest = max(idx, key=lambda i: rows[i][2] - rows[i][1])
+    d, s, e, c = rows[longest]
+    parts = [f"  the cycle's steps ({len(idx)}): longest {1e3 * (e - s):.2f} ms (CPU {1e3 * c:.2f} ms); "
+             "latest starts:"]
+    for i in sorted(idx, key=lambda i: rows[i][1] - rows[i][0], reverse=True)[:worst]:
+        d, s, _e, _c = rows[i]
+        text = f"{1e3 * (s - d):.2f} ms late"
+        if i > 0:
+            _pd, ps, pe, pc = rows[i - 1]
+            text += (f" after a step of {1e3 * (pe - ps):.2f} ms (CPU {1e3 * pc:.2f} ms) and a gap of "
+                     f"{1e3 * (s - pe):.2f} ms")
+        parts.append(text)
+    return " ".join(parts[:1]) + " " + "; ".join(parts[1:])
+
+
 def read_trace(path: Path) -> list[float]:
-    """The SYNC process's send times (:data:`fieldbus.canopen.sync_process.TRACE_ENV`)."""
+    """The doubles a trace file holds (:data:`fieldbus.canopen.sync_process.TRACE_ENV`: the SYNC
+    process's send times; :data:`fieldbus.canopen.clock.TRACE_ENV`: the cycle's steps)."""
     from array import array
 
     times = array("d")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gc
+import itertools
 import logging
 import os
 import threading
@@ -160,3 +161,39 @@ def test_refused_cpu_affinity_is_logged_and_the_runner_runs(caplog):
         assert runner.join(5)
     assert not runner.affinity_applied and runner.stats.cycles == 5
     assert "not pinned to CPUs [4095]" in caplog.text
+
+
+def test_the_step_trace_records_each_step_with_its_cpu_time(tmp_path, monkeypatch):
+    """CANON_CYCLE_TRACE: deadline, start, end and CPU seconds of every step, written at the runner's
+    end; a step that computes shows CPU time near its duration, one that sleeps shows almost none."""
+    from array import array
+
+    from fieldbus.canopen.clock import TRACE_ENV
+
+    monkeypatch.setenv(TRACE_ENV, str(tmp_path))
+
+    def step(k: int, t: float) -> None:
+        if k == 3:
+            end = time.thread_time() + 0.004  # 4 ms of this thread's CPU
+            while time.thread_time() < end:
+                pass
+        elif k == 6:
+            time.sleep(0.004)  # 4 ms off the CPU
+
+    runner = PeriodicRunner(0.01, step, cycles=10, late_s=1.0).start()
+    assert runner.join(10.0)
+    files = list(tmp_path.glob(f"cycle-{os.getpid()}-{runner.native_id}.f64"))
+    assert len(files) == 1
+    trace = array("d")
+    trace.frombytes(files[0].read_bytes())
+    rows = [tuple(trace[i:i + 4]) for i in range(0, len(trace), 4)]
+    assert len(rows) == runner.stats.cycles == 10
+    for deadline, start, end, cpu in rows:
+        assert start >= deadline - 1e-6 and end >= start and 0.0 <= cpu <= end - start + 1e-3
+    deadlines = [r[0] for r in rows]
+    gaps = [(b - a) / 0.01 for a, b in itertools.pairwise(deadlines)]  # whole periods (late: skipped)
+    assert all(g >= 1 - 1e-6 and g == pytest.approx(round(g), abs=1e-6) for g in gaps)
+    _, s3, e3, c3 = rows[3]
+    assert c3 >= 0.004 and e3 - s3 >= 0.004
+    _, s6, e6, c6 = rows[6]
+    assert e6 - s6 >= 0.004 and c6 < 0.002

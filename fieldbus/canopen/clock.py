@@ -42,10 +42,18 @@ import os
 import struct
 import threading
 import time
+from array import array
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 log = logging.getLogger(__name__)
+
+#: an environment variable naming a folder: a :class:`PeriodicRunner` records, for each step, its
+#: deadline, its start, its end (``time.monotonic``) and the thread's CPU seconds in it, and writes them
+#: there at its end (``cycle-PID-TID.f64``: native doubles, four a step). A bench then tells a step
+#: that started late because the one before ran long (its own work: CPU time near its duration) from
+#: one held off (waiting for the interpreter lock or a CPU: duration well above its CPU time)
+TRACE_ENV = "CANON_CYCLE_TRACE"
 
 
 @dataclass
@@ -207,6 +215,7 @@ class PeriodicRunner:
         self.gc_full_every_s = gc_full_every_s
         self.tick = tick
         self.stats = CycleStats(period_s)
+        self._trace: array | None = array("d") if os.environ.get(TRACE_ENV) else None
         self.error: BaseException | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
@@ -268,10 +277,21 @@ class PeriodicRunner:
         finally:
             st.ended = time.monotonic()
             st.cpu_s = time.thread_time() - cpu0
+            if self._trace is not None:
+                self._write_trace(self._trace)
             if steer is not None:
                 steer.end()
             if self.cpu_latency is not None:
                 self.cpu_latency.release()
+
+    def _write_trace(self, trace: array) -> None:
+        folder = os.environ.get(TRACE_ENV, "")
+        path = os.path.join(folder, f"cycle-{os.getpid()}-{self.native_id}.f64")
+        try:
+            with open(path, "wb") as f:
+                trace.tofile(f)
+        except OSError as exc:
+            log.warning("cycle trace not written to %s: %s", folder, exc)
 
     def _step_at(self, k: int, deadline: float, now: float, missed: int = 0) -> bool:
         """Step ``k`` of ``deadline``, started at ``now`` (``missed`` ticks skipped before it): its
@@ -286,8 +306,16 @@ class PeriodicRunner:
             if self.on_late is not None:
                 self.on_late(k, late)
         st.cycles += 1
+        trace = self._trace
+        if trace is None:
+            result = self.step(k, deadline)
+            st.work_s += time.monotonic() - now
+            return result is not False
+        cpu = time.thread_time()
         result = self.step(k, deadline)
-        st.work_s += time.monotonic() - now
+        end = time.monotonic()
+        st.work_s += end - now
+        trace.extend((deadline, now, end, time.thread_time() - cpu))
         return result is not False
 
     def _run_on_clock(self, steer: _GcSteering | None) -> None:
