@@ -36,7 +36,6 @@ collector's previous state (enabled or not; frozen objects unfrozen if none were
 from __future__ import annotations
 
 import contextlib
-import faulthandler
 import gc
 import logging
 import os
@@ -55,14 +54,6 @@ log = logging.getLogger(__name__)
 #: that started late because the one before ran long (its own work: CPU time near its duration) from
 #: one held off (waiting for the interpreter lock or a CPU: duration well above its CPU time)
 TRACE_ENV = "CANON_CYCLE_TRACE"
-
-#: an environment variable giving milliseconds: a real-time :class:`PeriodicRunner` (``realtime_priority``
-#: > 0) then has :mod:`faulthandler` dump every thread's Python stack to standard error when no step
-#: has begun for that long (re-armed every :data:`STALL_REARM` steps, so the limit is that many periods
-#: longer). faulthandler's watchdog is a thread of its own that needs no interpreter lock: it shows what
-#: held the cycle off while it was held off, which nothing in Python can (one runner per process)
-STALL_DUMP_ENV = "CANON_STALL_DUMP_MS"
-STALL_REARM = 5
 
 
 @dataclass
@@ -225,9 +216,6 @@ class PeriodicRunner:
         self.tick = tick
         self.stats = CycleStats(period_s)
         self._trace: array | None = array("d") if os.environ.get(TRACE_ENV) else None
-        stall_ms = os.environ.get(STALL_DUMP_ENV, "")
-        self._stall_dump_s = (float(stall_ms) / 1000.0 + STALL_REARM * period_s
-                              if stall_ms and realtime_priority > 0 else 0.0)
         self.error: BaseException | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
@@ -291,8 +279,6 @@ class PeriodicRunner:
             st.cpu_s = time.thread_time() - cpu0
             if self._trace is not None:
                 self._write_trace(self._trace)
-            if self._stall_dump_s:
-                faulthandler.cancel_dump_traceback_later()
             if steer is not None:
                 steer.end()
             if self.cpu_latency is not None:
@@ -320,8 +306,6 @@ class PeriodicRunner:
             if self.on_late is not None:
                 self.on_late(k, late)
         st.cycles += 1
-        if self._stall_dump_s and st.cycles % STALL_REARM == 1:
-            faulthandler.dump_traceback_later(self._stall_dump_s)
         trace = self._trace
         if trace is None:
             result = self.step(k, deadline)
