@@ -485,8 +485,12 @@ def expand_cycle(
             )
 
     pecks = 0
-    if code10 in (730, 830):
-        pecks = math.ceil((r_level - bottom) / new_q) if r_level > bottom else 0
+    if code10 in (730, 830) and r_level > bottom:
+        ratio = (r_level - bottom) / new_q  # inf for a Q like 5e-324: no integer holds that many pecks
+        if not ratio < MAX_OPS:
+            raise GCodeError(f"{name} would make more than {MAX_OPS} moves (Q{new_q:g} pecks in a hole "
+                             f"{r_level - bottom:g} deep): check Q and L")
+        pecks = math.ceil(ratio)
     per_hole = 12 + (3 * pecks)
     if per_hole * repeats > MAX_OPS:
         raise GCodeError(

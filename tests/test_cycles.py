@@ -526,6 +526,9 @@ def test_code_spellings(code: int | str) -> None:
         (800, Plane.XY, {"z": -1, "r": 1}, "G80 is not a canned cycle"),
         ("G8x", Plane.XY, {"z": -1, "r": 1}, "is not a G code"),
         (830, Plane.XY, {"z": -1000, "r": 0, "q": 0.001}, "more than"),
+        # a Q so small that the number of pecks is infinite (hypothesis found it: an OverflowError)
+        (830, Plane.XY, {"z": -1, "r": 0, "q": 5e-324}, "G83 would make more than"),
+        (730, Plane.XY, {"z": -1, "r": 0, "q": 1e-300}, "G73 would make more than"),
         (810, Plane.XY, {"z": -1, "r": 0, "l": MAX_OPS}, "more than"),
     ],
 )
