@@ -41,6 +41,14 @@ class ProgramLoopMixin:
         return self._run(source)
 
     def _run(self, source: LineSource) -> Iterator[Canon]:
+        """The program's commands, lazily: :meth:`_loop` sets up and reads from the start of ``source``.
+        One generator between the source and the caller: a generator that hands on another's
+        commands (``yield from``) costs a resumption of both for each command."""
+        return self._loop(source)
+
+    def _start(self, source: LineSource) -> Canon | None:
+        """The interpreter at the start of a program read from ``source``; the command to yield first
+        (Grbl's blending), or None."""
         self.file = source.name
         self.line = 0
         self.ended = False
@@ -52,12 +60,8 @@ class ProgramLoopMixin:
         if self.dialect is Dialect.GRBL and self.control == (MotionControlMode.CONTINUOUS, 0.0, 0.0):
             # Grbl blends every corner within its junction deviation ($11); a G64 P in the program wins
             self.control = (MotionControlMode.CONTINUOUS, GRBL_JUNCTION_DEVIATION_MM, 0.0)
-            yield SetMotionControlMode(*self.control, file=source.name, line=1)
-        try:
-            yield from self._loop(main=source)
-        finally:
-            self.flow.close_all()
-            source.close()
+            return SetMotionControlMode(*self.control, file=source.name, line=1)
+        return None
 
     def switch_source(self, source: LineSource, file: str | None = None) -> None:
         """Continue reading from ``source`` (an o-word call or return); the loop picks it up."""
@@ -66,8 +70,17 @@ class ProgramLoopMixin:
         self._fast_ok = False  # re-evaluated after the line
 
     def _loop(self, main: LineSource | None, depth: int = 0) -> Iterator[Canon]:
-        """Read and execute lines from ``self.source`` until the program ends (``main``) or, for an
-        MDI call, until the call stack is back to ``depth`` frames."""
+        """Read and execute lines from ``self.source`` until the program ends (``main``: the program's
+        source, set up here by :meth:`_start` and closed at the end) or, for an MDI call, until the
+        call stack is back to ``depth`` frames.
+
+        The lines are read here as :meth:`LineSource.__iter__` reads them (the same line count, limit
+        and errors), not through it: a generator between the source and this loop costs its
+        resumption at every line."""
+        if main is not None:
+            first = self._start(main)
+            if first is not None:
+                yield first
         fast_match = FAST_LINE.match
         fast = self._fast_values
         fast_block = self._fast_block
@@ -79,79 +92,97 @@ class ProgramLoopMixin:
         settings = self.settings
         percent_open = False
         seen_content = seen_fast = False
-        while True:
-            source = self.source
-            in_main = source is main
-            for raw in source:
-                self.line = source.line
-                if self.before_line is not None:
-                    self.before_line()
-                if self._fast_ok:
-                    entry = known(raw)
-                    if entry is not None:  # a line read before: its Block or compiled line, no parsing
-                        cmds = quick(entry)
-                        if cmds is not None:
+        try:
+            while True:
+                source = self.source
+                in_main = source is main
+                readline = source.stream.readline
+                limit = source.max_line_length + 2
+                switched = False
+                while True:
+                    try:
+                        raw = readline(limit)
+                    except OSError as exc:
+                        raise GCodeError(f"Cannot read program: {exc}", source.name,
+                                         source.line + 1) from None
+                    if not raw:
+                        break  # the end of the source: below
+                    self.line = source.line = source.line + 1
+                    if raw[-1] == "\n":
+                        raw = raw[:-1]
+                    if len(raw) > limit - 2:
+                        raise GCodeError(f"Line too long (more than {limit - 2} characters)", source.name,
+                                         source.line)
+                    if self.before_line is not None:
+                        self.before_line()
+                    if self._fast_ok:
+                        entry = known(raw)
+                        if entry is not None:  # a line read before: its Block or compiled line, no parsing
+                            cmds = quick(entry)
+                            if cmds is not None:
+                                seen_content = True
+                                self.seen_code = True
+                                yield from cmds
+                                continue
+                        elif (m := fast_match(raw)) is not None:
+                            g, xs, ys, zs, fs = m.groups()
+                            cmds = fast(None if g is None else 0 if g == "0" else 10,
+                                        None if xs is None else float(xs), None if ys is None else float(ys),
+                                        None if zs is None else float(zs), None if fs is None else float(fs))
+                            if cmds is not None:
+                                seen_content = seen_fast = True
+                                yield from cmds
+                                continue
+                    self._tail = None
+                    stripped = raw.strip()
+                    if not stripped:
+                        continue
+                    if stripped[0] == "$" and self.dialect is Dialect.GRBL:
+                        log.warning("%s:%d: Grbl system command %r skipped (not G-code)", self.file,
+                                    self.line, stripped)
+                        continue
+                    if stripped == "%":
+                        if not in_main:
+                            continue
+                        if not seen_content:
                             seen_content = True
-                            self.seen_code = True
-                            yield from cmds
+                            percent_open = True
                             continue
-                    elif (m := fast_match(raw)) is not None:
-                        g, xs, ys, zs, fs = m.groups()
-                        cmds = fast(None if g is None else 0 if g == "0" else 10,
-                                    None if xs is None else float(xs), None if ys is None else float(ys),
-                                    None if zs is None else float(zs), None if fs is None else float(fs))
-                        if cmds is not None:
-                            seen_content = seen_fast = True
-                            yield from cmds
-                            continue
-                self._tail = None
-                stripped = raw.strip()
-                if not stripped:
-                    continue
-                if stripped[0] == "$" and self.dialect is Dialect.GRBL:
-                    log.warning("%s:%d: Grbl system command %r skipped (not G-code)", self.file, self.line,
-                                stripped)
-                    continue
-                if stripped == "%":
-                    if not in_main:
-                        continue
-                    if not seen_content:
-                        seen_content = True
-                        percent_open = True
-                        continue
-                    self._end_program(None)
-                    yield from self._drain()
-                    return
-                seen_content = True
-                if seen_fast:
-                    self.seen_code = True
-                try:
-                    block = parse(raw)
-                    cmds = fast_block(block) if block.plain is not None and self._fast_ok else None
-                    if cmds is None:
-                        out = self._execute_block(block)
-                except Exception as exc:
-                    err, cause = self._line_error(exc)
-                    raise err from cause
-                if cmds is not None:
-                    self.seen_code = True
-                    yield from cmds
-                    continue
-                for item in out:
-                    if type(item) is Resume:
-                        try:
-                            item.fn()
-                        except GCodeError as exc:
-                            raise exc.located(self.file, self.line) from None
-                    else:
-                        yield item
-                if self.ended:
-                    return
-                if self.source is not source:
-                    if main is None and len(flow.frames) <= depth:
+                        self._end_program(None)
+                        yield from self._drain()
                         return
-                    break
-            else:
+                    seen_content = True
+                    if seen_fast:
+                        self.seen_code = True
+                    try:
+                        block = parse(raw)
+                        cmds = fast_block(block) if block.plain is not None and self._fast_ok else None
+                        if cmds is None:
+                            out = self._execute_block(block)
+                    except Exception as exc:
+                        err, cause = self._line_error(exc)
+                        raise err from cause
+                    if cmds is not None:
+                        self.seen_code = True
+                        yield from cmds
+                        continue
+                    for item in out:
+                        if type(item) is Resume:
+                            try:
+                                item.fn()
+                            except GCodeError as exc:
+                                raise exc.located(self.file, self.line) from None
+                        else:
+                            yield item
+                    if self.ended:
+                        return
+                    if self.source is not source:
+                        if main is None and len(flow.frames) <= depth:
+                            return
+                        switched = True
+                        break
+                if switched:
+                    continue
                 try:
                     flow.at_end_of_source(source)
                 except GCodeError as exc:
@@ -175,6 +206,10 @@ class ProgramLoopMixin:
                     raise GCodeError("File ended with no percent sign or program end (M2, M30)",
                                      self.file, last)
                 return
+        finally:
+            if main is not None:
+                self.flow.close_all()
+                main.close()
 
     def _drain(self) -> Iterator[Canon]:
         out, self._out = self._out, []
