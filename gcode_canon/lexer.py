@@ -39,8 +39,8 @@ _AXIS_WORDS = frozenset("xyzabcuvw@^")
 class Block:
     """What one line says, before any of it is executed."""
 
-    __slots__ = ("assigns", "axes", "comments", "deleted", "g", "line_number", "m", "o_text", "origin",
-                 "plain", "shape", "words")
+    __slots__ = ("assigns", "axes", "comments", "deleted", "fast", "g", "line_number", "m", "o_text",
+                 "origin", "plain", "shape", "words")
 
     def __init__(self) -> None:
         self.g: list[int] = []  # G codes times ten: G38.2 -> 382
@@ -56,6 +56,9 @@ class Block:
         """Set by :mod:`gcode_canon.compiled` on a line read again that the fast path can run (an
         optional G0/G1 with X Y Z F words only, or G2/G3 with X Y Z I J K R F words; no active
         comment): (motion code or None, the text of its comment or None); None: the general path."""
+        self.fast = None
+        """For a Block the line cache keeps: the program loop's run of this line on the fast path (no
+        arguments; the commands, or None for the general path), or None (``LineCache``'s ``fast_for``)."""
         self.shape: tuple | None = None
         """What its execution depends on besides its values (the interpreter's ``_shape``), kept
         with the line once computed; None: not yet."""

@@ -434,32 +434,34 @@ class MotionMixin:
         return new_arc_feed(end_pose, centre_pose, self.plane, rot, self.frames.arc_rotation(self.plane),
                             self.file, self.line)
 
-    def _fast_arc(self, block: Block, motion: int) -> tuple[Canon, ...] | None:
-        """The fast path of a G2/G3 line read again (:attr:`Block.plain`: X Y Z I J K R F words, taken
-        where :meth:`fast_path_allowed` holds): the commands of the general path (its F step, then
-        :meth:`_step_motion`'s arc), or None to send the line there, with nothing changed (every
-        error is the general path's, said in its place).
+    def _fast_arc(self, motion: int, xv: float | None, yv: float | None, zv: float | None, iv: float | None,
+                  jv: float | None, kv: float | None, rv: float | None,
+                  fv: float | None) -> tuple[Canon, ...] | None:
+        """The fast path of a G2/G3 line read again (:attr:`Block.plain`: X Y Z I J K R F words, their
+        values here, None where absent; taken where :meth:`fast_path_allowed` holds): the commands of
+        the general path (its F step, then :meth:`_step_motion`'s arc), or None to send the line there,
+        with nothing changed (every error is the general path's, said in its place).
 
         :meth:`_target`, :meth:`_arc_centre` and :meth:`_arc_command` written out for what
         :meth:`fast_path_allowed` leaves: no polar words, no rotation, scaling or mirroring (the frames'
         sum is the whole transform, the arc's ``rotation`` 0)."""
-        words = block.words
         plane = self.plane
         first, second, normal = plane._value_
-        if normal > 2 or _IJK[normal] in words:
+        if normal > 2:
             return None
-        i_first, i_second = _IJK[first], _IJK[second]
-        has_ijk = i_first in words or i_second in words
+        offsets = (iv, jv, kv)
+        if offsets[normal] is not None:
+            return None
+        o1, o2 = offsets[first], offsets[second]
+        has_ijk = o1 is not None or o2 is not None
         scale = self.scale
-        fv = words.get("f")
         feed = self.feed if fv is None else fv * scale
-        radius = words.get("r")
+        radius = rv
         if ((radius is not None) == has_ijk or not (feed > 0.0 and _isfinite(feed))
                 or self.cycle_state.initial_level is not None):
             return None
         start = self.prog
         target = list(start)
-        xv, yv, zv = words.get("x"), words.get("y"), words.get("z")  # not a loop over the I J K R F words
         if self.absolute:
             if xv is not None:
                 target[0] = xv * scale
@@ -481,8 +483,8 @@ class MotionMixin:
             if radius is not None:
                 cx, cy, rot = centre_r(clockwise, s2, e2, radius * scale, 1)
             else:
-                off1 = (words.get(i_first) or 0.0) * scale
-                off2 = (words.get(i_second) or 0.0) * scale
+                off1 = (o1 or 0.0) * scale
+                off2 = (o2 or 0.0) * scale
                 centre = (off1, off2) if self.ijk_absolute else (s2[0] + off1, s2[1] + off2)
                 cx, cy, rot = centre_ijk(clockwise, s2, e2, centre, 1, self.inch)
         except GCodeError:

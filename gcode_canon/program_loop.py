@@ -7,6 +7,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Iterator
+from functools import partial
 
 from gcode_canon.arcs import MM_PER_INCH
 from gcode_canon.commands import (
@@ -31,6 +32,8 @@ from gcode_canon.source import LineSource
 log = logging.getLogger(__name__)
 
 _isfinite = math.isfinite
+_SHORTCUT_ERRORS = (GCodeError, RecursionError, ArithmeticError, ValueError)
+"""What an expression may raise: on the fast path, the line goes the general way, which says it."""
 _new_pose = tuple.__new__
 
 class ProgramLoopMixin:
@@ -86,7 +89,6 @@ class ProgramLoopMixin:
         fast_block = self._fast_block
         parse = self._lines.parse
         known = self._lines.known
-        quick = self._quick_line
         flow = self.flow
         self._tail = None
         settings = self.settings
@@ -118,7 +120,12 @@ class ProgramLoopMixin:
                     if self._fast_ok:
                         entry = known(raw)
                         if entry is not None:  # a line read before: its Block or compiled line, no parsing
-                            cmds = quick(entry)
+                            run = entry.fast  # type: ignore[attr-defined]
+                            try:
+                                cmds = None if run is None else run()
+                            except Exception as exc:
+                                err, cause = self._line_error(exc)
+                                raise err from cause
                             if cmds is not None:
                                 seen_content = True
                                 self.seen_code = True
@@ -219,43 +226,69 @@ class ProgramLoopMixin:
             else:
                 yield item
 
-    def _quick_line(self, entry: object) -> tuple[Canon, ...] | None:
-        """A line read before, where the fast path is allowed, from what the line cache holds for it
-        (``entry``): a parsed Block of the fast path's shape goes to :meth:`_fast_block`; a compiled
-        straight line gives its values to :meth:`_fast_values` without building a Block; a compiled
-        line of parameter settings alone sets them as :meth:`_execute_block` would. The commands
-        (``()`` when there are none), or None for the general way, with nothing changed: an
-        expression that fails here fails again there, which says it in its place. The fast path's
-        A-W tail (``_tail``) stays: none of these lines moves those axes or changes an offset."""
-        cls = entry.__class__
-        if cls is Block:
-            if entry.plain is None:  # type: ignore[attr-defined]
-                return None
+    def _fast_runner(self, line: Block | CompiledLine) -> Callable[[], tuple[Canon, ...] | None] | None:
+        """The fast path of a line the line cache keeps (its ``fast``, called by the loop where the fast
+        path is allowed): the line's commands (``()`` when there are none), or None for the general
+        way with nothing changed. A parsed Block of the fast path's shape runs :meth:`_fast_values` or
+        ``_fast_arc`` on its words' values, bound once; a compiled straight line computes its X Y Z F
+        values (``CompiledLine.quick``) and gives them to :meth:`_fast_values`, no Block built; a
+        compiled line of parameter settings alone sets them as :meth:`_execute_block` would. An
+        expression that fails here fails again the general way, which says it in its place. The fast
+        path's A-W tail (``_tail``) stays: none of these lines moves those axes or changes an offset.
+        None: the line has no fast path."""
+        if line.__class__ is Block:
+            motion, comment = line.plain  # type: ignore[misc]
+            w = line.words  # type: ignore[union-attr]
+            if motion is not None and motion >= 20:
+                run = partial(self._fast_arc, motion, w.get("x"), w.get("y"), w.get("z"),  # type: ignore[attr-defined]
+                              w.get("i"), w.get("j"), w.get("k"), w.get("r"), w.get("f"))
+            else:
+                run = partial(self._fast_values, motion, w.get("x"), w.get("y"), w.get("z"), w.get("f"))
+            return run if comment is None else self._commented(run, comment)
+        quick = line.quick  # type: ignore[union-attr]
+        if quick is None:
+            return None
+        if line.plain is None:  # parameter settings alone
+            return self._settings_runner(quick)
+        motion, comment = line.plain
+        fast = self._fast_values
+
+        def straight() -> tuple[Canon, ...] | None:
             try:
-                return self._fast_block(entry)  # type: ignore[arg-type]
-            except Exception as exc:
-                err, cause = self._line_error(exc)
-                raise err from cause
-        if cls is not CompiledLine or entry.quick is None:  # type: ignore[attr-defined]
-            return None
-        try:
-            values = entry.quick()  # type: ignore[attr-defined]
-        except (GCodeError, RecursionError, ArithmeticError, ValueError):
-            return None
-        plain = entry.plain  # type: ignore[attr-defined]
-        if plain is None:  # parameter settings alone
+                values = quick()
+            except _SHORTCUT_ERRORS:
+                return None
+            return fast(motion, *values)  # type: ignore[misc]
+
+        return straight if comment is None else self._commented(straight, comment)
+
+    def _commented(self, run: Callable[[], tuple[Canon, ...] | None],
+                   text: str) -> Callable[[], tuple[Canon, ...] | None]:
+        """``run`` on a line with a comment: the comment first (``_step_comment`` runs first)."""
+
+        def commented() -> tuple[Canon, ...] | None:
+            cmds = run()
+            if cmds is None:
+                return None
+            return (new_comment(text, self.file, self.line), *cmds)
+
+        return commented
+
+    def _settings_runner(self, quick: Callable[[], object]) -> Callable[[], tuple[Canon, ...] | None]:
+        """The fast path of a compiled line of parameter settings alone (:meth:`_fast_runner`)."""
+
+        def settings() -> tuple[Canon, ...] | None:
             if self.cycle_state.initial_level is not None or len(self.steps) != self._builtin_steps:
                 return None
-            self._tail = None  # as the general path: computed again at the next fast line
             try:
-                self._assign(values)
-            except GCodeError as exc:
-                raise exc.located(self.file, self.line) from None
+                values = quick()
+            except _SHORTCUT_ERRORS:
+                return None
+            self._tail = None  # as the general path: computed again at the next fast line
+            self._assign(values)  # type: ignore[arg-type]
             return ()
-        cmds = self._fast_values(plain[0], *values)
-        if cmds is None or plain[1] is None:
-            return cmds
-        return (new_comment(plain[1], self.file, self.line), *cmds)  # _step_comment runs first
+
+        return settings
 
     def _line_error(self, exc: Exception) -> tuple[GCodeError, Exception | None]:
         """The error to raise for ``exc`` raised by the current line, located, and its cause."""
@@ -274,7 +307,8 @@ class ProgramLoopMixin:
         motion, comment = block.plain  # type: ignore[misc]
         w = block.words
         if motion is not None and motion >= 20:
-            cmds = self._fast_arc(block, motion)  # type: ignore[attr-defined]
+            cmds = self._fast_arc(motion, w.get("x"), w.get("y"), w.get("z"),  # type: ignore[attr-defined]
+                                  w.get("i"), w.get("j"), w.get("k"), w.get("r"), w.get("f"))
         else:
             cmds = self._fast_values(motion, w.get("x"), w.get("y"), w.get("z"), w.get("f"))
         if cmds is None or comment is None:
