@@ -18,10 +18,15 @@ from gcode_canon.expressions import TOLERANCE_EQUAL, ExpressionReader
 
 _NUM = r"([-+]?+(?:[0-9]++(?:\.[0-9]*+)?+|\.[0-9]++))"  # possessive: no backtracking on long lines
 FAST_LINE = re.compile(
-    r"[ \t]*(?:[Gg]0?([01])(?![0-9.])[ \t]*)?"
-    rf"(?:[Xx]{_NUM}[ \t]*)?(?:[Yy]{_NUM}[ \t]*)?(?:[Zz]{_NUM}[ \t]*)?(?:[Ff]{_NUM}[ \t]*)?\Z"
+    r"[ \t]*+(?>[Gg]0?([01])(?![0-9.])[ \t]*+|)"
+    rf"(?>[Xx]{_NUM}[ \t]*+|)(?>[Yy]{_NUM}[ \t]*+|)(?>[Zz]{_NUM}[ \t]*+|)(?>[Ff]{_NUM}[ \t]*+|)\Z"
 )
-"""Groups: motion (0/1 or None), x, y, z, f (text of the number or None)."""
+"""Groups: motion (0/1 or None), x, y, z, f (text of the number or None).
+
+Each optional word is an atomic group with an empty alternative (``(?>...|)``), not ``(?:...)?``:
+the same matches (``tests/test_interp_lexer.py`` compares them on random lines), in about 55 % of
+the time on a CAM line (Python's ``re`` runs a ``?`` group through its general repeat), and no going
+back into a word once read when the line does not match (250 spaces and a letter: 1 µs, not 45)."""
 
 _COMMENT_START = re.compile(r"[(;]")
 _PLAIN_NUMBER = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)").match
