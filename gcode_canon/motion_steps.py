@@ -6,7 +6,6 @@ full circles G12/G13, from the axis words to canonical commands in machine coord
 from __future__ import annotations
 
 import math
-import operator
 
 from gcode_canon import cutter_comp, cycles, transforms
 from gcode_canon.arcs import centre_ijk, centre_r
@@ -51,7 +50,6 @@ _PLAIN_MOTIONS = frozenset((0, 10, 20, 30))
 _isfinite = math.isfinite
 _AXIS_INDEX = {letter: k for k, letter in enumerate(AXIS_LETTERS)}
 _new_pose = tuple.__new__
-_add = operator.add
 
 class MotionMixin:
     """Group 1 (motion) and G12/G13 (module docstring)."""
@@ -444,7 +442,8 @@ class MotionMixin:
 
         :meth:`_target`, :meth:`_arc_centre` and :meth:`_arc_command` written out for what
         :meth:`fast_path_allowed` leaves: no polar words, no rotation, scaling or mirroring (the frames'
-        sum is the whole transform, the arc's ``rotation`` 0)."""
+        sum is the whole transform, the arc's ``rotation`` 0). A-W do not move: their machine
+        coordinates are the straight fast path's ``_tail``, kept across the lines it runs."""
         plane = self.plane
         first, second, normal = plane._value_
         if normal > 2:
@@ -456,12 +455,11 @@ class MotionMixin:
         has_ijk = o1 is not None or o2 is not None
         scale = self.scale
         feed = self.feed if fv is None else fv * scale
-        radius = rv
-        if ((radius is not None) == has_ijk or not (feed > 0.0 and _isfinite(feed))
+        if ((rv is not None) == has_ijk or not (feed > 0.0 and _isfinite(feed))
                 or self.cycle_state.initial_level is not None):
             return None
-        start = self.prog
-        target = list(start)
+        prog = self.prog
+        target = [prog[0], prog[1], prog[2]]  # X Y Z: A-W do not move (no such words here)
         if self.absolute:
             if xv is not None:
                 target[0] = xv * scale
@@ -477,11 +475,11 @@ class MotionMixin:
             if zv is not None:
                 target[2] += zv * scale
         clockwise = motion == 20
-        s2 = (start[first], start[second])
+        s2 = (prog[first], prog[second])
         e2 = (target[first], target[second])
         try:
-            if radius is not None:
-                cx, cy, rot = centre_r(clockwise, s2, e2, radius * scale, 1)
+            if rv is not None:
+                cx, cy, rot = centre_r(clockwise, s2, e2, rv * scale, 1)
             else:
                 off1 = (o1 or 0.0) * scale
                 off2 = (o2 or 0.0) * scale
@@ -489,18 +487,23 @@ class MotionMixin:
                 cx, cy, rot = centre_ijk(clockwise, s2, e2, centre, 1, self.inch)
         except GCodeError:
             return None
+        centre_xyz = [prog[0], prog[1], prog[2]]
+        centre_xyz[first] = cx
+        centre_xyz[second] = cy
         sums = self.frames.sum
-        end = _new_pose(Pose, map(_add, target, sums))
-        centre_prog = list(start)
-        centre_prog[first] = cx
-        centre_prog[second] = cy
-        centre_pose = _new_pose(Pose, map(_add, centre_prog, sums))
+        tail = self._tail  # A-W in machine coordinates, as the straight fast path keeps them
+        if tail is None:
+            tail = self._tail = (prog[3] + sums[3], prog[4] + sums[4], prog[5] + sums[5], prog[6] + sums[6],
+                                 prog[7] + sums[7], prog[8] + sums[8])
+        s0, s1, s2_ = sums[0], sums[1], sums[2]
+        end = _new_pose(Pose, (target[0] + s0, target[1] + s1, target[2] + s2_, *tail))
+        centre_pose = _new_pose(Pose, (centre_xyz[0] + s0, centre_xyz[1] + s1, centre_xyz[2] + s2_, *tail))
         if not (_isfinite(sum(end)) and _isfinite(sum(centre_pose))):
             return None
         file, line = self.file, self.line
         cmd = new_arc_feed(end, centre_pose, plane, rot, 0.0, file, line)
         self.motion = motion
-        self.prog = target
+        prog[0], prog[1], prog[2] = target
         self.pos = end
         if feed != self.feed:
             self.feed = feed
