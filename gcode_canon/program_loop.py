@@ -24,6 +24,7 @@ from gcode_canon.commands import (
 from gcode_canon.compiled import CompiledLine
 from gcode_canon.dialect import GRBL_JUNCTION_DEVIATION_MM, Dialect
 from gcode_canon.errors import GCodeError
+from gcode_canon.fast_lines import EXPRESSION_ERRORS, straight_function
 from gcode_canon.lexer import FAST_LINE, Block
 from gcode_canon.machine import Resume
 from gcode_canon.modal import ModalLine, sort_codes
@@ -32,8 +33,6 @@ from gcode_canon.source import LineSource
 log = logging.getLogger(__name__)
 
 _isfinite = math.isfinite
-_SHORTCUT_ERRORS = (GCodeError, RecursionError, ArithmeticError, ValueError)
-"""What an expression may raise: on the fast path, the line goes the general way, which says it."""
 _new_pose = tuple.__new__
 
 class ProgramLoopMixin:
@@ -242,8 +241,10 @@ class ProgramLoopMixin:
             if motion is not None and motion >= 20:
                 run = partial(self._fast_arc, motion, w.get("x"), w.get("y"), w.get("z"),  # type: ignore[attr-defined]
                               w.get("i"), w.get("j"), w.get("k"), w.get("r"), w.get("f"))
+            elif line.axes:  # type: ignore[union-attr]
+                return straight_function(self, motion, w, comment)
             else:
-                run = partial(self._fast_values, motion, w.get("x"), w.get("y"), w.get("z"), w.get("f"))
+                run = partial(self._fast_values, motion, None, None, None, w.get("f"))
             return run if comment is None else self._commented(run, comment)
         quick = line.quick  # type: ignore[union-attr]
         if quick is None:
@@ -251,12 +252,14 @@ class ProgramLoopMixin:
         if line.plain is None:  # parameter settings alone
             return self._settings_runner(quick)
         motion, comment = line.plain
+        if line.axes:  # type: ignore[union-attr]
+            return straight_function(self, motion, dict(line.values), comment)  # type: ignore[union-attr]
         fast = self._fast_values
 
         def straight() -> tuple[Canon, ...] | None:
             try:
                 values = quick()
-            except _SHORTCUT_ERRORS:
+            except EXPRESSION_ERRORS:
                 return None
             return fast(motion, *values)  # type: ignore[misc]
 
@@ -282,7 +285,7 @@ class ProgramLoopMixin:
                 return None
             try:
                 values = quick()
-            except _SHORTCUT_ERRORS:
+            except EXPRESSION_ERRORS:
                 return None
             self._tail = None  # as the general path: computed again at the next fast line
             self._assign(values)  # type: ignore[arg-type]
