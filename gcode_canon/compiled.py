@@ -67,6 +67,9 @@ class _Marker:
 
 _SEEN = _Marker()  # read once: compiled when read again
 _NOT_COMPILED = _Marker()  # the compiler refused it: parse_line every time
+FAST_SEEN = _Marker()
+"""A line the program loop ran once by its pattern (``FAST_LINE``), without parsing it: parsed when
+read again, and kept with its fast path (:attr:`LineCache.entries`)."""
 _G, _M, _WORD, _ASSIGN = range(4)
 
 
@@ -472,9 +475,17 @@ class LineCache:
         marker) or None; the function stays valid as the cache is cleared."""
         return self._entries.get
 
+    @property
+    def entries(self) -> dict[str, object]:
+        """The lines kept, by their text: the program loop notes there the lines it ran by its pattern
+        (``entries[raw] = FAST_SEEN``, after clearing them when they number :attr:`size`), which
+        :meth:`parse` reads as lines not read yet. The same dict for the cache's life (cleared, not
+        replaced)."""
+        return self._entries
+
     def parse(self, raw: str) -> Block:
         entry = self._entries.get(raw)
-        if entry is None:
+        if entry is None or entry is FAST_SEEN:
             block = parse_line(raw, self.reader)  # errors: the reader's, and nothing is kept
             entries = self._entries
             if len(entries) >= self.size:

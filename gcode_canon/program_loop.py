@@ -21,7 +21,7 @@ from gcode_canon.commands import (
     new_straight_feed,
     new_straight_traverse,
 )
-from gcode_canon.compiled import CompiledLine
+from gcode_canon.compiled import FAST_SEEN, CompiledLine
 from gcode_canon.dialect import GRBL_JUNCTION_DEVIATION_MM, Dialect
 from gcode_canon.errors import GCodeError
 from gcode_canon.fast_lines import EXPRESSION_ERRORS, straight_function
@@ -88,6 +88,11 @@ class ProgramLoopMixin:
         fast_block = self._fast_block
         parse = self._lines.parse
         known = self._lines.known
+        entries, cache_size = self._lines.entries, self._lines.size
+        # lines run by the pattern are noted in the line cache (FAST_SEEN) while some are read again:
+        # after as many lines as it holds and none read again (CAM output, every line its own), no more
+        # are, until one noted before comes back (a note costs 3 % of the instructions of such a line)
+        noting = cache_size
         flow = self.flow
         self._tail = None
         settings = self.settings
@@ -120,16 +125,19 @@ class ProgramLoopMixin:
                         entry = known(raw)
                         if entry is not None:  # a line read before: its Block or compiled line, no parsing
                             run = entry.fast  # type: ignore[attr-defined]
-                            try:
-                                cmds = None if run is None else run()
-                            except Exception as exc:
-                                err, cause = self._line_error(exc)
-                                raise err from cause
-                            if cmds is not None:
-                                seen_content = True
-                                self.seen_code = True
-                                yield from cmds
-                                continue
+                            if run is not None:
+                                try:
+                                    cmds = run()
+                                except Exception as exc:
+                                    err, cause = self._line_error(exc)
+                                    raise err from cause
+                                if cmds is not None:
+                                    seen_content = True
+                                    self.seen_code = True
+                                    yield from cmds
+                                    continue
+                            elif entry is FAST_SEEN:  # a line noted below, read again
+                                noting = cache_size
                         elif (m := fast_match(raw)) is not None:
                             g, xs, ys, zs, fs = m.groups()
                             cmds = fast(None if g is None else 0 if g == "0" else 10,
@@ -137,6 +145,11 @@ class ProgramLoopMixin:
                                         None if zs is None else float(zs), None if fs is None else float(fs))
                             if cmds is not None:
                                 seen_content = seen_fast = True
+                                if noting:  # noted: read again, it is parsed and kept with its fast path
+                                    noting -= 1
+                                    if len(entries) >= cache_size:
+                                        entries.clear()
+                                    entries[raw] = FAST_SEEN
                                 yield from cmds
                                 continue
                     self._tail = None

@@ -301,3 +301,30 @@ def test_a_straight_lines_function_does_what_fast_values_does(seed: int) -> None
         assert (None if got is None else [repr(c) for c in got]) == (
             None if want is None else [repr(c) for c in want]), (motion, plain, comment, failing)
         assert _fast_state(interp) == _fast_state(twin)  # the same change, or none when declined
+
+
+def test_literal_lines_read_again_are_parsed_once_and_kept(monkeypatch) -> None:
+    # a line the pattern runs (FAST_LINE) is noted; read again, it is parsed and kept with its fast
+    # path; after as many lines as the cache holds with none read again, no more are noted until one
+    # noted before comes back
+    from gcode_canon.compiled import LineCache
+
+    interp = _interp()
+    interp._lines.size = 8
+    parsed: list[int] = []
+    parse = LineCache.parse
+
+    def counted(self, raw):
+        parsed.append(interp.line)
+        return parse(self, raw)
+
+    monkeypatch.setattr(LineCache, "parse", counted)
+    unique = [f"G1 X{k} Y1" for k in range(1, 15)]
+    text = "\n".join(["G21 G90 F600", *unique[:6], unique[0],  # lines 1, 2-7, 8
+                      "G0 X20", "G0 X20", "G0 X20", *unique[6:],  # 9-11, 12-19
+                      "G0 Y5", "G0 Y5", "M2"]) + "\n"  # 20-21, 22
+    cmds = list(interp.run_string(text, "t.ngc"))
+    # 8: noted at line 2, so parsed; 9 noted, 10 parsed, 11 kept; 12-19 noted, none read again: 20-21
+    # are not, nor parsed
+    assert parsed == [1, 8, 10, 22]
+    assert [repr(c) for c in cmds] == [repr(c) for c in _interp().run_string(_general(text), "t.ngc")]
