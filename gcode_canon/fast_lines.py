@@ -25,9 +25,10 @@ from gcode_canon.commands import (
     Canon,
     Pose,
     SetFeedRate,
+    StraightFeed,
+    StraightTraverse,
     new_comment,
-    new_straight_feed,
-    new_straight_traverse,
+    slot_setters,
 )
 from gcode_canon.errors import GCodeError
 
@@ -37,9 +38,14 @@ EXPRESSION_ERRORS = (GCodeError, RecursionError, ArithmeticError, ValueError)
 _FACTORIES: dict[str, Callable[..., Callable[[], tuple[Canon, ...] | None]]] = {}
 """Generated factories by their source: one ``compile`` per shape of line."""
 
+_FEED_END, _FILE, _LINE = slot_setters(StraightFeed)
+_TRAVERSE_END = slot_setters(StraightTraverse)[0]
 _GLOBALS = {"isfinite": math.isfinite, "new_pose": tuple.__new__, "Pose": Pose, "SetFeedRate": SetFeedRate,
-            "new_feed": new_straight_feed, "new_traverse": new_straight_traverse, "new_comment": new_comment,
-            "ERRORS": EXPRESSION_ERRORS}
+            "new_object": object.__new__, "Feed": StraightFeed, "Traverse": StraightTraverse,
+            "feed_end": _FEED_END, "traverse_end": _TRAVERSE_END, "set_file": _FILE, "set_line": _LINE,
+            "new_comment": new_comment, "ERRORS": EXPRESSION_ERRORS}
+"""The generated code's names. A move is made as ``new_straight_feed`` makes it (``slot_setters``),
+without the call to it."""
 
 
 def straight_function(interp: Any, motion: int | None, values: dict[str, object],
@@ -94,9 +100,13 @@ def straight_function(interp: Any, motion: int | None, values: dict[str, object]
               "file = self.file",
               "line = self.line"]
     if motion is None:
-        lines.append("cmd = new_feed(end, file, line) if motion else new_traverse(end, file, line)")
+        lines += ["if motion:", " cmd = new_object(Feed)", " feed_end(cmd, end)",
+                  "else:", " cmd = new_object(Traverse)", " traverse_end(cmd, end)"]
+    elif motion:
+        lines += ["cmd = new_object(Feed)", "feed_end(cmd, end)"]
     else:
-        lines.append(f"cmd = {'new_feed' if motion else 'new_traverse'}(end, file, line)")
+        lines += ["cmd = new_object(Traverse)", "traverse_end(cmd, end)"]
+    lines += ["set_file(cmd, file)", "set_line(cmd, line)"]
     first = "new_comment(text, file, line), " if comment is not None else ""  # _step_comment runs first
     lines += ["self.motion = motion",
               "if feed != self.feed:",

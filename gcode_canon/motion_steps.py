@@ -31,6 +31,7 @@ from gcode_canon.commands import (
     new_arc_feed,
     new_straight_feed,
     new_straight_traverse,
+    slot_setters,
 )
 from gcode_canon.errors import GCodeError
 from gcode_canon.lathe_cycles import LATHE_CYCLES
@@ -50,6 +51,8 @@ _PLAIN_MOTIONS = frozenset((0, 10, 20, 30))
 _isfinite = math.isfinite
 _AXIS_INDEX = {letter: k for k, letter in enumerate(AXIS_LETTERS)}
 _new_pose = tuple.__new__
+_new_object = object.__new__
+_arc_end, _arc_center, _arc_plane, _arc_turns, _arc_rotation, _arc_file, _arc_line = slot_setters(ArcFeed)
 
 class MotionMixin:
     """Group 1 (motion) and G12/G13 (module docstring)."""
@@ -501,7 +504,14 @@ class MotionMixin:
         if not (_isfinite(sum(end)) and _isfinite(sum(centre_pose))):
             return None
         file, line = self.file, self.line
-        cmd = new_arc_feed(end, centre_pose, plane, rot, 0.0, file, line)
+        cmd = _new_object(ArcFeed)  # new_arc_feed's object, without the call (slot_setters)
+        _arc_end(cmd, end)
+        _arc_center(cmd, centre_pose)
+        _arc_plane(cmd, plane)
+        _arc_turns(cmd, rot)
+        _arc_rotation(cmd, 0.0)
+        _arc_file(cmd, file)
+        _arc_line(cmd, line)
         self.motion = motion
         prog[0], prog[1], prog[2] = target
         self.pos = end

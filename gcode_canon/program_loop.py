@@ -17,9 +17,10 @@ from gcode_canon.commands import (
     Pose,
     SetFeedRate,
     SetMotionControlMode,
+    StraightFeed,
+    StraightTraverse,
     new_comment,
-    new_straight_feed,
-    new_straight_traverse,
+    slot_setters,
 )
 from gcode_canon.compiled import FAST_SEEN, CompiledLine
 from gcode_canon.dialect import GRBL_JUNCTION_DEVIATION_MM, Dialect
@@ -34,6 +35,9 @@ log = logging.getLogger(__name__)
 
 _isfinite = math.isfinite
 _new_pose = tuple.__new__
+_new_object = object.__new__
+_feed_end, _set_file, _set_line = slot_setters(StraightFeed)
+_traverse_end = slot_setters(StraightTraverse)[0]
 
 class ProgramLoopMixin:
     """Reading and executing lines (module docstring)."""
@@ -380,10 +384,14 @@ class ProgramLoopMixin:
                                      prog[7] + s[7], prog[8] + s[8])
             end = _new_pose(Pose, (mx, my, mz, *tail))
             self.pos = end
-            if motion:
-                cmd: Canon = new_straight_feed(end, file, line)
+            if motion:  # new_straight_feed's object, without the call (slot_setters)
+                cmd = _new_object(StraightFeed)
+                _feed_end(cmd, end)
             else:
-                cmd = new_straight_traverse(end, file, line)
+                cmd = _new_object(StraightTraverse)
+                _traverse_end(cmd, end)
+            _set_file(cmd, file)
+            _set_line(cmd, line)
             self.motion = motion
             if feed != self.feed:
                 self.feed = feed
