@@ -20,8 +20,9 @@ from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import ClassVar, NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
 AXES: tuple[str, ...] = ("x", "y", "z", "a", "b", "c", "u", "v", "w")
 """The nine RS274/NGC axes, in parameter order (#5061-5069, #5221-5229 ...)."""
@@ -520,17 +521,25 @@ class ProgramEnd(Canon):
 MOTION_TYPES: tuple[type[Canon], ...] = (StraightTraverse, StraightFeed, ArcFeed, Probe)
 
 
+def slot_setters(cls: type[Canon]) -> tuple[Callable[[Canon, Any], None], ...]:
+    """The functions that set each slot of a ``cls`` object (its member descriptors' ``__set__``),
+    in the order of its fields with ``file`` and ``line`` last: ``object.__new__(cls)`` and these make
+    the object ``cls(...)`` makes (no ``__post_init__`` here), as :func:`_maker`'s constructors do,
+    and as the fast paths do it themselves where a call more per command counts."""
+    import dataclasses
+
+    names = [f.name for f in dataclasses.fields(cls) if f.name not in ("file", "line")] + ["file", "line"]
+    return tuple(getattr(cls, name).__set__ for name in names)
+
+
 def _maker(cls: type[Canon]):
     """A constructor of ``cls`` taking every field positionally, ``file`` and ``line`` last, that sets
     the slots directly: the frozen dataclass ``__init__`` (keyword arguments, ``object.__setattr__``
     per field) costs a microsecond or more per command, and the interpreter makes one per move. The
     object is the one ``cls(...)`` makes (no ``__post_init__`` here)."""
-    import dataclasses
-
-    names = [f.name for f in dataclasses.fields(cls) if f.name not in ("file", "line")] + ["file", "line"]
-    setters = tuple(getattr(cls, name).__set__ for name in names)
+    setters = slot_setters(cls)
     new = object.__new__
-    if len(names) == 3:
+    if len(setters) == 3:
         s0, s1, s2 = setters
 
         def make3(a, file, line):
@@ -541,7 +550,7 @@ def _maker(cls: type[Canon]):
             return obj
 
         return make3
-    assert len(names) == 7
+    assert len(setters) == 7
     s0, s1, s2, s3, s4, s5, s6 = setters
 
     def make7(a, b, c, d, e, file, line):

@@ -59,8 +59,17 @@ from gcode_canon.messages import classify
 Node = float | Callable[[], float]
 """A compiled value: a constant, or a function that computes it now."""
 
-_SEEN = object()  # read once: compiled when read again
-_NOT_COMPILED = object()  # the compiler refused it: parse_line every time
+class _Marker:
+    """A line cache entry that is not a line: no fast path."""
+
+    fast = None
+
+
+_SEEN = _Marker()  # read once: compiled when read again
+_NOT_COMPILED = _Marker()  # the compiler refused it: parse_line every time
+FAST_SEEN = _Marker()
+"""A line the program loop ran once by its pattern (``FAST_LINE``), without parsing it: parsed when
+read again, and kept with its fast path (:attr:`LineCache.entries`)."""
 _G, _M, _WORD, _ASSIGN = range(4)
 
 
@@ -265,8 +274,8 @@ def _with_plain(block: Block) -> Block:
 class CompiledLine:
     """One line's words in order, each a constant or a closure; :meth:`run` makes its Block."""
 
-    __slots__ = ("assigns", "axes", "comments", "deleted", "g", "items", "line_number", "m", "plain", "quick",
-                 "shape", "simple", "static", "values")
+    __slots__ = ("assigns", "axes", "comments", "deleted", "fast", "g", "items", "line_number", "m", "plain",
+                 "quick", "shape", "simple", "static", "values")
 
     def __init__(self, raw: str, compiler: _Compiler) -> None:
         s, self.comments = fold(raw)
@@ -333,6 +342,8 @@ class CompiledLine:
         fast-path line (:attr:`plain`, no G2/G3) a function giving its X Y Z F values (None where a word
         is absent); for a line of parameter settings alone, the settings as :meth:`run`'s Block holds
         them. Both evaluate in the line's order, as :meth:`run` does."""
+        self.fast = None
+        """The program loop's run of this line (:attr:`Block.fast`), set by the line cache."""
         if self.plain is not None and self.plain[0] in (None, 0, 10):
             self.quick = _values_function(self.values)
         elif (self.static and self.assigns and not self.values and not self.g and not self.m
@@ -440,14 +451,21 @@ def _assigns_function(assigns: tuple[tuple[object, Node], ...]) -> Callable[[], 
     return _generated(names, f"  return [{', '.join(pairs)}]\n", bound)
 
 
+FastFor = Callable[[Block | CompiledLine], Callable[[], object] | None]
+"""The program loop's maker of a kept line's fast path (:attr:`LineCache.fast_for`)."""
+
+
 class LineCache:
     """Text of a line to its Block (module docstring)."""
 
-    __slots__ = ("_compiler", "_entries", "reader", "size")
+    __slots__ = ("_compiler", "_entries", "fast_for", "reader", "size")
 
-    def __init__(self, reader: ExpressionReader, size: int = 4096) -> None:
+    def __init__(self, reader: ExpressionReader, size: int = 4096, fast_for: FastFor | None = None) -> None:
         self.reader = reader
         self.size = size
+        self.fast_for = fast_for
+        """What sets ``fast`` on the lines kept (:attr:`Block.fast`): a Block of the fast path's shape
+        (:attr:`Block.plain`) and every compiled line get ``fast_for(line)``; None: none does."""
         self._entries: dict[str, object] = {}
         self._compiler: _Compiler | None = None
 
@@ -457,15 +475,25 @@ class LineCache:
         marker) or None; the function stays valid as the cache is cleared."""
         return self._entries.get
 
+    @property
+    def entries(self) -> dict[str, object]:
+        """The lines kept, by their text: the program loop notes there the lines it ran by its pattern
+        (``entries[raw] = FAST_SEEN``, after clearing them when they number :attr:`size`), which
+        :meth:`parse` reads as lines not read yet. The same dict for the cache's life (cleared, not
+        replaced)."""
+        return self._entries
+
     def parse(self, raw: str) -> Block:
         entry = self._entries.get(raw)
-        if entry is None:
+        if entry is None or entry is FAST_SEEN:
             block = parse_line(raw, self.reader)  # errors: the reader's, and nothing is kept
             entries = self._entries
             if len(entries) >= self.size:
                 entries.clear()
             if block.o_text is not None or "#" not in raw:
                 entries[raw] = _with_plain(block)
+                if block.plain is not None and self.fast_for is not None:
+                    block.fast = self.fast_for(block)
             else:
                 entries[raw] = _SEEN
             return block
@@ -480,6 +508,9 @@ class LineCache:
                 entry = CompiledLine(raw, self._compiler)
             except (GCodeError, RecursionError):
                 entry = _NOT_COMPILED
+            else:
+                if self.fast_for is not None:
+                    entry.fast = self.fast_for(entry)
             self._entries[raw] = entry
             if entry is not _NOT_COMPILED:
                 return entry.run()  # type: ignore[attr-defined]

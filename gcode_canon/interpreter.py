@@ -132,7 +132,7 @@ class Interpreter(ProgramLoopMixin, BlockChecksMixin, ModeStepsMixin, ToolSpindl
             else self.settings.dialect
         # LinuxCNC (and Grbl, which has no expressions) compare GT/GE/LT/LE strictly
         self.reader.tolerant_order = self.dialect is Dialect.GCODE_CANON
-        self._lines = LineCache(self.reader)
+        self._lines = LineCache(self.reader, fast_for=self._fast_runner)
         self._modal_lines: dict[tuple, ModalLine] = {}  # (G codes, M codes) -> sort_codes' answer
         self._checks_passed: set[tuple] = set()  # see _check_block
         self._shape_ids: dict[tuple, int] = {}  # see _shape

@@ -6,7 +6,6 @@ full circles G12/G13, from the axis words to canonical commands in machine coord
 from __future__ import annotations
 
 import math
-import operator
 
 from gcode_canon import cutter_comp, cycles, transforms
 from gcode_canon.arcs import centre_ijk, centre_r
@@ -32,6 +31,7 @@ from gcode_canon.commands import (
     new_arc_feed,
     new_straight_feed,
     new_straight_traverse,
+    slot_setters,
 )
 from gcode_canon.errors import GCodeError
 from gcode_canon.lathe_cycles import LATHE_CYCLES
@@ -51,7 +51,8 @@ _PLAIN_MOTIONS = frozenset((0, 10, 20, 30))
 _isfinite = math.isfinite
 _AXIS_INDEX = {letter: k for k, letter in enumerate(AXIS_LETTERS)}
 _new_pose = tuple.__new__
-_add = operator.add
+_new_object = object.__new__
+_arc_end, _arc_center, _arc_plane, _arc_turns, _arc_rotation, _arc_file, _arc_line = slot_setters(ArcFeed)
 
 class MotionMixin:
     """Group 1 (motion) and G12/G13 (module docstring)."""
@@ -434,32 +435,34 @@ class MotionMixin:
         return new_arc_feed(end_pose, centre_pose, self.plane, rot, self.frames.arc_rotation(self.plane),
                             self.file, self.line)
 
-    def _fast_arc(self, block: Block, motion: int) -> tuple[Canon, ...] | None:
-        """The fast path of a G2/G3 line read again (:attr:`Block.plain`: X Y Z I J K R F words, taken
-        where :meth:`fast_path_allowed` holds): the commands of the general path (its F step, then
-        :meth:`_step_motion`'s arc), or None to send the line there, with nothing changed (every
-        error is the general path's, said in its place).
+    def _fast_arc(self, motion: int, xv: float | None, yv: float | None, zv: float | None, iv: float | None,
+                  jv: float | None, kv: float | None, rv: float | None,
+                  fv: float | None) -> tuple[Canon, ...] | None:
+        """The fast path of a G2/G3 line read again (:attr:`Block.plain`: X Y Z I J K R F words, their
+        values here, None where absent; taken where :meth:`fast_path_allowed` holds): the commands of
+        the general path (its F step, then :meth:`_step_motion`'s arc), or None to send the line there,
+        with nothing changed (every error is the general path's, said in its place).
 
         :meth:`_target`, :meth:`_arc_centre` and :meth:`_arc_command` written out for what
         :meth:`fast_path_allowed` leaves: no polar words, no rotation, scaling or mirroring (the frames'
-        sum is the whole transform, the arc's ``rotation`` 0)."""
-        words = block.words
+        sum is the whole transform, the arc's ``rotation`` 0). A-W do not move: their machine
+        coordinates are the straight fast path's ``_tail``, kept across the lines it runs."""
         plane = self.plane
         first, second, normal = plane._value_
-        if normal > 2 or _IJK[normal] in words:
+        if normal > 2:
             return None
-        i_first, i_second = _IJK[first], _IJK[second]
-        has_ijk = i_first in words or i_second in words
+        offsets = (iv, jv, kv)
+        if offsets[normal] is not None:
+            return None
+        o1, o2 = offsets[first], offsets[second]
+        has_ijk = o1 is not None or o2 is not None
         scale = self.scale
-        fv = words.get("f")
         feed = self.feed if fv is None else fv * scale
-        radius = words.get("r")
-        if ((radius is not None) == has_ijk or not (feed > 0.0 and _isfinite(feed))
+        if ((rv is not None) == has_ijk or not (feed > 0.0 and _isfinite(feed))
                 or self.cycle_state.initial_level is not None):
             return None
-        start = self.prog
-        target = list(start)
-        xv, yv, zv = words.get("x"), words.get("y"), words.get("z")  # not a loop over the I J K R F words
+        prog = self.prog
+        target = [prog[0], prog[1], prog[2]]  # X Y Z: A-W do not move (no such words here)
         if self.absolute:
             if xv is not None:
                 target[0] = xv * scale
@@ -475,30 +478,42 @@ class MotionMixin:
             if zv is not None:
                 target[2] += zv * scale
         clockwise = motion == 20
-        s2 = (start[first], start[second])
+        s2 = (prog[first], prog[second])
         e2 = (target[first], target[second])
         try:
-            if radius is not None:
-                cx, cy, rot = centre_r(clockwise, s2, e2, radius * scale, 1)
+            if rv is not None:
+                cx, cy, rot = centre_r(clockwise, s2, e2, rv * scale, 1)
             else:
-                off1 = (words.get(i_first) or 0.0) * scale
-                off2 = (words.get(i_second) or 0.0) * scale
+                off1 = (o1 or 0.0) * scale
+                off2 = (o2 or 0.0) * scale
                 centre = (off1, off2) if self.ijk_absolute else (s2[0] + off1, s2[1] + off2)
                 cx, cy, rot = centre_ijk(clockwise, s2, e2, centre, 1, self.inch)
         except GCodeError:
             return None
+        centre_xyz = [prog[0], prog[1], prog[2]]
+        centre_xyz[first] = cx
+        centre_xyz[second] = cy
         sums = self.frames.sum
-        end = _new_pose(Pose, map(_add, target, sums))
-        centre_prog = list(start)
-        centre_prog[first] = cx
-        centre_prog[second] = cy
-        centre_pose = _new_pose(Pose, map(_add, centre_prog, sums))
+        tail = self._tail  # A-W in machine coordinates, as the straight fast path keeps them
+        if tail is None:
+            tail = self._tail = (prog[3] + sums[3], prog[4] + sums[4], prog[5] + sums[5], prog[6] + sums[6],
+                                 prog[7] + sums[7], prog[8] + sums[8])
+        s0, s1, s2_ = sums[0], sums[1], sums[2]
+        end = _new_pose(Pose, (target[0] + s0, target[1] + s1, target[2] + s2_, *tail))
+        centre_pose = _new_pose(Pose, (centre_xyz[0] + s0, centre_xyz[1] + s1, centre_xyz[2] + s2_, *tail))
         if not (_isfinite(sum(end)) and _isfinite(sum(centre_pose))):
             return None
         file, line = self.file, self.line
-        cmd = new_arc_feed(end, centre_pose, plane, rot, 0.0, file, line)
+        cmd = _new_object(ArcFeed)  # new_arc_feed's object, without the call (slot_setters)
+        _arc_end(cmd, end)
+        _arc_center(cmd, centre_pose)
+        _arc_plane(cmd, plane)
+        _arc_turns(cmd, rot)
+        _arc_rotation(cmd, 0.0)
+        _arc_file(cmd, file)
+        _arc_line(cmd, line)
         self.motion = motion
-        self.prog = target
+        prog[0], prog[1], prog[2] = target
         self.pos = end
         if feed != self.feed:
             self.feed = feed

@@ -7,6 +7,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Iterator
+from functools import partial
 
 from gcode_canon.arcs import MM_PER_INCH
 from gcode_canon.commands import (
@@ -16,13 +17,15 @@ from gcode_canon.commands import (
     Pose,
     SetFeedRate,
     SetMotionControlMode,
+    StraightFeed,
+    StraightTraverse,
     new_comment,
-    new_straight_feed,
-    new_straight_traverse,
+    slot_setters,
 )
-from gcode_canon.compiled import CompiledLine
+from gcode_canon.compiled import FAST_SEEN, CompiledLine
 from gcode_canon.dialect import GRBL_JUNCTION_DEVIATION_MM, Dialect
 from gcode_canon.errors import GCodeError
+from gcode_canon.fast_lines import EXPRESSION_ERRORS, straight_function
 from gcode_canon.lexer import FAST_LINE, Block
 from gcode_canon.machine import Resume
 from gcode_canon.modal import ModalLine, sort_codes
@@ -32,6 +35,9 @@ log = logging.getLogger(__name__)
 
 _isfinite = math.isfinite
 _new_pose = tuple.__new__
+_new_object = object.__new__
+_feed_end, _set_file, _set_line = slot_setters(StraightFeed)
+_traverse_end = slot_setters(StraightTraverse)[0]
 
 class ProgramLoopMixin:
     """Reading and executing lines (module docstring)."""
@@ -41,6 +47,14 @@ class ProgramLoopMixin:
         return self._run(source)
 
     def _run(self, source: LineSource) -> Iterator[Canon]:
+        """The program's commands, lazily: :meth:`_loop` sets up and reads from the start of ``source``.
+        One generator between the source and the caller: a generator that hands on another's
+        commands (``yield from``) costs a resumption of both for each command."""
+        return self._loop(source)
+
+    def _start(self, source: LineSource) -> Canon | None:
+        """The interpreter at the start of a program read from ``source``; the command to yield first
+        (Grbl's blending), or None."""
         self.file = source.name
         self.line = 0
         self.ended = False
@@ -52,12 +66,8 @@ class ProgramLoopMixin:
         if self.dialect is Dialect.GRBL and self.control == (MotionControlMode.CONTINUOUS, 0.0, 0.0):
             # Grbl blends every corner within its junction deviation ($11); a G64 P in the program wins
             self.control = (MotionControlMode.CONTINUOUS, GRBL_JUNCTION_DEVIATION_MM, 0.0)
-            yield SetMotionControlMode(*self.control, file=source.name, line=1)
-        try:
-            yield from self._loop(main=source)
-        finally:
-            self.flow.close_all()
-            source.close()
+            return SetMotionControlMode(*self.control, file=source.name, line=1)
+        return None
 
     def switch_source(self, source: LineSource, file: str | None = None) -> None:
         """Continue reading from ``source`` (an o-word call or return); the loop picks it up."""
@@ -66,92 +76,136 @@ class ProgramLoopMixin:
         self._fast_ok = False  # re-evaluated after the line
 
     def _loop(self, main: LineSource | None, depth: int = 0) -> Iterator[Canon]:
-        """Read and execute lines from ``self.source`` until the program ends (``main``) or, for an
-        MDI call, until the call stack is back to ``depth`` frames."""
+        """Read and execute lines from ``self.source`` until the program ends (``main``: the program's
+        source, set up here by :meth:`_start` and closed at the end) or, for an MDI call, until the
+        call stack is back to ``depth`` frames.
+
+        The lines are read here as :meth:`LineSource.__iter__` reads them (the same line count, limit
+        and errors), not through it: a generator between the source and this loop costs its
+        resumption at every line."""
+        if main is not None:
+            first = self._start(main)
+            if first is not None:
+                yield first
         fast_match = FAST_LINE.match
         fast = self._fast_values
         fast_block = self._fast_block
         parse = self._lines.parse
         known = self._lines.known
-        quick = self._quick_line
+        entries, cache_size = self._lines.entries, self._lines.size
+        # lines run by the pattern are noted in the line cache (FAST_SEEN) while some are read again:
+        # after as many lines as it holds and none read again (CAM output, every line its own), no more
+        # are, until one noted before comes back (a note costs 3 % of the instructions of such a line)
+        noting = cache_size
         flow = self.flow
         self._tail = None
         settings = self.settings
         percent_open = False
         seen_content = seen_fast = False
-        while True:
-            source = self.source
-            in_main = source is main
-            for raw in source:
-                self.line = source.line
-                if self.before_line is not None:
-                    self.before_line()
-                if self._fast_ok:
-                    entry = known(raw)
-                    if entry is not None:  # a line read before: its Block or compiled line, no parsing
-                        cmds = quick(entry)
-                        if cmds is not None:
+        try:
+            while True:
+                source = self.source
+                in_main = source is main
+                readline = source.stream.readline
+                limit = source.max_line_length + 2
+                switched = False
+                while True:
+                    try:
+                        raw = readline(limit)
+                    except OSError as exc:
+                        raise GCodeError(f"Cannot read program: {exc}", source.name,
+                                         source.line + 1) from None
+                    if not raw:
+                        break  # the end of the source: below
+                    self.line = source.line = source.line + 1
+                    if raw[-1] == "\n":
+                        raw = raw[:-1]
+                    if len(raw) > limit - 2:
+                        raise GCodeError(f"Line too long (more than {limit - 2} characters)", source.name,
+                                         source.line)
+                    if self.before_line is not None:
+                        self.before_line()
+                    if self._fast_ok:
+                        entry = known(raw)
+                        if entry is not None:  # a line read before: its Block or compiled line, no parsing
+                            run = entry.fast  # type: ignore[attr-defined]
+                            if run is not None:
+                                try:
+                                    cmds = run()
+                                except Exception as exc:
+                                    err, cause = self._line_error(exc)
+                                    raise err from cause
+                                if cmds is not None:
+                                    seen_content = True
+                                    self.seen_code = True
+                                    yield from cmds
+                                    continue
+                            elif entry is FAST_SEEN:  # a line noted below, read again
+                                noting = cache_size
+                        elif (m := fast_match(raw)) is not None:
+                            g, xs, ys, zs, fs = m.groups()
+                            cmds = fast(None if g is None else 0 if g == "0" else 10,
+                                        None if xs is None else float(xs), None if ys is None else float(ys),
+                                        None if zs is None else float(zs), None if fs is None else float(fs))
+                            if cmds is not None:
+                                seen_content = seen_fast = True
+                                if noting:  # noted: read again, it is parsed and kept with its fast path
+                                    noting -= 1
+                                    if len(entries) >= cache_size:
+                                        entries.clear()
+                                    entries[raw] = FAST_SEEN
+                                yield from cmds
+                                continue
+                    self._tail = None
+                    stripped = raw.strip()
+                    if not stripped:
+                        continue
+                    if stripped[0] == "$" and self.dialect is Dialect.GRBL:
+                        log.warning("%s:%d: Grbl system command %r skipped (not G-code)", self.file,
+                                    self.line, stripped)
+                        continue
+                    if stripped == "%":
+                        if not in_main:
+                            continue
+                        if not seen_content:
                             seen_content = True
-                            self.seen_code = True
-                            yield from cmds
+                            percent_open = True
                             continue
-                    elif (m := fast_match(raw)) is not None:
-                        g, xs, ys, zs, fs = m.groups()
-                        cmds = fast(None if g is None else 0 if g == "0" else 10,
-                                    None if xs is None else float(xs), None if ys is None else float(ys),
-                                    None if zs is None else float(zs), None if fs is None else float(fs))
-                        if cmds is not None:
-                            seen_content = seen_fast = True
-                            yield from cmds
-                            continue
-                self._tail = None
-                stripped = raw.strip()
-                if not stripped:
-                    continue
-                if stripped[0] == "$" and self.dialect is Dialect.GRBL:
-                    log.warning("%s:%d: Grbl system command %r skipped (not G-code)", self.file, self.line,
-                                stripped)
-                    continue
-                if stripped == "%":
-                    if not in_main:
-                        continue
-                    if not seen_content:
-                        seen_content = True
-                        percent_open = True
-                        continue
-                    self._end_program(None)
-                    yield from self._drain()
-                    return
-                seen_content = True
-                if seen_fast:
-                    self.seen_code = True
-                try:
-                    block = parse(raw)
-                    cmds = fast_block(block) if block.plain is not None and self._fast_ok else None
-                    if cmds is None:
-                        out = self._execute_block(block)
-                except Exception as exc:
-                    err, cause = self._line_error(exc)
-                    raise err from cause
-                if cmds is not None:
-                    self.seen_code = True
-                    yield from cmds
-                    continue
-                for item in out:
-                    if type(item) is Resume:
-                        try:
-                            item.fn()
-                        except GCodeError as exc:
-                            raise exc.located(self.file, self.line) from None
-                    else:
-                        yield item
-                if self.ended:
-                    return
-                if self.source is not source:
-                    if main is None and len(flow.frames) <= depth:
+                        self._end_program(None)
+                        yield from self._drain()
                         return
-                    break
-            else:
+                    seen_content = True
+                    if seen_fast:
+                        self.seen_code = True
+                    try:
+                        block = parse(raw)
+                        cmds = fast_block(block) if block.plain is not None and self._fast_ok else None
+                        if cmds is None:
+                            out = self._execute_block(block)
+                    except Exception as exc:
+                        err, cause = self._line_error(exc)
+                        raise err from cause
+                    if cmds is not None:
+                        self.seen_code = True
+                        yield from cmds
+                        continue
+                    for item in out:
+                        if type(item) is Resume:
+                            try:
+                                item.fn()
+                            except GCodeError as exc:
+                                raise exc.located(self.file, self.line) from None
+                        else:
+                            yield item
+                    if self.ended:
+                        return
+                    if self.source is not source:
+                        if main is None and len(flow.frames) <= depth:
+                            return
+                        switched = True
+                        break
+                if switched:
+                    continue
                 try:
                     flow.at_end_of_source(source)
                 except GCodeError as exc:
@@ -175,6 +229,10 @@ class ProgramLoopMixin:
                     raise GCodeError("File ended with no percent sign or program end (M2, M30)",
                                      self.file, last)
                 return
+        finally:
+            if main is not None:
+                self.flow.close_all()
+                main.close()
 
     def _drain(self) -> Iterator[Canon]:
         out, self._out = self._out, []
@@ -184,43 +242,73 @@ class ProgramLoopMixin:
             else:
                 yield item
 
-    def _quick_line(self, entry: object) -> tuple[Canon, ...] | None:
-        """A line read before, where the fast path is allowed, from what the line cache holds for it
-        (``entry``): a parsed Block of the fast path's shape goes to :meth:`_fast_block`; a compiled
-        straight line gives its values to :meth:`_fast_values` without building a Block; a compiled
-        line of parameter settings alone sets them as :meth:`_execute_block` would. The commands
-        (``()`` when there are none), or None for the general way, with nothing changed: an
-        expression that fails here fails again there, which says it in its place. The fast path's
-        A-W tail (``_tail``) stays: none of these lines moves those axes or changes an offset."""
-        cls = entry.__class__
-        if cls is Block:
-            if entry.plain is None:  # type: ignore[attr-defined]
-                return None
+    def _fast_runner(self, line: Block | CompiledLine) -> Callable[[], tuple[Canon, ...] | None] | None:
+        """The fast path of a line the line cache keeps (its ``fast``, called by the loop where the fast
+        path is allowed): the line's commands (``()`` when there are none), or None for the general
+        way with nothing changed. A parsed Block of the fast path's shape runs :meth:`_fast_values` or
+        ``_fast_arc`` on its words' values, bound once; a compiled straight line computes its X Y Z F
+        values (``CompiledLine.quick``) and gives them to :meth:`_fast_values`, no Block built; a
+        compiled line of parameter settings alone sets them as :meth:`_execute_block` would. An
+        expression that fails here fails again the general way, which says it in its place. The fast
+        path's A-W tail (``_tail``) stays: none of these lines moves those axes or changes an offset.
+        None: the line has no fast path."""
+        if line.__class__ is Block:
+            motion, comment = line.plain  # type: ignore[misc]
+            w = line.words  # type: ignore[union-attr]
+            if motion is not None and motion >= 20:
+                run = partial(self._fast_arc, motion, w.get("x"), w.get("y"), w.get("z"),  # type: ignore[attr-defined]
+                              w.get("i"), w.get("j"), w.get("k"), w.get("r"), w.get("f"))
+            elif line.axes:  # type: ignore[union-attr]
+                return straight_function(self, motion, w, comment)
+            else:
+                run = partial(self._fast_values, motion, None, None, None, w.get("f"))
+            return run if comment is None else self._commented(run, comment)
+        quick = line.quick  # type: ignore[union-attr]
+        if quick is None:
+            return None
+        if line.plain is None:  # parameter settings alone
+            return self._settings_runner(quick)
+        motion, comment = line.plain
+        if line.axes:  # type: ignore[union-attr]
+            return straight_function(self, motion, dict(line.values), comment)  # type: ignore[union-attr]
+        fast = self._fast_values
+
+        def straight() -> tuple[Canon, ...] | None:
             try:
-                return self._fast_block(entry)  # type: ignore[arg-type]
-            except Exception as exc:
-                err, cause = self._line_error(exc)
-                raise err from cause
-        if cls is not CompiledLine or entry.quick is None:  # type: ignore[attr-defined]
-            return None
-        try:
-            values = entry.quick()  # type: ignore[attr-defined]
-        except (GCodeError, RecursionError, ArithmeticError, ValueError):
-            return None
-        plain = entry.plain  # type: ignore[attr-defined]
-        if plain is None:  # parameter settings alone
+                values = quick()
+            except EXPRESSION_ERRORS:
+                return None
+            return fast(motion, *values)  # type: ignore[misc]
+
+        return straight if comment is None else self._commented(straight, comment)
+
+    def _commented(self, run: Callable[[], tuple[Canon, ...] | None],
+                   text: str) -> Callable[[], tuple[Canon, ...] | None]:
+        """``run`` on a line with a comment: the comment first (``_step_comment`` runs first)."""
+
+        def commented() -> tuple[Canon, ...] | None:
+            cmds = run()
+            if cmds is None:
+                return None
+            return (new_comment(text, self.file, self.line), *cmds)
+
+        return commented
+
+    def _settings_runner(self, quick: Callable[[], object]) -> Callable[[], tuple[Canon, ...] | None]:
+        """The fast path of a compiled line of parameter settings alone (:meth:`_fast_runner`)."""
+
+        def settings() -> tuple[Canon, ...] | None:
             if self.cycle_state.initial_level is not None or len(self.steps) != self._builtin_steps:
                 return None
-            self._tail = None  # as the general path: computed again at the next fast line
             try:
-                self._assign(values)
-            except GCodeError as exc:
-                raise exc.located(self.file, self.line) from None
+                values = quick()
+            except EXPRESSION_ERRORS:
+                return None
+            self._tail = None  # as the general path: computed again at the next fast line
+            self._assign(values)  # type: ignore[arg-type]
             return ()
-        cmds = self._fast_values(plain[0], *values)
-        if cmds is None or plain[1] is None:
-            return cmds
-        return (new_comment(plain[1], self.file, self.line), *cmds)  # _step_comment runs first
+
+        return settings
 
     def _line_error(self, exc: Exception) -> tuple[GCodeError, Exception | None]:
         """The error to raise for ``exc`` raised by the current line, located, and its cause."""
@@ -239,7 +327,8 @@ class ProgramLoopMixin:
         motion, comment = block.plain  # type: ignore[misc]
         w = block.words
         if motion is not None and motion >= 20:
-            cmds = self._fast_arc(block, motion)  # type: ignore[attr-defined]
+            cmds = self._fast_arc(motion, w.get("x"), w.get("y"), w.get("z"),  # type: ignore[attr-defined]
+                                  w.get("i"), w.get("j"), w.get("k"), w.get("r"), w.get("f"))
         else:
             cmds = self._fast_values(motion, w.get("x"), w.get("y"), w.get("z"), w.get("f"))
         if cmds is None or comment is None:
@@ -295,10 +384,14 @@ class ProgramLoopMixin:
                                      prog[7] + s[7], prog[8] + s[8])
             end = _new_pose(Pose, (mx, my, mz, *tail))
             self.pos = end
-            if motion:
-                cmd: Canon = new_straight_feed(end, file, line)
+            if motion:  # new_straight_feed's object, without the call (slot_setters)
+                cmd = _new_object(StraightFeed)
+                _feed_end(cmd, end)
             else:
-                cmd = new_straight_traverse(end, file, line)
+                cmd = _new_object(StraightTraverse)
+                _traverse_end(cmd, end)
+            _set_file(cmd, file)
+            _set_line(cmd, line)
             self.motion = motion
             if feed != self.feed:
                 self.feed = feed

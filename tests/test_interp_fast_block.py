@@ -258,3 +258,73 @@ def test_parameter_settings_alone_run_no_check_and_no_step(monkeypatch) -> None:
     # the settings of a line read the values of before the line (LinuxCNC): #<d> is twice the old #1
     assert [c.end[0] for c in interp.run_string(text) if c.NAME == "STRAIGHT_FEED"] == [0.0, 2.0, 4.0]
     assert 2 not in checked and 4 not in checked and 1 in checked
+
+
+# --- a straight line compiled into one function (gcode_canon.fast_lines) against _fast_values --------
+
+def _fast_state(interp: Interpreter) -> tuple:
+    return (list(interp.prog), interp.pos, interp.motion, interp.feed, interp._tail)
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_a_straight_lines_function_does_what_fast_values_does(seed: int) -> None:
+    from gcode_canon.fast_lines import straight_function
+
+    rng = random.Random(seed)
+    for _ in range(60):
+        interp, twin = _interp(), _interp()
+        line = rng.randint(1, 99)
+        absolute, scale = rng.random() < 0.6, rng.choice([1.0, 25.4])
+        motion_in_force, feed = rng.choice([0, 10, 10, 20, 800]), rng.choice([0.0, 300.0, 500.0])
+        prog = [rng.uniform(-9, 9) for _ in range(9)]
+        sums = tuple(rng.choice([0.0, 1.5, -2.0]) for _ in range(9))
+        for one in (interp, twin):
+            one.file, one.line, one.absolute, one.scale = "t.ngc", line, absolute, scale
+            one.motion, one.feed, one.prog[:] = motion_in_force, feed, prog
+            one.frames.sum, one._tail = sums, None
+        motion = rng.choice([None, 0, 10])
+        letters = rng.sample("xyzf", rng.randint(1, 4))
+        if not {"x", "y", "z"} & set(letters):
+            letters.append("x")
+        plain = {letter: rng.choice([1.0, -2.5, 0.0, 1e308, 600.0, -5.0]) for letter in letters}
+        values: dict[str, object] = dict(plain)
+        if rng.random() < 0.5:  # computed values (a compiled line's nodes), one failing now and then
+            values = {letter: (lambda v=v: v) for letter, v in plain.items()}
+        failing = values is not plain and rng.random() < 0.2
+        if failing:
+            values[rng.choice(letters)] = lambda: 1.0 / 0.0
+        comment = rng.choice([None, "note"])
+        got = straight_function(interp, motion, values, comment)()
+        want = None if failing else twin._fast_values(motion, *(plain.get(k) for k in "xyzf"))
+        if want is not None and comment is not None:
+            want = twin._commented(lambda want=want: want, comment)()
+        assert (None if got is None else [repr(c) for c in got]) == (
+            None if want is None else [repr(c) for c in want]), (motion, plain, comment, failing)
+        assert _fast_state(interp) == _fast_state(twin)  # the same change, or none when declined
+
+
+def test_literal_lines_read_again_are_parsed_once_and_kept(monkeypatch) -> None:
+    # a line the pattern runs (FAST_LINE) is noted; read again, it is parsed and kept with its fast
+    # path; after as many lines as the cache holds with none read again, no more are noted until one
+    # noted before comes back
+    from gcode_canon.compiled import LineCache
+
+    interp = _interp()
+    interp._lines.size = 8
+    parsed: list[int] = []
+    parse = LineCache.parse
+
+    def counted(self, raw):
+        parsed.append(interp.line)
+        return parse(self, raw)
+
+    monkeypatch.setattr(LineCache, "parse", counted)
+    unique = [f"G1 X{k} Y1" for k in range(1, 15)]
+    text = "\n".join(["G21 G90 F600", *unique[:6], unique[0],  # lines 1, 2-7, 8
+                      "G0 X20", "G0 X20", "G0 X20", *unique[6:],  # 9-11, 12-19
+                      "G0 Y5", "G0 Y5", "M2"]) + "\n"  # 20-21, 22
+    cmds = list(interp.run_string(text, "t.ngc"))
+    # 8: noted at line 2, so parsed; 9 noted, 10 parsed, 11 kept; 12-19 noted, none read again: 20-21
+    # are not, nor parsed
+    assert parsed == [1, 8, 10, 22]
+    assert [repr(c) for c in cmds] == [repr(c) for c in _interp().run_string(_general(text), "t.ngc")]

@@ -121,3 +121,44 @@ def test_invalid_utf8_is_a_clear_error(tmp_path) -> None:
     with pytest.raises(Exception, match="not valid UTF-8") as info:
         list(Interpreter(InterpreterSettings()).run_file(path))
     assert ":2:" in str(info.value)
+
+
+def _fast_line_candidates(rng) -> list[str]:
+    """Random lines near FAST_LINE's grammar: words in and out of order, numbers well and badly
+    formed, spaces and tabs anywhere, letters it does not take."""
+    lines = []
+    for _ in range(20000):
+        if rng.random() < 0.3:
+            chars = "GgXxYyZzFf0123456789.+- \tQe"
+            lines.append("".join(rng.choice(chars) for _ in range(rng.randint(0, 16))))
+            continue
+        parts = []
+        if rng.random() < 0.7:
+            codes = ["0", "1", "00", "01", "001", "10", "11", "1.", "0.5", "2"]
+            parts.append(rng.choice("Gg") + rng.choice(codes))
+        for letter in "XYZF":
+            if rng.random() < 0.7:
+                parts.append(rng.choice([letter, letter.lower()]) + rng.choice(["", "-", "+", "+-"])
+                             + rng.choice(["1", "1.", ".5", "12.25", ".", "", "1.2.3", "1e3", "0"]))
+        if rng.random() < 0.2:
+            rng.shuffle(parts)
+        lines.append(rng.choice(["", " ", "\t"]).join(parts) + rng.choice(["", " ", "\t", "Q", " q"]))
+    return lines
+
+
+def test_the_fast_lines_pattern_reads_as_its_plain_form() -> None:
+    # FAST_LINE is written with atomic groups for speed (its docstring); this is the grammar it reads,
+    # written plainly with optional groups
+    import random
+    import re
+
+    from gcode_canon.lexer import _NUM, FAST_LINE
+
+    plain = re.compile(r"[ \t]*(?:[Gg]0?([01])(?![0-9.])[ \t]*)?(?:[Xx]" + _NUM + r"[ \t]*)?(?:[Yy]" + _NUM
+                       + r"[ \t]*)?(?:[Zz]" + _NUM + r"[ \t]*)?(?:[Ff]" + _NUM + r"[ \t]*)?\Z")
+    matched = 0
+    for line in _fast_line_candidates(random.Random(7)):
+        ours, theirs = FAST_LINE.match(line), plain.match(line)
+        assert (ours and ours.groups()) == (theirs and theirs.groups()), line
+        matched += ours is not None
+    assert matched > 500  # the lines cover both outcomes
