@@ -56,6 +56,17 @@ log = logging.getLogger(__name__)
 TRACE_ENV = "CANON_CYCLE_TRACE"
 
 
+def write_trace(env: str, name: str, trace: array) -> None:
+    """``trace`` as native doubles into the file ``name`` in the folder the environment variable ``env``
+    names (:data:`TRACE_ENV`, :data:`fieldbus.canopen.sync_process.TRACE_ENV`); a failure is a warning."""
+    folder = os.environ.get(env, "")
+    try:
+        with open(os.path.join(folder, name), "wb") as f:
+            trace.tofile(f)
+    except OSError as exc:
+        log.warning("trace not written to %s: %s", folder, exc)
+
+
 @dataclass
 class CycleStats:
     """Per-cycle wake-up lateness (seconds after the deadline) and counts."""
@@ -278,20 +289,11 @@ class PeriodicRunner:
             st.ended = time.monotonic()
             st.cpu_s = time.thread_time() - cpu0
             if self._trace is not None:
-                self._write_trace(self._trace)
+                write_trace(TRACE_ENV, f"cycle-{os.getpid()}-{self.native_id}.f64", self._trace)
             if steer is not None:
                 steer.end()
             if self.cpu_latency is not None:
                 self.cpu_latency.release()
-
-    def _write_trace(self, trace: array) -> None:
-        folder = os.environ.get(TRACE_ENV, "")
-        path = os.path.join(folder, f"cycle-{os.getpid()}-{self.native_id}.f64")
-        try:
-            with open(path, "wb") as f:
-                trace.tofile(f)
-        except OSError as exc:
-            log.warning("cycle trace not written to %s: %s", folder, exc)
 
     def _step_at(self, k: int, deadline: float, now: float, missed: int = 0) -> bool:
         """Step ``k`` of ``deadline``, started at ``now`` (``missed`` ticks skipped before it): its
@@ -307,15 +309,12 @@ class PeriodicRunner:
                 self.on_late(k, late)
         st.cycles += 1
         trace = self._trace
-        if trace is None:
-            result = self.step(k, deadline)
-            st.work_s += time.monotonic() - now
-            return result is not False
-        cpu = time.thread_time()
+        cpu = time.thread_time() if trace is not None else 0.0
         result = self.step(k, deadline)
         end = time.monotonic()
         st.work_s += end - now
-        trace.extend((deadline, now, end, time.thread_time() - cpu))
+        if trace is not None:
+            trace.extend((deadline, now, end, time.thread_time() - cpu))
         return result is not False
 
     def _run_on_clock(self, steer: _GcSteering | None) -> None:

@@ -313,19 +313,12 @@ def run(spec: dict[str, Any], stdin: Any, stdout: Any) -> int:
             log.warning("%d sets of RPDOs came after their SYNC, %d were void (pushed before a stop)",
                         buffer.late, buffer.void)
         if trace is not None:
-            _write_trace(trace)
+            from fieldbus.canopen.clock import write_trace
+
+            write_trace(TRACE_ENV, f"sync-{os.getpid()}.f64", trace)
         return skipped
     finally:
         bus.shutdown()
-
-
-def _write_trace(trace: array) -> None:
-    folder = os.environ.get(TRACE_ENV, "")
-    try:
-        with open(os.path.join(folder, f"sync-{os.getpid()}.f64"), "wb") as f:
-            trace.tofile(f)
-    except OSError as exc:
-        log.warning("SYNC trace not written to %s: %s", folder, exc)
 
 
 def main() -> int:
