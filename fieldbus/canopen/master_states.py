@@ -96,11 +96,9 @@ class StateMachineMixin(MasterCore):
         next one, so the SYNC after the enable command would otherwise find none (the cycle's RPDOs of
         that period went out before the drive was active)."""
         actual = self._sdo(d, "position actual", 0x6064, 0, "i")
-        inputs = self._sdo(d, "digital inputs", 0x60FD, 0, "I") if d.has_inputs else 0
+        self._arm_limits(d)  # on a switch: it may move off
         with self._lock:
             d.target = d.actual = actual
-            d.inputs = inputs
-            d.limits_armed = inputs & (NEGATIVE_LIMIT | POSITIVE_LIMIT)  # on a switch: it may move off
             d.controlword = cia402.CW_ENABLE_OPERATION
             d.enabled_at = math.inf
             d.active_at = d.feedback_at = time.monotonic()
@@ -275,14 +273,12 @@ class StateMachineMixin(MasterCore):
         self._stream_again(d, actual)  # again in CSP: a drive that drops a target on the mode change
 
     def _arm_limits(self, d: DriveBook) -> None:
-        """After homing: the limit switches active where the drive stopped (read by SDO) count as
-        armed, as at enable, since homing on a limit switch (methods 17/18) ends on its edge with it
-        active. The cycle's check arms them from the TPDOs while homing too, but only if it ran between
-        the drive's arrival and the homing's end: a cycle held off that long (a busy PC) would take the
-        switch the drive homed on for one that became active while driven."""
-        if not d.has_inputs:
-            return
-        inputs = self._sdo(d, "digital inputs", 0x60FD, 0, "I")
+        """At enable and after homing: the limit switches active where the drive stands (read by SDO)
+        count as armed (it may move off them), since homing on a limit switch (methods 17/18) ends on
+        its edge with it active. The cycle's check arms them from the TPDOs while homing too, but only
+        if it ran between the drive's arrival and the homing's end: a cycle held off that long (a busy
+        PC) would take the switch the drive homed on for one that became active while driven."""
+        inputs = self._sdo(d, "digital inputs", 0x60FD, 0, "I") if d.has_inputs else 0
         with self._lock:
             d.inputs = inputs
             d.limits_armed = inputs & (NEGATIVE_LIMIT | POSITIVE_LIMIT)
