@@ -4,11 +4,12 @@
 interface): every period it sends the SYNC first (``master.sync``, at the deadline), runs the calls
 posted to it, acts on a pending fault (through the task's ``fault`` hook), moves at most
 :data:`FEED_PER_CYCLE` commands from the bounded command queue into the planner (keeping
-:data:`LOOKAHEAD` queued there), takes one setpoint, sends it with one ``master.cycle`` (for the next
-SYNC) and reads the drives' feedback back, tracks velocities, accelerations and jerks against the
-running job's :class:`~motiond.runtime.records.Stream`, passes the setpoint's events on
-(``io.on_setpoint``, the status's spindle / coolant / tool / modal state, messages), stops at sync
-points, and tells the task side when the motion comes to rest (an abort, a fault's stop, a job's end).
+:data:`LOOKAHEAD` queued there, within :data:`FEED_BUDGET` of the period), takes one setpoint, sends it
+with one ``master.cycle`` (for the next SYNC) and reads the drives' feedback back, tracks velocities,
+accelerations and jerks against the running job's :class:`~motiond.runtime.records.Stream`, passes the
+setpoint's events on (``io.on_setpoint``, the status's spindle / coolant / tool / modal state, messages),
+stops at sync points, and tells the task side when the motion comes to rest (an abort, a fault's stop, a
+job's end).
 Nothing here waits on a network.
 """
 
@@ -40,6 +41,11 @@ LOOKAHEAD_MOVES = 5000
 item holding many moves), as ``plan_all`` keeps; below 2 items the planner is fed regardless."""
 FEED_PER_CYCLE = 40
 """At most this many commands move into the planner per cycle (bounds the cycle's work)."""
+FEED_BUDGET = 0.25
+"""... and, past the two items the planner needs to move on, only while the step has spent less than
+this fraction of the period: one command costs the planner 0.1-0.3 ms (its blends walk the lookahead
+back), up to 2 ms, so forty at a job's start took 6-8 ms of a 2 ms period. The lookahead fills over
+the next cycles instead, at several commands a cycle, faster than a program's moves consume it."""
 LATE_LOG = 100_000
 """The lateness of this many late cycles is kept (for the run summary's verdict)."""
 END = object()
@@ -80,6 +86,8 @@ class Cycle:
         self.drive_probe: Any = None
         """G38.x by a drive's touch probe (:class:`~motiond.runtime.probing.DriveProbing`), or None."""
         self.runner: Any = None
+        self.feed_budget_s = FEED_BUDGET * self.T
+        self._feed_until = float("inf")  # set by each step; no budget when fed outside the cycle
         self._calls: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
         self._cmdq: queue.Queue[Any] = queue.Queue(QUEUE_MAX)
         self.stream: Stream | None = None
@@ -144,6 +152,7 @@ class Cycle:
 
     # ------------------------------------------------------------------ the cycle
     def _step(self, k: int, deadline: float) -> None:
+        self._feed_until = time.perf_counter() + self.feed_budget_s
         try:
             # one setpoint per SYNC; with the SYNC process sending them ahead ([canopen] setpoint_lead),
             # as many as fill its buffer: none when full, several after a late step
@@ -257,12 +266,16 @@ class Cycle:
                 self._setpoint_events(sp, stream)
 
     def _feed(self, p: Any) -> None:
+        """Commands from the queue into the planner: the two items it needs to move on whatever they
+        cost, then up to its lookahead while the step is within its budget (``_feed_until``)."""
         stream = self.stream
         if stream is None:
             return
         n = 0
+        until = self._feed_until
         while n < FEED_PER_CYCLE and (p.queue_length < 2 or (
-                p.queue_length < LOOKAHEAD and p.queued_moves < LOOKAHEAD_MOVES)):
+                p.queue_length < LOOKAHEAD and p.queued_moves < LOOKAHEAD_MOVES
+                and time.perf_counter() < until)):
             try:
                 item = self._cmdq.get_nowait()
             except queue.Empty:
