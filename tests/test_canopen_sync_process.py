@@ -126,6 +126,8 @@ def test_no_sync_outlives_the_master_shut_down(local_rig):
 
 
 def test_a_killed_sync_process_is_a_fault_of_the_master_naming_it(local_rig):
+    """Seen either way, the same words: by the SYNC's silence on the bus, or (first, when the cycle
+    writes to it) by the SYNC process's input being gone."""
     rig, _listener = local_rig(1, cycle_s=0.002, feedback_timeout_s=0.3)
     rig.up()
     master = rig.master
@@ -213,6 +215,22 @@ def test_the_sync_process_records_when_it_sent_each_sync_where_asked(tmp_path, m
     sent.frombytes(files[0].read_bytes())
     assert len(sent) >= 20 and list(sent[:20]) == got  # the times it reported, in order
     assert statistics.median(b - a for a, b in itertools.pairwise(sent)) == pytest.approx(0.004, rel=0.2)
+
+
+def test_a_write_to_a_killed_sync_process_says_the_sync_stopped():
+    """The write that finds the SYNC process's input gone says what the drives see (no SYNC) in the
+    words the SYNC's silence is reported in."""
+    t = SyncProcess({"interface": "canon_local", "channel": unique_channel()}, 0.004)
+    try:
+        t.start()
+        assert t.read(5.0) is not None
+        os.kill(t.pid, signal.SIGKILL)
+        t._proc.wait(10)
+        with pytest.raises(SyncProcessError, match=r"no SYNC on the bus: the SYNC process stopped"):
+            for tag in range(1, 100):  # the pipe's buffer may take a few before the write fails
+                t.push(tag, [(RPDO1 + 1, bytes(8))], 0)
+    finally:
+        t.stop()
 
 
 def test_a_sync_process_whose_bus_does_not_open_says_why():

@@ -119,7 +119,9 @@ class SyncProcess:
                 raise SyncProcessError("the SYNC process takes no setpoints (its input is full: it is "
                                        "stalled)") from None
             except OSError as exc:
-                raise SyncProcessError(f"the SYNC process is gone: {exc}") from None
+                # its input closed: the child is dead, and with it the SYNC (as the timeout would say)
+                raise SyncProcessError(f"no SYNC on the bus: the SYNC process stopped (killed?), its input "
+                                       f"is gone ({exc})") from None
 
     def push(self, tag: int, frames: list[sb.Frame], generation: int) -> None:
         """RPDOs for SYNC number ``tag``: sent right after the SYNC before it (at once if that one is
