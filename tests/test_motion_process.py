@@ -971,10 +971,11 @@ def test_the_task_watch_faults_on_silence_not_on_its_own_stall(monkeypatch) -> N
     from types import SimpleNamespace
 
     from motiond.config_motion import Watch
-    from motiond.runtime import motion_proxy
+    from motiond.runtime import motion_link, motion_proxy
 
     clock = Clock()
-    monkeypatch.setattr(motion_proxy, "time", clock)
+    monkeypatch.setattr(motion_proxy, "time", clock)  # the states' arrival
+    monkeypatch.setattr(motion_link, "time", clock)  # the watch
     hooks = Recorder()
     p = motion_proxy.MotionProxy(SimpleNamespace(names=("x",)), None, late_fault_s=1.0, simulated=True,
                                  hooks=hooks, watch=Watch(1000.0, 1000.0))  # type: ignore[arg-type]
