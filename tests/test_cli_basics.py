@@ -71,3 +71,42 @@ def test_check_imports_only_its_own_sub_command(tmp_path: Path) -> None:
     r = subprocess.run([sys.executable, "-m", "motiond.cli", "--help"], capture_output=True, text=True,
                        timeout=60, cwd=ROOT)
     assert all(name in r.stdout for name in ("check", "plan", "run", "daemon", "status"))
+
+
+LEAN = [["check", "a.ngc"], ["-v", "check", "a.ngc"], ["-vv", "--verbose", "plan", "a.ngc"], ["check", "-h"],
+        ["check"], ["check", "--bogus", "a.ngc"], ["check", "--json", "check"]]
+WHOLE = [["-h", "check"], ["--he", "check"], ["-vh", "check"], ["-", "check"], ["--", "check", "a.ngc"],
+         ["--verb", "check", "a.ngc"], ["nothing"], [], ["--version", "check"], ["-x", "check"]]
+
+
+@pytest.mark.parametrize("words", LEAN + WHOLE)
+def test_the_other_sub_commands_are_left_out_only_where_nothing_lists_them(
+        words: list[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """``canon check FILE`` (``-v`` before it or not) builds no parser for the other sub-commands; a
+    command line whose top-level part could print the list of sub-commands (``-h``, ``--he``, ``-vh``,
+    an unknown command or ``-`` as one) builds them all. What ``canon`` prints and returns is the same
+    as with every sub-command's parser built."""
+    from motiond import cli
+
+    monkeypatch.chdir(tmp_path)  # a.ngc: no such file there
+    original = cli.build_parser
+    built: list[bool] = []
+
+    def run(build) -> tuple:
+        monkeypatch.setattr(cli, "build_parser", build)
+        try:
+            result: object = cli.main(words)
+        except SystemExit as exc:
+            result = ("exit", exc.code)
+        out = capsys.readouterr()
+        return result, out.out, out.err
+
+    def recording(only=None, *, others=True):
+        built.append(others)
+        return original(only, others=others)
+
+    lean = run(recording)
+    whole = run(lambda only=None, *, others=True: original(only, others=True))
+    assert lean == whole
+    assert built == [words in WHOLE]
