@@ -22,7 +22,6 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
-from gcode_canon import cutter_comp
 from gcode_canon.arcs import centre_ijk
 from gcode_canon.commands import Plane, StraightFeed, StraightTraverse
 from gcode_canon.errors import GCodeError
@@ -68,6 +67,8 @@ class _Moves:
                      ccw: bool = False, rapid: bool = False) -> None:
         """G70 with cutter compensation on: the move goes through the compensation as a G0/G1/G2/G3
         of the program would (in the XZ plane: Z first, X second, Y normal)."""
+        from gcode_canon import cutter_comp  # with compensation only: not at every start-up
+
         i = self.i
         others = tuple(target[k] for k in range(len(target)) if k not in (2, 0, 1))
         end = (target[2], target[0])
