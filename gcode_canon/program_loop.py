@@ -138,7 +138,10 @@ class ProgramLoopMixin:
                                 if cmds is not None:
                                     seen_content = True
                                     self.seen_code = True
-                                    yield from cmds
+                                    if len(cmds) == 1:  # most lines: one command, no iterator over them
+                                        yield cmds[0]
+                                    else:
+                                        yield from cmds
                                     continue
                             elif entry is FAST_SEEN:  # a line noted below, read again
                                 noting = cache_size
@@ -154,7 +157,10 @@ class ProgramLoopMixin:
                                     if len(entries) >= cache_size:
                                         entries.clear()
                                     entries[raw] = FAST_SEEN
-                                yield from cmds
+                                if len(cmds) == 1:
+                                    yield cmds[0]
+                                else:
+                                    yield from cmds
                                 continue
                     self._tail = None
                     stripped = raw.strip()
