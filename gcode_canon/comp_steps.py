@@ -5,14 +5,17 @@ machine coordinates. A mixin of :class:`gcode_canon.interpreter.Interpreter`."""
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
-from gcode_canon import cutter_comp
 from gcode_canon.commands import ArcFeed, Plane, StraightFeed, StraightTraverse
 from gcode_canon.errors import GCodeError
 from gcode_canon.expressions import near_int
 from gcode_canon.lexer import Block
 from gcode_canon.modal import ModalLine, gname
 from gcode_canon.offsets import N_AXES
+
+if TYPE_CHECKING:
+    from gcode_canon import cutter_comp
 
 
 class CutterCompMixin:
@@ -71,6 +74,8 @@ class CutterCompMixin:
         if self.xform_on:  # compensation works on the transformed path; a mirror swaps the side
             here = list(self.xform.apply_position(here))
             side = self.xform.comp_side(side, self.plane)
+        from gcode_canon import cutter_comp  # with compensation only: not at every start-up
+
         self.comp = cutter_comp.CutterCompensator(side, diameter / 2.0, (here[first], here[second]),
                                                   orientation, here[normal])
         self._comp_normal = here[normal]
@@ -93,6 +98,8 @@ class CutterCompMixin:
 
     def _comp_output(self, items: list) -> None:
         """Compensated segments to canonical commands (machine coordinates); held commands as they are."""
+        from gcode_canon import cutter_comp  # with compensation only: not at every start-up
+
         first, second, normal = self.plane.value
         others = [k for k in range(N_AXES) if k not in (first, second, normal)]
         f = self.file

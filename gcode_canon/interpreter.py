@@ -76,9 +76,9 @@ import itertools
 import logging
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
-from gcode_canon import cutter_comp, cycles, transforms
+from gcode_canon import cycles, transforms
 from gcode_canon.block_checks import BlockChecksMixin
 from gcode_canon.commands import Canon, FeedMode, MotionControlMode, Plane, Pose, SpindleDirection
 from gcode_canon.comp_steps import CutterCompMixin
@@ -106,6 +106,9 @@ from gcode_canon.spindle_sync import SpindleSyncMixin
 from gcode_canon.spline_steps import SplineMixin
 from gcode_canon.status import StatusMixin
 from gcode_canon.tool_steps import ToolSpindleMixin
+
+if TYPE_CHECKING:
+    from gcode_canon import cutter_comp
 
 log = logging.getLogger(__name__)
 

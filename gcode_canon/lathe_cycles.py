@@ -22,13 +22,12 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
-from gcode_canon import cutter_comp
-from gcode_canon import lathe_profile as lp
 from gcode_canon.arcs import centre_ijk
 from gcode_canon.commands import Plane, StraightFeed, StraightTraverse
 from gcode_canon.errors import GCodeError
 
 if TYPE_CHECKING:
+    from gcode_canon import lathe_profile as lp
     from gcode_canon.lexer import Block
     from gcode_canon.modal import ModalLine
 
@@ -68,6 +67,8 @@ class _Moves:
                      ccw: bool = False, rapid: bool = False) -> None:
         """G70 with cutter compensation on: the move goes through the compensation as a G0/G1/G2/G3
         of the program would (in the XZ plane: Z first, X second, Y normal)."""
+        from gcode_canon import cutter_comp  # with compensation only: not at every start-up
+
         i = self.i
         others = tuple(target[k] for k in range(len(target)) if k not in (2, 0, 1))
         end = (target[2], target[0])
@@ -131,6 +132,9 @@ class LatheCycleMixin:
     _g7x: _Capture | None = None
 
     def _lathe_cycle(self, code: int, block: Block) -> None:
+        # the profile's geometry imported here, for G7x only: not every program's start-up
+        from gcode_canon import lathe_profile as lp
+
         cycle, sub = divmod(code, 10)
         name = f"G{cycle}.{sub}"
         q = block.take("q")
@@ -231,6 +235,8 @@ class LatheCycleMixin:
 
     def _profile_line(self, block: Block, ml: ModalLine) -> None:
         """One line of the profile subroutine (LinuxCNC convert_g7x's reading loop)."""
+        from gcode_canon import lathe_profile as lp
+
         cap = self._g7x
         assert cap is not None
         w = block.words
@@ -281,6 +287,8 @@ class LatheCycleMixin:
 
     def _profile_arc(self, motion: int, start: complex, end: complex, w: dict[str, float],
                      cap: _Capture) -> lp.Arc:
+        from gcode_canon import lathe_profile as lp
+
         if "r" in w:
             if "i" in w or "k" in w:
                 raise GCodeError("G7X error: both R and I or K flag used for arc")

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 
-from gcode_canon import cutter_comp, cycles, transforms
+from gcode_canon import cycles, transforms
 from gcode_canon.arcs import centre_ijk, centre_r
 from gcode_canon.commands import (
     ArcFeed,
@@ -210,6 +210,8 @@ class MotionMixin:
             first, second, normal = self.plane._value_
             t = list(self.xform.apply_position(target)) if self.xform_on else target
             others = tuple(t[k] for k in range(N_AXES) if k not in (first, second, normal))
+            from gcode_canon import cutter_comp  # with compensation only: not at every start-up
+
             self._comp_move(cutter_comp.Line2(self.comp.programmed, (t[first], t[second]),
                                               t[normal], others, n, motion == 0))
             self.prog = target
@@ -380,6 +382,8 @@ class MotionMixin:
                 end2, centre2, ccw = (t[first], t[second]), res.centre, not res.clockwise
             others = tuple(t[k] for k in range(N_AXES) if k not in (first, second, normal))
             self._comp_normal = t_start[normal]
+            from gcode_canon import cutter_comp  # with compensation only: not at every start-up
+
             self._comp_move(cutter_comp.Arc2(self.comp.programmed, end2, centre2, ccw, t[normal],
                                              others, self.line, abs(rot)))
             self.prog = target

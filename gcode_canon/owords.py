@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING
 from gcode_canon.errors import GCodeError
 from gcode_canon.lexer import split_comments
 from gcode_canon.oword_loops import LoopKeywords, OBlock
-from gcode_canon.source import LineSource
+from gcode_canon.source import LineSource, Mark
 
 if TYPE_CHECKING:
     from gcode_canon.interpreter import Interpreter
@@ -86,7 +86,7 @@ class Frame:
     label: str
     source: LineSource
     own_source: bool  # opened for this call (closed on return)
-    restore: tuple[int, int] | None  # the source's place before the jump, when it was already open
+    restore: Mark | None  # the source's place before the jump, when it was already open
     caller: LineSource
     caller_file: str
     call_line: int
@@ -95,13 +95,13 @@ class Frame:
     sub_line: int
     fanuc: bool = False
     repeats: int = 0  # M98 L: further runs still to do
-    start: tuple[int, int] | None = None
+    start: Mark | None = None
 
 
 @dataclass(slots=True)
 class SubDef:
     source: LineSource
-    mark: tuple[int, int]
+    mark: Mark
     line: int
     fanuc: bool = False
 
@@ -112,7 +112,7 @@ class FlowControl(LoopKeywords):
     frames: list[Frame] = field(default_factory=list)
     blocks: list[OBlock] = field(default_factory=list)
     subs: dict[str, SubDef] = field(default_factory=dict)
-    file_marks: dict[str, tuple[tuple[int, int], int]] = field(default_factory=dict)
+    file_marks: dict[str, tuple[Mark, int]] = field(default_factory=dict)
     value: float = 0.0
     value_returned: bool = False
     main_dir: Path | None = None
@@ -334,7 +334,7 @@ class FlowControl(LoopKeywords):
             raise GCodeError(f"{label} call: more than {limit} nested calls (max_call_depth): "
                              "runaway recursion?")
 
-    def _locate(self, label: str) -> tuple[LineSource, bool, tuple[int, int] | None, int]:
+    def _locate(self, label: str) -> tuple[LineSource, bool, Mark | None, int]:
         """The source to run ``label`` from (positioned at its body), whether it was opened for the
         call, the place to restore in it afterwards, and the line of its ``sub``."""
         interp = self.interp
@@ -367,7 +367,7 @@ class FlowControl(LoopKeywords):
             source.close()
             raise
 
-    def _scan_sub(self, label: str) -> tuple[LineSource, bool, tuple[int, int], int] | None:
+    def _scan_sub(self, label: str) -> tuple[LineSource, bool, Mark, int] | None:
         """LinuxCNC's forward seek (control_back_to): a sub not defined yet and not on the path may
         follow later in the main program's file; the subs passed on the way are recorded."""
         interp = self.interp
@@ -413,7 +413,7 @@ class FlowControl(LoopKeywords):
         raise GCodeError(f"{label} call: no subroutine {label} defined before the call and no file "
                          f"{name}.ngc on the subroutine path: {where}")
 
-    def _enter(self, label: str, source: LineSource, own: bool, restore: tuple[int, int] | None,
+    def _enter(self, label: str, source: LineSource, own: bool, restore: Mark | None,
                sub_line: int, args: list[float], *, fanuc: bool, repeats: int = 0) -> None:
         interp = self.interp
         params = interp.params

@@ -80,8 +80,8 @@ class ProgramLoopMixin:
         source, set up here by :meth:`_start` and closed at the end) or, for an MDI call, until the
         call stack is back to ``depth`` frames.
 
-        The lines are read here as :meth:`LineSource.__iter__` reads them (the same line count, limit
-        and errors), not through it: a generator between the source and this loop costs its
+        The lines are read here as :meth:`LineSource.__iter__` reads them (its chunk of lines, the same
+        line count, limit and errors), not through it: a generator between the source and this loop costs its
         resumption at every line."""
         if main is not None:
             first = self._start(main)
@@ -106,23 +106,23 @@ class ProgramLoopMixin:
             while True:
                 source = self.source
                 in_main = source is main
-                readline = source.stream.readline
-                limit = source.max_line_length + 2
+                max_length = source.max_line_length
                 switched = False
                 while True:
-                    try:
-                        raw = readline(limit)
-                    except OSError as exc:
-                        raise GCodeError(f"Cannot read program: {exc}", source.name,
-                                         source.line + 1) from None
-                    if not raw:
-                        break  # the end of the source: below
+                    # the source's chunk, index and count read afresh at each line (a jump, a scan for
+                    # a subroutine, may have moved them)
+                    i = source.next
+                    lines = source.lines
+                    if i >= len(lines):
+                        if not source.fill():
+                            break  # the end of the source: below
+                        i = 0
+                        lines = source.lines
+                    raw = lines[i]
+                    source.next = i + 1
                     self.line = source.line = source.line + 1
-                    if raw[-1] == "\n":
-                        raw = raw[:-1]
-                    if len(raw) > limit - 2:
-                        raise GCodeError(f"Line too long (more than {limit - 2} characters)", source.name,
-                                         source.line)
+                    if len(raw) > max_length:
+                        raise source.too_long()
                     if self.before_line is not None:
                         self.before_line()
                     if self._fast_ok:
@@ -138,7 +138,10 @@ class ProgramLoopMixin:
                                 if cmds is not None:
                                     seen_content = True
                                     self.seen_code = True
-                                    yield from cmds
+                                    if len(cmds) == 1:  # most lines: one command, no iterator over them
+                                        yield cmds[0]
+                                    else:
+                                        yield from cmds
                                     continue
                             elif entry is FAST_SEEN:  # a line noted below, read again
                                 noting = cache_size
@@ -154,7 +157,10 @@ class ProgramLoopMixin:
                                     if len(entries) >= cache_size:
                                         entries.clear()
                                     entries[raw] = FAST_SEEN
-                                yield from cmds
+                                if len(cmds) == 1:
+                                    yield cmds[0]
+                                else:
+                                    yield from cmds
                                 continue
                     self._tail = None
                     stripped = raw.strip()

@@ -31,11 +31,11 @@ import itertools
 import math
 from typing import TYPE_CHECKING
 
-from gcode_canon import splines
 from gcode_canon.commands import FeedMode, Plane, StraightFeed
 from gcode_canon.errors import GCodeError
 
 if TYPE_CHECKING:
+    from gcode_canon import splines
     from gcode_canon.lexer import Block
     from gcode_canon.modal import ModalLine
 
@@ -220,6 +220,8 @@ class SplineMixin:
             # the curve starts at the order-th knot: LinuxCNC evaluates it from the first (NaN there)
             raise GCodeError(f"nurbs knots K must start with {order} equal values (the order P)")
         points = [(c[0], c[1], c[2]) for c in cps[: len(cps) - order]]
+        from gcode_canon import splines  # here, for G5 G6 only: not every program's start-up (1 ms)
+
         # the curve in program units, as LinuxCNC's canon computes it (knots are not lengths)
         moves = splines.nurbs_g6_moves([(x / scale, y / scale, wt) for x, y, wt in points], knots, order)
         target = list(self.prog)  # type: ignore[attr-defined]
@@ -257,6 +259,8 @@ class SplineMixin:
         self.splines_done += 1
         f, n = self.file, self.line  # type: ignore[attr-defined]
         if moves is None:
+            from gcode_canon import splines
+
             moves = splines.nurbs_moves(cps, order)
         if not all(math.isfinite(v) for mv in moves for v in (*mv.end, *(mv.centre or ()))):
             raise GCodeError("NURBS goes through infinity: a control point's weight (G5.2 P, G6.2 R) is not "

@@ -328,3 +328,25 @@ def test_literal_lines_read_again_are_parsed_once_and_kept(monkeypatch) -> None:
     # are not, nor parsed
     assert parsed == [1, 8, 10, 22]
     assert [repr(c) for c in cmds] == [repr(c) for c in _interp().run_string(_general(text), "t.ngc")]
+
+
+def test_a_straight_lines_factory_is_made_once_per_shape(monkeypatch) -> None:
+    """Lines of one shape (motion, letters in order, which computed, a comment or not) share their
+    factory: its source is not written out again for each line; lines of another shape get their own."""
+    from gcode_canon import fast_lines
+
+    made: list[tuple] = []
+    factory = fast_lines._factory
+    monkeypatch.setattr(fast_lines, "_BY_SHAPE", {})
+    monkeypatch.setattr(fast_lines, "_factory", lambda *a: made.append(a) or factory(*a))
+    interp = _interp()
+    interp.file, interp.line, interp.motion, interp.feed = "t.ngc", 1, 10, 300.0
+    for k in range(50):
+        cmds = fast_lines.straight_function(interp, None, {"x": float(k), "y": lambda k=k: k / 2}, None)()
+        assert cmds is not None and cmds[-1].end[:2] == (k, k / 2)
+    assert len(made) == 1
+    fast_lines.straight_function(interp, None, {"y": 1.0, "x": 2.0}, None)  # other shapes
+    fast_lines.straight_function(interp, 0, {"x": 1.0, "y": 2.0}, None)
+    fast_lines.straight_function(interp, None, {"x": 1.0, "y": 2.0}, "note")
+    fast_lines.straight_function(interp, None, {"x": 1.0, "y": 2.0}, None)
+    assert len(made) == 5
