@@ -568,11 +568,18 @@ def reference(period: float, seconds: float, exe: Path | None, rt: int, latency:
             return None
         late = np.loadtxt(out_path, dtype=np.int64) / 1e3  # us
     # the k-th wake-up is due k + 1 periods after the start
-    per_s = per_second_p999((np.arange(len(late)) + 1) * period, late)
-    return {"when": when, "p50": float(np.percentile(late, 50)), "p99": float(np.percentile(late, 99)),
+    return {"when": when, **lateness((np.arange(len(late)) + 1) * period, late),
+            "missed": int(np.count_nonzero(late > 1e6 * period / 2)), "load": f"{os.getloadavg()[0]:.1f}"}
+
+
+def lateness(due, late) -> dict:
+    """Wake-up lateness ``late`` (us, each due at ``due`` s): p50/p99/p99.9/max and the spread of the
+    per-second p99.9."""
+    import numpy as np
+
+    return {"n": len(late), "p50": float(np.percentile(late, 50)), "p99": float(np.percentile(late, 99)),
             "p999": float(np.percentile(late, 99.9)), "max": float(late.max()),
-            "missed": int(np.count_nonzero(late > 1e6 * period / 2)), "per_s": spread(per_s),
-            "load": f"{os.getloadavg()[0]:.1f}"}
+            "per_s": spread(per_second_p999(due, late))}
 
 
 class Beside:
@@ -611,9 +618,7 @@ class Beside:
         late, due = late[inside], due[inside]
         if len(late) < 100:
             return None
-        return {"n": len(late), "p50": float(np.percentile(late, 50)), "p99": float(np.percentile(late, 99)),
-                "p999": float(np.percentile(late, 99.9)), "max": float(late.max()),
-                "per_s": spread(per_second_p999(due, late))}
+        return lateness(due, late)
 
 
 def finish_row(row: dict, window: tuple[float, float], period: float, result: dict, fault, cycles: str,
