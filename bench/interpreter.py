@@ -21,8 +21,9 @@ included). Start-up alone is timed on a one-line program, and the import of the 
 (every module compiled from source at each start) is printed beside it.
 
 The figures move with the machine's load: ``--repeat N`` takes the least CPU time of N runs of each
-(canon in process, ``canon check``, rs274). The summary at the end gives canon's CPU time over
-rs274's for each program and way, against the targets of issue #18 (in process at most 1.0x on the
+(canon in process, ``canon check``, rs274), run in turn: one of each per round. The summary at the end
+gives canon's CPU time over rs274's for each program and way (and the spread of that ratio within the
+rounds), against the targets of issue #18 (in process at most 1.0x on the
 mixed program, ``canon check`` at most 1.3x on both).
 
 Usage: ``python bench/interpreter.py [LINES] [--repeat N]`` (default 1,000,000 lines, one run each).
@@ -35,11 +36,13 @@ import math
 import os
 import resource
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
 import time
 import tracemalloc
+from collections.abc import Callable
 from pathlib import Path
 
 from gcode_canon.interpreter import Interpreter
@@ -117,6 +120,26 @@ def best(runs: int, measure):
     return min((measure() for _ in range(runs)), key=lambda r: r[1])
 
 
+def interleaved(runs: int, measures: dict[str, Callable[[], tuple]]) -> dict[str, list[tuple]]:
+    """Every run of each ``measure()`` (tuples whose second item is CPU seconds), taken in turn, one of each
+    per round, for ``runs`` rounds.
+
+    In turn, not all of canon's runs and then all of rs274's: a stretch of seconds in which the machine is
+    slow (other work, this VM's host taking the CPU away) then falls on both sides of the comparison, where
+    back to back it could fall on one side's runs only and move their ratio by half.
+    """
+    results: dict[str, list[tuple]] = {name: [] for name in measures}
+    for _ in range(runs):
+        for name, measure in measures.items():
+            results[name].append(measure())
+    return results
+
+
+def least(results: list[tuple]) -> tuple:
+    """The run with the least CPU time."""
+    return min(results, key=lambda r: r[1])
+
+
 def compiled_env(tmp: Path) -> dict[str, str]:
     """The environment for ``canon check`` with bytecode written and read (module docstring)."""
     env = dict(os.environ)
@@ -153,6 +176,7 @@ def main() -> None:
     # The figures depend on what else runs: say so next to them.
     print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs; best of {runs} run(s)")
     ratios: dict[tuple[str, str], float] = {}
+    rounds: dict[tuple[str, str], list[float]] = {}  # the ratio within each round, sorted
     with tempfile.TemporaryDirectory() as tmp:
         plain = Path(tmp) / "plain.ngc"
         mixed = Path(tmp) / "mixed.ngc"
@@ -170,20 +194,28 @@ def main() -> None:
         timed_process([*check, str(one)], Path(tmp), env)  # writes the bytecode: not timed
         for name, path in (("plain G1", plain), ("mixed", mixed)):
             nlines = lines_of(path)
-            seconds, cpu, count = best(runs, lambda path=path: run(path))
+            measures: dict[str, Callable[[], tuple]] = {
+                "in process": lambda path=path: run(path),
+                "canon check": lambda path=path: timed_process([*check, str(path)], Path(tmp), env),
+            }
+            if rs274 is not None:
+                measures["rs274"] = lambda path=path: timed_process(
+                    [str(rs274), "-g", "-i", str(ini), str(path)], Path(tmp))
+            results = interleaved(runs, measures)
+            seconds, cpu, count = least(results["in process"])
             print(f"{name:9s}: {nlines:>9,d} lines in {seconds:6.2f} s = {nlines / seconds:>9,.0f} lines/s "
                   f"wall, {nlines / cpu:>9,.0f} lines/s CPU ({count:,d} commands), in process")
-            check_wall, check_cpu = best(runs, lambda path=path: timed_process([*check, str(path)], Path(tmp),
-                                                                                 env))
+            check_wall, check_cpu = least(results["canon check"])
             print(f"{'':9s}  canon check: {check_wall:6.2f} s wall, {check_cpu:6.2f} s CPU")
             if rs274 is not None:
-                ref_wall, ref_cpu = best(runs, lambda path=path: timed_process(
-                    [str(rs274), "-g", "-i", str(ini), str(path)], Path(tmp)))
+                ref_wall, ref_cpu = least(results["rs274"])
                 print(f"{'':9s}  rs274:       {ref_wall:6.2f} s wall, {ref_cpu:6.2f} s CPU = "
                       f"{nlines / ref_cpu:>9,.0f} lines/s CPU; canon/rs274 CPU: in process "
                       f"{cpu / ref_cpu:.2f}x, canon check {check_cpu / ref_cpu:.2f}x")
-                ratios[(name, "in process")] = cpu / ref_cpu
-                ratios[(name, "canon check")] = check_cpu / ref_cpu
+                for way in ("in process", "canon check"):
+                    ratios[(name, way)] = least(results[way])[1] / ref_cpu
+                    rounds[(name, way)] = sorted(
+                        mine[1] / ref[1] for mine, ref in zip(results[way], results["rs274"], strict=True))
         wall, cpu = best(runs, lambda: timed_process([*check, str(one)], Path(tmp), env))
         print(f"start-up: canon check of a 2-line program {wall:.2f} s wall, {cpu:.2f} s CPU (byte-compiled)")
         if "PYTHONDONTWRITEBYTECODE" in os.environ:
@@ -205,12 +237,14 @@ def main() -> None:
         print(f"load average after: {os.getloadavg()[0]:.2f}")
         print("reference (same kind of machine, from the project notes): pygcode ~30,000 lines/s")
     if ratios:
-        print("\ncanon's CPU time / rs274's (same run)   target   ")
+        print("\ncanon's CPU time / rs274's (same run: least of each; within a round: least-median-most)")
         for (name, way), target in ((("plain G1", "in process"), None), (("mixed", "in process"), 1.0),
                                     (("plain G1", "canon check"), 1.3), (("mixed", "canon check"), 1.3)):
             ratio = ratios[(name, way)]
+            each = rounds[(name, way)]
+            spread = f"{each[0]:.2f}-{statistics.median(each):.2f}-{each[-1]:.2f}x"
             verdict = "" if target is None else f"<= {target:.1f}x  {'met' if ratio <= target else 'NOT met'}"
-            print(f"  {name:9s} {way:12s} {ratio:5.2f}x   {verdict}")
+            print(f"  {name:9s} {way:12s} {ratio:5.2f}x   {spread:>17s}   {verdict}")
 
 if __name__ == "__main__":
     main()
