@@ -117,7 +117,7 @@ def timed_process(args: list[str], cwd: Path, env: dict[str, str] | None = None)
 
 def best(runs: int, measure):
     """The run of ``measure()`` (a tuple whose second item is CPU seconds) with the least CPU time."""
-    return min((measure() for _ in range(runs)), key=lambda r: r[1])
+    return least([measure() for _ in range(runs)])
 
 
 def interleaved(runs: int, measures: dict[str, Callable[[], tuple]]) -> dict[str, list[tuple]]:
@@ -212,8 +212,8 @@ def main() -> None:
                 print(f"{'':9s}  rs274:       {ref_wall:6.2f} s wall, {ref_cpu:6.2f} s CPU = "
                       f"{nlines / ref_cpu:>9,.0f} lines/s CPU; canon/rs274 CPU: in process "
                       f"{cpu / ref_cpu:.2f}x, canon check {check_cpu / ref_cpu:.2f}x")
-                for way in ("in process", "canon check"):
-                    ratios[(name, way)] = least(results[way])[1] / ref_cpu
+                for way, mine in (("in process", cpu), ("canon check", check_cpu)):
+                    ratios[(name, way)] = mine / ref_cpu
                     rounds[(name, way)] = sorted(
                         mine[1] / ref[1] for mine, ref in zip(results[way], results["rs274"], strict=True))
         wall, cpu = best(runs, lambda: timed_process([*check, str(one)], Path(tmp), env))

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import importlib.util
 import itertools
-import sys
 from pathlib import Path
 from types import ModuleType
 
@@ -16,7 +15,6 @@ def bench() -> ModuleType:
     spec = importlib.util.spec_from_file_location("bench_interpreter", ROOT / "bench" / "interpreter.py")
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault(spec.name, module)
     spec.loader.exec_module(module)
     return module
 

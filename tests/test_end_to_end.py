@@ -170,28 +170,36 @@ class Hmi:
     def latest(self) -> Any:
         return self.statuses[-1][1] if self.statuses else None
 
-    def wait(self, pred: Callable[[Any], bool], timeout: float = 15.0, what: str = "") -> Any:
+    def pump_until(self, find: Callable[[], Any], timeout: float) -> Any:
+        """What ``find()`` returns once it is not None, pumping 20 ms before each try, for up to
+        ``timeout`` (None after it)."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             self.pump(0.02)
+            found = find()
+            if found is not None:
+                return found
+        return None
+
+    def wait(self, pred: Callable[[Any], bool], timeout: float = 15.0, what: str = "") -> Any:
+        def accepted() -> Any:
             s = self.latest()
-            if s is not None and pred(s):
-                return s
-        s = self.latest()
-        raise AssertionError(f"status never showed {what}: last {s.state if s else None!r} "
-                             f"{s.last_error if s else ''!r}")
+            return s if s is not None and pred(s) else None
+
+        s = self.pump_until(accepted, timeout)
+        if s is None:
+            s = self.latest()
+            raise AssertionError(f"status never showed {what}: last {s.state if s else None!r} "
+                                 f"{s.last_error if s else ''!r}")
+        return s
 
     def wait_event(self, pred: Callable[[Any], bool], timeout: float = 5.0, what: str = "") -> Any:
         """The first event ``pred`` accepts, pumped for up to ``timeout``: an event and the status
         that follows the same fault come on two channels from two threads, in either order."""
-        deadline = time.monotonic() + timeout
-        while True:
-            found = next((e for e in self.events if pred(e)), None)
-            if found is not None:
-                return found
-            if time.monotonic() > deadline:
-                raise AssertionError(f"no {what} event: got {[e.kind for e in self.events]}")
-            self.pump(0.02)
+        found = self.pump_until(lambda: next((e for e in self.events if pred(e)), None), timeout)
+        if found is None:
+            raise AssertionError(f"no {what} event: got {[e.kind for e in self.events]}")
+        return found
 
 
 class Rig:
