@@ -12,6 +12,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from canopen_helpers import LocalListener as Listener
@@ -19,6 +20,7 @@ from canopen_helpers import unique_channel
 
 from fieldbus.canopen.clock import PeriodicRunner
 from fieldbus.canopen.master import CanopenMaster
+from fieldbus.canopen.master_supervision import SupervisionMixin
 from fieldbus.canopen.sync_process import SyncProcess, SyncProcessError
 from motiond.config_canopen import read_canopen
 from motiond.configkit import ConfigError, Table
@@ -145,6 +147,57 @@ def test_a_killed_sync_process_is_a_fault_of_the_master_naming_it(local_rig):
     assert runner.join(60.0)
     assert master.fault is not None and master.fault.node == 0, (master.fault, runner.error, done[0])
     assert "no SYNC on the bus" in master.fault.reason and "the SYNC process stopped" in master.fault.reason
+
+
+def test_a_cycle_stalled_while_the_sync_process_goes_on_is_named_so(local_rig):
+    """The other side of the same watch: the SYNC process goes on sending while the cycle stalls
+    beyond the timeout: the master names its own cycle, not the SYNC."""
+    rig, _listener = local_rig(1, cycle_s=0.002, feedback_timeout_s=0.3)
+    rig.up()
+    master = rig.master
+    done = [0]
+
+    def step(k: int, t: float) -> bool:
+        done[0] += 1
+        if done[0] == 50:
+            time.sleep(0.8)  # the cycle thread held up; the SYNC process's SYNC goes on
+        master.cycle([0.0])
+        return master.fault is None
+
+    runner = PeriodicRunner(0.002, step, cycles=3000, tick=master.sync_tick).start()
+    assert runner.join(60.0)
+    assert master.fault is not None and master.fault.node == 0, (master.fault, runner.error, done[0])
+    assert "sent no setpoint" in master.fault.reason and "SYNC went on" in master.fault.reason, master.fault
+
+
+class _Watch:
+    """The state the master's SYNC watch reads, set by hand: a race made exact."""
+
+    def __init__(self, *, last_sent: float, reader_sync_at: float) -> None:
+        self.config = SimpleNamespace(feedback_timeout_s=0.3)
+        self._kernel_sync = SimpleNamespace(timer=object())  # the SYNC process
+        self._last_sent, self._reader_sync_at, self._stream_t0 = last_sent, reader_sync_at, 1.0
+        self.faults: list[str] = []
+
+    def raise_fault(self, node: int, reason: str) -> None:
+        self.faults.append(reason)
+
+
+def test_the_last_sync_read_after_the_last_push_is_still_the_syncs_silence():
+    """Seen in CI: the SYNC process killed, the bus reader read its last SYNC 1 ms after the cycle's
+    last push. The clock then passed the limit since the push before the one since the SYNC: the watch
+    named a stalled cycle "while the SYNC went on", though no SYNC came after the push. It waits for
+    the SYNC's own silence, and names that."""
+    w = _Watch(last_sent=10.000, reader_sync_at=10.001)
+    assert not SupervisionMixin._sync_stalled(w, 10.3005)  # type: ignore[arg-type]
+    assert w.faults == []
+    assert SupervisionMixin._sync_stalled(w, 10.3015)  # type: ignore[arg-type]
+    assert len(w.faults) == 1 and "no SYNC on the bus" in w.faults[0], w.faults
+    assert "the SYNC process stopped" in w.faults[0]
+    # SYNCs still read long after the last push: the cycle's stall, named so
+    w = _Watch(last_sent=10.000, reader_sync_at=10.302)
+    assert SupervisionMixin._sync_stalled(w, 10.3025)  # type: ignore[arg-type]
+    assert len(w.faults) == 1 and "SYNC went on" in w.faults[0], w.faults
 
 
 KILLED = """

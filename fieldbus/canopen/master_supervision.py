@@ -193,7 +193,7 @@ class SupervisionMixin(MasterCore):
     def _sync_stalled(self, now: float) -> bool:
         """A fault (True) when the SYNC or the setpoints stopped for ``feedback_timeout_s``: the
         master's SYNC when its cycle stalled; with the kernel's SYNC, the SYNC itself (its task stopped,
-        the interface down) or the RPDOs (the cycle stalled while the SYNC went on)."""
+        the interface down) or the RPDOs (the cycle stalled while SYNCs were still seen)."""
         limit = self.config.feedback_timeout_s
         gap = now - self._last_sent if self._last_sent else 0.0
         ks = self._kernel_sync
@@ -211,7 +211,10 @@ class SupervisionMixin(MasterCore):
             self.raise_fault(0, f"no SYNC on the bus for {1000 * quiet:.0f} ms (limit {1000 * limit:g} ms): "
                                 f"{why} or the master's bus reader stalled")
             return True
-        if gap > limit:
+        # the SYNC went on: one was seen more than the limit after the last setpoints, not merely the
+        # clock past it (the bus reader can read the last SYNC before a kill just after the cycle's
+        # push: the silence since then is the SYNC's, and the check above names it once it is due)
+        if self._last_sent and self._reader_sync_at - self._last_sent > limit:
             self.raise_fault(0, f"the master sent no setpoint for {1000 * gap:.0f} ms (limit "
                                 f"{1000 * limit:g} ms) while the {'SYNC process' if process else 'kernel'}'s "
                                 "SYNC went on: its cycle stalled, the drives held their last target")
