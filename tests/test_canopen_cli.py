@@ -11,7 +11,7 @@ import time
 import can.interfaces.virtual as virtual
 import pytest
 from canopen_helpers import Rig, make_config
-from test_motion_process import fifo_allowed
+from motion_process_helpers import fifo_allowed
 
 from fieldbus.canopen.dump import describe, name_of
 from motiond import cmd_can_dump

@@ -382,7 +382,7 @@ def test_gcode_error_mid_program_faults_with_file_and_line(daemon: Daemon) -> No
 def test_late_cycle_is_a_fault(tmp_path: Path) -> None:
     # the cycle thread is stalled from within its process (_on_cycle): the demo machine's motion in a
     # thread of this process, where the test can reach it, whatever "auto" picks (a motion process of
-    # its own is hung by SIGSTOP in tests/test_motion_process.py)
+    # its own is hung by SIGSTOP in tests/test_motion_process_watch.py)
     d = Daemon(tmp_path, late_fault_s=0.1, config=demo_with_motion("thread"))
     try:
         d.ready()

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 from canopen_helpers import Rig, make_config
-from test_motion_process import group, own_mode
+from motion_process_helpers import group, own_mode
 from test_run_from_line import wait_for
 
 from fieldbus.canopen.drive_sim import SimDrive

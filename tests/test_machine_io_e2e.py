@@ -14,7 +14,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from test_motion_process import OWN, fifo_allowed, own_mode, thread_policy
+from motion_process_helpers import OWN, fifo_allowed, own_mode, thread_policy
 from test_run_from_line import Recorder, wait_for
 
 from motiond.config import load_machine

@@ -6,70 +6,55 @@ third process (``canon sim drives``), so they run only inside the private networ
 the drives; killing the task process mid-move quick-stops the drives (the motion process sees its pipes
 close); killing the motion process mid-move makes the drives fault by their heartbeat consumer and the
 task side reports which process died and how; stopping either process (SIGSTOP: alive but hung)
-trips the liveness watch of the other (``[motion] task_timeout_ms``, ``motion_timeout_ms``).
+trips the liveness watch of the other: tests/test_motion_process_watch.py. What the two share is in
+tests/motion_process_helpers.py.
 """
 
 from __future__ import annotations
 
-import contextlib
 import os
-import queue
 import signal
 import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from motion_process_helpers import (
+    LONG,
+    ROOT,
+    SHORT,
+    TASK,
+    Bench,
+    drives_and_bench,
+    end_task,
+    fifo_allowed,
+    group,
+    machine_text,
+    moving_machine,
+    own_machine,
+    own_mode,
+    start_task,
+    thread_policies,
+    thread_policy,
+    wait_for,
+    write,
+)
 from test_canopen_multiprocess import DriveProcess
 
-from fieldbus.canopen.cia402 import State, decode
+from fieldbus.canopen.cia402 import State
 from motiond.configkit import ConfigError
 
-ROOT = Path(__file__).resolve().parent.parent
 
-LONG = "%\nG21 G90 G94\nG1 X100 F1500\nG1 X0\nM2\n%\n"
-SHORT = "%\nG21 G90 G94\nG1 X5 Y4 Z2 F1500\nM2\n%\n"
-
-
-def machine_text(interface: str, channel: str, *, simulate: bool, process: str = "own",
-                 extra: str = "", rt: int = 80) -> str:
-    """The test machine: ``rt``, the cycle's SCHED_FIFO priority (realtime_priority), as a machine on
-    a busy PC is configured (own_mode says why; refused when not root, and the test runs as it is)."""
-    axes = "".join(f"""
-[axes.{a}]
-max_velocity = {v}
-max_acceleration = 2000.0
-max_jerk = 50000.0
-quick_stop_deceleration = 5000.0
-""" for a, v in (("x", 200.0), ("y", 200.0), ("z", 100.0)))
-    drives = "".join(f"\n[canopen.axes.{a}]\nnode_id = {i + 1}\n" for i, a in enumerate("xyz"))
-    return f"""[machine]
-name = "two processes"
-cycle_ms = 2.0
-{axes}
-[canopen]
-interface = "{interface}"
-channel = "{channel}"
-heartbeat_producer_ms = 100
-heartbeat_consumer_ms = 1000
-sdo_timeout_s = 1.0
-realtime_priority = {rt}
-simulate = {str(simulate).lower()}
-{drives}
-[motion]
-process = "{process}"
-{extra}"""
+@pytest.fixture
+def rig(tmp_path: Path) -> Iterator[tuple[Path, str, Bench]]:
+    """The test machine file, its drives in a process of their own, the test's SDO bench."""
+    with drives_and_bench(tmp_path) as r:
+        yield r
 
 
-def write(tmp_path: Path, text: str) -> Path:
-    p = tmp_path / "machine.toml"
-    p.write_text(text)
-    return p
-
-
-# ---------------------------------------------------------------------- configuration (anywhere)
 
 def check(path: Path) -> str:
     from motiond.config_check import validate_machine
@@ -273,99 +258,6 @@ def test_the_motion_process_ranks_its_threads_below_a_realtime_cycle(monkeypatch
     assert "stay at normal priority" in warned[0] and "SCHED_FIFO 79" in warned[0], warned
 
 
-# ---------------------------------------------------------------------- in the namespace
-
-multicast = [pytest.mark.multicast, pytest.mark.timeout(120)]
-
-
-def group() -> str:
-    return f"239.74.166.{1 + os.getpid() % 250}"
-
-
-def own_mode(text: str) -> str:
-    """A machine file's ``text`` (simulated drives on the virtual bus) with the motion in a process of
-    its own: the simulated drives then run in a third process, on udp_multicast (the namespace only),
-    answering SDO within 1 s as this file's machine (a loaded PC, udp_multicast). The thread-mode
-    tests of the I/O map and the probes run their bodies on it too.
-
-    With a SCHED_FIFO cycle (``realtime_priority``), as a machine on a busy PC is configured: the
-    master keeps real drives' limits here (a TPDO 100 ms late is a fault), and at normal priority two
-    CPU hogs stalled the drives' process or the master's reader past it ("no TPDO for 102-107 ms") and
-    the task's ping past the 500 ms watch. Not root: refused, logged, and the test runs as it is."""
-    lines = [line for line in text.splitlines() if not line.startswith(("interface =", "channel ="))]
-    lines = [line for line in lines if not line.startswith(("sdo_timeout_s =", "realtime_priority ="))]
-    out = "\n".join(lines).replace("[canopen]\n", f'[canopen]\ninterface = "udp_multicast"\n'
-                                                 f'channel = "{group()}"\nsdo_timeout_s = 1.0\n'
-                                                 'realtime_priority = 80\n', 1)
-    return out + '\n[motion]\nprocess = "own"\n'
-
-
-OWN = pytest.param("own", marks=[pytest.mark.multicast, pytest.mark.timeout(180)])
-"""The ``own`` case of a test parametrized over the motion's process mode."""
-
-
-class Bench:
-    """The test's own CANopen client on the drives' bus (SDO reads only, as a bench on a real bus)."""
-
-    def __init__(self, channel: str) -> None:
-        import canopen
-
-        from fieldbus.canopen import SHIPPED_EDS
-        from fieldbus.canopen.config import CanBusConfig
-
-        self.network = canopen.Network()
-        self.network.connect(**CanBusConfig("udp_multicast", channel).bus_kwargs())  # hop_limit 0
-        self.nodes = []
-        for node_id in (1, 2, 3):
-            node = self.network.add_node(node_id, str(SHIPPED_EDS))
-            node.sdo.RESPONSE_TIMEOUT = 1.0  # a loaded PC; udp_multicast may lose a frame: retry
-            node.sdo.MAX_RETRIES = 3
-            self.nodes.append(node)
-
-    def states(self) -> list[State]:
-        return [decode(node.sdo[0x6041].raw) for node in self.nodes]
-
-    def wait_states(self, ok: object, timeout: float, what: str) -> list[State]:
-        deadline = time.monotonic() + timeout
-        seen: list[State] = []
-        while time.monotonic() < deadline:
-            seen = self.states()
-            if ok(seen):  # type: ignore[operator]
-                return seen
-            time.sleep(0.02)
-        raise AssertionError(f"{what}: drives in {seen}")
-
-    def close(self) -> None:
-        self.network.disconnect()
-
-
-@pytest.fixture
-def rig(tmp_path: Path):
-    channel = group()
-    path = write(tmp_path, machine_text("udp_multicast", channel, simulate=False))
-    drives = DriveProcess(path)
-    bench = Bench(channel)
-    yield path, channel, bench
-    bench.close()
-    drives.stop()
-
-
-def own_machine(path: Path):
-    from motiond.config import load_machine
-    from motiond.runtime import Machine
-
-    # as tests/test_end_to_end.py's daemon: generous, the test PC is shared and loaded
-    return Machine(load_machine(str(path)), late_fault_s=1.0, feedback_timeout_s=0.4)
-
-
-def wait_for(cond: object, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():  # type: ignore[operator]
-        if time.monotonic() > deadline:
-            raise AssertionError(what)
-        time.sleep(0.01)
-
-
 @pytest.mark.multicast
 @pytest.mark.timeout(120)
 def test_a_program_runs_through_the_motion_process(rig, tmp_path: Path) -> None:
@@ -451,45 +343,6 @@ def test_estop_on_the_urgent_pipe_stops_the_drives_mid_move(rig, tmp_path: Path)
         assert all(s is not State.OPERATION_ENABLED for s in bench.states())
 
 
-def fifo_allowed() -> bool:
-    """Whether this process may use SCHED_FIFO (tried on a thread of its own, which then ends)."""
-    ok: list[bool] = []
-
-    def probe() -> None:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
-            ok.append(True)
-        except (AttributeError, OSError):
-            ok.append(False)
-
-    t = threading.Thread(target=probe)
-    t.start()
-    t.join()
-    return ok[0]
-
-
-def thread_policies(pid: int) -> list[tuple[int, int]]:
-    """(policy, real-time priority) of each thread of ``pid`` (/proc/PID/task/TID/stat)."""
-    out = []
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        with contextlib.suppress(OSError):
-            out.append(task_policy(task))
-    return out
-
-
-def task_policy(task: Path) -> tuple[int, int]:
-    """(policy, real-time priority) of the thread whose /proc directory is ``task``."""
-    fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
-    return int(fields[38]), int(fields[37])
-
-
-def thread_policy(native_id: int | None) -> tuple[int, int]:
-    """(policy, real-time priority) of this process's thread ``native_id`` (-1, -1: gone)."""
-    try:
-        return task_policy(Path(f"/proc/self/task/{native_id}"))
-    except OSError:
-        return -1, -1
-
 
 @pytest.mark.multicast
 @pytest.mark.timeout(120)
@@ -567,27 +420,6 @@ def test_the_motion_process_leaves_even_with_a_worker_thread_stuck() -> None:
     assert p.returncode == 3 and "leaving" in p.stdout, p.stderr
 
 
-TASK = """
-import sys, time
-from motiond.config import load_machine
-from motiond.runtime import Machine
-m = Machine(load_machine(sys.argv[1]), late_fault_s=1.0, feedback_timeout_s=0.4).start()
-m.bring_up()
-m.run(sys.argv[2])
-while m.motion.commanded[0] < 5.0:
-    time.sleep(0.01)
-print("moving", m.motion.pid, flush=True)
-time.sleep(60)
-"""
-
-
-def start_task(script: str, path: Path, tmp_path: Path) -> subprocess.Popen[str]:
-    """A task process running ``script`` (TASK ...) on the machine file, the long program."""
-    prog = tmp_path / "long.ngc"
-    prog.write_text(LONG)
-    return subprocess.Popen([sys.executable, "-c", script, str(path), str(prog)], cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-
 
 @pytest.mark.multicast
 @pytest.mark.timeout(120)
@@ -623,29 +455,6 @@ def test_killing_the_task_process_mid_move_quick_stops_the_drives(rig, tmp_path:
     finally:
         end_task(task, motion_pid)
 
-
-def end_task(task: subprocess.Popen[str], motion_pid: int) -> None:
-    """The task process (continued, if stopped) and its motion process: killed if still there."""
-    with contextlib.suppress(ProcessLookupError):
-        task.send_signal(signal.SIGCONT)
-    if task.poll() is None:
-        task.kill()
-        task.wait(5.0)
-    if motion_pid:
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(motion_pid, signal.SIGKILL)
-
-
-@contextlib.contextmanager
-def moving_machine(path: Path, tmp_path: Path):
-    """A machine in this process running the long program, past X 5 (its job with it)."""
-    prog = tmp_path / "long.ngc"
-    prog.write_text(LONG)
-    with own_machine(path) as m:
-        m.bring_up()
-        job = m.run(str(prog))
-        wait_for(lambda: m.motion.commanded[0] > 5.0, 30.0, "moving")
-        yield m, job
 
 
 @pytest.mark.multicast
@@ -794,223 +603,3 @@ def test_estop_during_a_flood_reaches_the_drives_within_a_cycle_of_its_arrival(t
     assert cycle_after - cycle_then <= 1, (cycle_then, cycle_after)
 
 
-WATCHED_TASK = TASK.replace("time.sleep(60)", """
-deadline = time.monotonic() + 60
-while m.states.state.value != "faulted" and time.monotonic() < deadline:
-    time.sleep(0.01)
-print("state", m.states.state.value, m.last_error, flush=True)
-m.shutdown()
-""")
-
-
-def lines_of(proc: subprocess.Popen[str]) -> queue.Queue[str]:
-    """The process's output lines, read by a thread (so that each wait for one is bounded)."""
-    q: queue.Queue[str] = queue.Queue()
-
-    def read() -> None:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            q.put(line)
-
-    threading.Thread(target=read, daemon=True).start()
-    return q
-
-
-def next_line(q: queue.Queue[str], prefix: str, timeout: float) -> str:
-    deadline = time.monotonic() + timeout
-    seen = []
-    while True:
-        try:
-            line = q.get(timeout=max(0.01, deadline - time.monotonic()))
-        except queue.Empty:
-            raise AssertionError(f"no line {prefix!r} in {timeout:g} s; saw {seen[-20:]}") from None
-        if line.startswith(prefix):
-            return line
-        seen.append(line)
-
-
-@pytest.mark.multicast
-@pytest.mark.timeout(120)
-def test_a_stopped_task_process_quick_stops_the_drives_and_is_told_when_it_runs_again(
-        rig, tmp_path: Path) -> None:
-    """SIGSTOP the task mid-move: alive, its pipes open, but no ping. The motion process quick-stops
-    the drives within task_timeout_ms (500 ms by default) and a bound; SIGCONT: the task faults with
-    the motion process's reason."""
-    path, _channel, bench = rig
-    task = start_task(WATCHED_TASK, path, tmp_path)
-    motion_pid = 0
-    try:
-        out = lines_of(task)
-        motion_pid = int(next_line(out, "moving", 60.0).split()[1])
-        assert bench.states() == [State.OPERATION_ENABLED] * 3
-        t0 = time.monotonic()
-        task.send_signal(signal.SIGSTOP)
-        # the 100 mm move takes 4 s: without the watch the drives would run on, enabled
-        states = bench.wait_states(lambda s: all(x in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)
-                                                 for x in s), 3.0, "quick stop after the task stopped")
-        took = time.monotonic() - t0
-        assert State.FAULT not in states
-        assert took < 0.5 + 2.0, took  # the timeout, plus the SDO reads of a loaded PC
-        bench.wait_states(lambda s: s == [State.SWITCH_ON_DISABLED] * 3, 3.0, "the ramp's end")
-        os.kill(motion_pid, 0)  # alive, its heartbeat going: stopped by the master, not by a fault
-        task.send_signal(signal.SIGCONT)
-        line = next_line(out, "state", 30.0)
-        assert line.startswith("state faulted"), line
-        assert "task process" in line and "no ping" in line and "quick-stopped" in line, line
-        assert task.wait(30.0) == 0
-    finally:
-        end_task(task, motion_pid)
-
-
-@pytest.mark.multicast
-@pytest.mark.timeout(120)
-def test_a_stopped_motion_process_faults_the_task_naming_it(rig, tmp_path: Path) -> None:
-    """SIGSTOP the motion process mid-move: its states stop while it lives. The task faults within
-    motion_timeout_ms and a bound, naming the motion process and how long it was silent; the drives
-    fault by their heartbeat consumer (the master is stopped too)."""
-    path, _channel, bench = rig
-    with moving_machine(path, tmp_path) as (m, job):
-        pid = m.motion.pid
-        t0 = time.monotonic()
-        os.kill(pid, signal.SIGSTOP)
-        try:
-            wait_for(lambda: m.states.state.value == "faulted", 0.5 + 2.0, "the task side faults")
-            assert time.monotonic() - t0 >= 0.5, "not before motion_timeout_ms"
-            err = m.last_error
-            assert f"motion process (pid {pid})" in err and "no state for" in err, err
-            silent_ms = float(err.split("no state for ")[1].split(" ms")[0])
-            assert 500 <= silent_ms < 2500, err
-            result = m.wait_job(job, 5.0)
-            assert result is not None and not result.ok
-            assert m.motion.proc.is_alive()
-            bench.wait_states(lambda s: s == [State.FAULT] * 3, 5.0, "heartbeat consumer fault")
-        finally:
-            os.kill(pid, signal.SIGCONT)
-
-
-# ---------------------------------------------------------------------- the watch's own stalls (anywhere)
-
-class Clock:
-    """``time`` for a watch under test: monotonic with jumps (the watcher's process stalled)."""
-
-    def __init__(self) -> None:
-        self.offset = 0.0
-        self.sleep = time.sleep
-
-    def monotonic(self) -> float:
-        return time.monotonic() + self.offset
-
-
-class Recorder:
-    """Stands in for the motion core or the task hooks: records the calls."""
-
-    def __init__(self) -> None:
-        self.calls: list[tuple[str, tuple[object, ...]]] = []
-
-    def __getattr__(self, name: str):
-        return lambda *args, **kw: self.calls.append((name, args))
-
-    def names(self) -> list[str]:
-        return [c[0] for c in self.calls]
-
-
-def test_the_motion_process_watch_trips_on_silence_not_on_its_own_stall(monkeypatch) -> None:
-    """The motion process's watch: not before the first ping; not when it was itself away (a jump
-    of its clock past the timeout, the pings then on time); on silence, the quick stop and a fault."""
-    from motiond.runtime import motion_proc
-
-    clock = Clock()
-    monkeypatch.setattr(motion_proc, "time", clock)
-    server = object.__new__(motion_proc.MotionServer)
-    server.done, server.orphaned = threading.Event(), threading.Event()
-    server.task_timeout_s, server.last_ping, server.task_silent, server.closing = 1.0, 0.0, False, False
-    server.silent_disabled = False
-    server.core = core = Recorder()
-    core.master = master = Recorder()
-    threading.Thread(target=server._watch, daemon=True).start()
-    try:
-        time.sleep(1.3)
-        assert core.calls == [], "tripped before the first ping"
-
-        pinged = [0.0]  # wall time of the last ping: the silence is counted from it
-
-        def ping_for(seconds: float) -> None:
-            end = time.monotonic() + seconds
-            while time.monotonic() < end:
-                pinged[0] = time.monotonic()  # before the ping: the watch counts from no earlier
-                server.last_ping = clock.monotonic()
-                time.sleep(0.05)
-
-        ping_for(0.3)
-        clock.offset += 2.0  # the whole process away 2 s: the pings waited in the pipe
-        time.sleep(0.1)
-        ping_for(0.3)
-        assert core.calls == [], "its own stall counted as the task's silence"
-        wait_for(lambda: "post_fault" in core.names(), 1.0 + 2.0, "the watch trips on silence")
-        # not before the timeout after the last ping (counted from the test's loop, not from its end:
-        # under load the loop's last sleep overran, and the watch rightly tripped 0.94 s after it)
-        assert time.monotonic() - pinged[0] >= 1.0
-        assert core.names()[0] == "quick_stop"
-        reason = dict(core.calls)["post_fault"][0]
-        assert "task process" in reason and "no ping for" in reason and "task_timeout_ms 1000" in reason
-        assert master.calls == [], "disabled at once: held first"
-        # still silent ORPHAN_HOLD_S later (1 s here, 30 s in service): the held drives are disabled,
-        # as for a dead task
-        monkeypatch.setattr(motion_proc, "ORPHAN_HOLD_S", 1.0)
-        wait_for(lambda: "disable" in master.names(), 5.0, "the drives disabled after the long silence")
-        assert time.monotonic() - pinged[0] >= 2.0
-        assert master.names() == ["disable"]
-    finally:
-        server.done.set()
-
-
-def test_the_task_watch_faults_on_silence_not_on_its_own_stall(monkeypatch) -> None:
-    """The task's watch of the motion process's states: not when the task itself was away (a clock
-    jump past the timeout); on silence of a live process, a quick stop sent and the fault naming it;
-    requests fail at once meanwhile; states again: re-armed."""
-    from types import SimpleNamespace
-
-    from motiond.config_motion import Watch
-    from motiond.runtime import motion_link, motion_proxy
-
-    clock = Clock()
-    monkeypatch.setattr(motion_proxy, "time", clock)  # the states' arrival
-    monkeypatch.setattr(motion_link, "time", clock)  # the watch
-    hooks = Recorder()
-    p = motion_proxy.MotionProxy(SimpleNamespace(names=("x",)), None, late_fault_s=1.0, simulated=True,
-                                 hooks=hooks, watch=Watch(1000.0, 1000.0))  # type: ignore[arg-type]
-    p.proc = SimpleNamespace(pid=4242)
-    p._conns = {"req": None}  # no pipes: the urgent calls go nowhere, requests as if open
-    sent: list[str] = []
-    p._urgent = lambda name, *args: sent.append(name)  # type: ignore[method-assign]
-    threading.Thread(target=p._ping, daemon=True).start()
-
-    def states_for(seconds: float) -> None:
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            p._take_state({"late_new": [], "stream": None})
-            time.sleep(0.02)
-
-    try:
-        states_for(0.3)
-        clock.offset += 2.0  # the task process away 2 s: the states waited in the pipe
-        time.sleep(0.2)
-        states_for(0.3)
-        assert not p.silent and "quick_stop" not in sent, p.silent
-        assert "ping" in sent
-        t0 = time.monotonic()
-        wait_for(lambda: p.silent, 1.0 + 2.0, "the task's watch trips")
-        assert time.monotonic() - t0 >= 1.0 - 0.05
-        assert "quick_stop" in sent
-        assert "motion process (pid 4242)" in p.silent and "no state for" in p.silent, p.silent
-        with pytest.raises(motion_proxy.MotionProcessGone, match="no state for"):
-            p.request("position", timeout=0.1)
-        p._dispatch.get(timeout=1.0)()  # the fault hook, as the canon-hooks thread runs it
-        assert hooks.calls == [("fault", (p.silent, "motiond"))]
-        n = sent.count("ping")
-        time.sleep(0.3)
-        assert sent.count("ping") == n, "no pings into the pipe of a hung process"
-        states_for(0.3)
-        assert not p.silent and sent.count("ping") > n, "re-armed when the states run again"
-    finally:
-        p._closing = True

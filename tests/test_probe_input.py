@@ -10,8 +10,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from motion_process_helpers import OWN, own_mode
 from test_machine_io import load
-from test_motion_process import OWN, own_mode
 from test_run_from_line import wait_for
 
 from motiond.config import load_machine

@@ -314,7 +314,7 @@ def test_canon_run_with_the_setpoints_ahead(tmp_path):
     import sys
     from pathlib import Path
 
-    from test_motion_process import SHORT, machine_text
+    from motion_process_helpers import SHORT, machine_text
 
     text = machine_text("canon_local", f"lead-{os.getpid()}", simulate=True)
     text = text.replace("simulate = true", 'simulate = true\nsync = "process"\nsetpoint_lead = 3', 1)

@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 from canopen_helpers import Rig, make_config, wait_for
-from test_motion_process import own_mode
+from motion_process_helpers import own_mode
 
 from fieldbus.canopen.drive_sim import SimDrive
 from fieldbus.canopen.master import CanopenError
@@ -110,7 +110,7 @@ node_id = 2
 {probe}
 """
 OWN_PROBE = pytest.param({"own": True}, marks=[pytest.mark.multicast, pytest.mark.timeout(180)])
-"""The probe machine with the motion in a process of its own (test_motion_process.own_mode)."""
+"""The probe machine with the motion in a process of its own (motion_process_helpers.own_mode)."""
 HEIGHT = -3.21237  # the surface the probe touches, mm: between two cycles' positions at any feed here
 
 
