@@ -11,6 +11,7 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -20,6 +21,7 @@ from canopen_helpers import unique_channel
 
 from fieldbus.canopen.clock import PeriodicRunner
 from fieldbus.canopen.master import CanopenMaster
+from fieldbus.canopen.master_records import Fault
 from fieldbus.canopen.master_supervision import SupervisionMixin
 from fieldbus.canopen.sync_process import SyncProcess, SyncProcessError
 from motiond.config_canopen import read_canopen
@@ -127,47 +129,41 @@ def test_no_sync_outlives_the_master_shut_down(local_rig):
     assert listener.syncs(0.0, after)  # it did send before
 
 
-def test_a_killed_sync_process_is_a_fault_of_the_master_naming_it(local_rig):
-    """Seen either way, the same words: by the SYNC's silence on the bus, or (first, when the cycle
-    writes to it) by the SYNC process's input being gone."""
+def master_fault_after(local_rig, act: Callable[[CanopenMaster], None]) -> Fault:
+    """A 2 ms cycle paced by the SYNC process with one drive (timeout 300 ms), ``act`` done before its
+    50th cycle, run until the master faults (at most 3,000 cycles): that fault, the master's own."""
     rig, _listener = local_rig(1, cycle_s=0.002, feedback_timeout_s=0.3)
     rig.up()
     master = rig.master
-    pid = master._kernel_sync.timer.pid  # type: ignore[union-attr]
     done = [0]
 
     def step(k: int, t: float) -> bool:
         done[0] += 1
         if done[0] == 50:
-            os.kill(pid, signal.SIGKILL)
+            act(master)
         master.cycle([0.0])
         return master.fault is None
 
     runner = PeriodicRunner(0.002, step, cycles=3000, tick=master.sync_tick).start()
     assert runner.join(60.0)
     assert master.fault is not None and master.fault.node == 0, (master.fault, runner.error, done[0])
-    assert "no SYNC on the bus" in master.fault.reason and "the SYNC process stopped" in master.fault.reason
+    return master.fault
+
+
+def test_a_killed_sync_process_is_a_fault_of_the_master_naming_it(local_rig):
+    """Seen either way, the same words: by the SYNC's silence on the bus, or (first, when the cycle
+    writes to it) by the SYNC process's input being gone."""
+    fault = master_fault_after(
+        local_rig, lambda m: os.kill(m._kernel_sync.timer.pid, signal.SIGKILL))  # type: ignore[union-attr]
+    assert "no SYNC on the bus" in fault.reason and "the SYNC process stopped" in fault.reason
 
 
 def test_a_cycle_stalled_while_the_sync_process_goes_on_is_named_so(local_rig):
     """The other side of the same watch: the SYNC process goes on sending while the cycle stalls
     beyond the timeout: the master names its own cycle, not the SYNC."""
-    rig, _listener = local_rig(1, cycle_s=0.002, feedback_timeout_s=0.3)
-    rig.up()
-    master = rig.master
-    done = [0]
-
-    def step(k: int, t: float) -> bool:
-        done[0] += 1
-        if done[0] == 50:
-            time.sleep(0.8)  # the cycle thread held up; the SYNC process's SYNC goes on
-        master.cycle([0.0])
-        return master.fault is None
-
-    runner = PeriodicRunner(0.002, step, cycles=3000, tick=master.sync_tick).start()
-    assert runner.join(60.0)
-    assert master.fault is not None and master.fault.node == 0, (master.fault, runner.error, done[0])
-    assert "sent no setpoint" in master.fault.reason and "SYNC went on" in master.fault.reason, master.fault
+    # the cycle thread held up; the SYNC process's SYNC goes on
+    fault = master_fault_after(local_rig, lambda m: time.sleep(0.8))
+    assert "sent no setpoint" in fault.reason and "SYNC went on" in fault.reason, fault
 
 
 class _Watch:
